@@ -1,0 +1,40 @@
+"""The ego car: highway-env's kinematic bicycle model driven by ``[steer, throttle_brake]``."""
+
+from __future__ import annotations
+
+import numpy as np
+from highway_env.road.road import Road
+from highway_env.vehicle.kinematics import Vehicle
+
+
+class EgoVehicle(Vehicle):
+    """Bicycle-model car. Steer maps to the wheel-angle limit; throttle_brake > 0 accelerates up to
+    ``MAX_ACCEL_MPS2``, < 0 brakes up to ``MAX_BRAKE_MPS2``. It never reverses."""
+
+    LENGTH = 4.6
+    WIDTH = 1.9
+    HEIGHT = 1.5
+    MAX_STEER_RAD = 0.6
+    MAX_ACCEL_MPS2 = 3.5
+    MAX_BRAKE_MPS2 = 8.0
+    DRAG_MPS2 = 0.15
+    MAX_SPEED = 25.0
+
+    def __init__(self, road: Road, position: np.ndarray, heading: float, speed: float = 0.0) -> None:
+        super().__init__(road, position, heading, speed)
+        self.last_action = np.zeros(2, dtype=np.float32)
+
+    def on_state_update(self) -> None:
+        """The world locates the ego on the town's lanes itself (spatial hash), so nothing here."""
+
+    def apply(self, action: np.ndarray) -> None:
+        steer, throttle_brake = np.clip(np.asarray(action, dtype=np.float64).reshape(2), -1.0, 1.0)
+        accel = throttle_brake * (self.MAX_ACCEL_MPS2 if throttle_brake >= 0 else self.MAX_BRAKE_MPS2)
+        if self.speed > 0:
+            accel -= self.DRAG_MPS2
+        self.last_action = np.array([steer, throttle_brake], dtype=np.float32)
+        self.action = {"steering": float(steer * self.MAX_STEER_RAD), "acceleration": float(accel)}
+
+    def step(self, dt: float) -> None:
+        super().step(dt)
+        self.speed = float(np.clip(self.speed, 0.0, self.MAX_SPEED))

@@ -1,0 +1,53 @@
+"""Shared vocabulary between the world and the renderer: semantic classes, light states, and the
+snapshot of a moving object. The world fills these in; the renderer only reads them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+
+
+class SemanticClass(IntEnum):
+    """Per-pixel class ids of the segmentation map (channel 0)."""
+
+    SKY = 0
+    GROUND = 1  # grass, parks
+    ROAD = 2
+    LANE_MARKING = 3  # centre, divider and edge lines
+    STOP_LINE = 4
+    CROSSWALK = 5
+    SIDEWALK = 6
+    BUILDING = 7
+    VEGETATION = 8
+    POLE = 9  # light poles and mast arms
+    TRAFFIC_LIGHT = 10  # the light's housing
+    TRAFFIC_LAMP = 11  # the three lamps of a light (lit or dark)
+    CAR = 12
+    TRUCK = 13
+    PEDESTRIAN = 14
+
+
+class LightState(IntEnum):
+    GREEN = 0
+    YELLOW = 1
+    RED = 2
+
+
+@dataclass(frozen=True)
+class ObjectSnapshot:
+    """A moving object as the renderer and ground truth see it, in the map frame.
+
+    ``object_id`` is unique within a world and stable over an episode; it is what the
+    segmentation map's channel 1 holds for the object's pixels.
+    """
+
+    object_id: int
+    kind: SemanticClass  # CAR, TRUCK or PEDESTRIAN
+    x: float
+    y: float
+    heading: float
+    length_m: float
+    width_m: float
+    height_m: float
+    color: tuple[float, float, float]  # body (vehicles) or shirt (pedestrians), 0..1 RGB

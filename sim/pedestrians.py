@@ -1,0 +1,144 @@
+"""Pedestrians who walk round junction corners and cross at zebra crossings.
+
+A pedestrian waits at the kerb until the crossing's signal allows walking (the crossed arm's
+traffic has red for long enough to get across) and no vehicle is on or about to enter the
+crossing, then walks over; on the far kerb it turns the corner to the next crossing. Now and then
+(configurable) one jaywalks: crosses without waiting for the signal, still not into a car.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim.lights import TrafficLights
+from sim.objects import ObjectSnapshot, SemanticClass
+from sim.town import Crosswalk, Town
+
+SHIRT_COLORS = [(0.80, 0.15, 0.15), (0.15, 0.35, 0.75), (0.95, 0.85, 0.20), (0.20, 0.60, 0.30),
+                (0.90, 0.90, 0.90), (0.25, 0.25, 0.28), (0.85, 0.45, 0.10), (0.55, 0.25, 0.60)]
+
+
+@dataclass
+class Pedestrian:
+    object_id: int
+    position: np.ndarray
+    heading: float
+    speed_mps: float
+    color: tuple[float, float, float]
+    crosswalk: int  # the crossing it is at or on
+    at_start: bool  # which kerb of it (start or end) it waits at or walks from
+    state: str = "waiting"  # waiting | crossing | walking (round a corner)
+    target: np.ndarray | None = None
+    jaywalk: bool = False
+    moving: bool = False
+
+    LENGTH = 0.35
+    WIDTH = 0.55
+    HEIGHT = 1.75
+    RADIUS = 0.3
+
+    def snapshot(self) -> ObjectSnapshot:
+        return ObjectSnapshot(self.object_id, SemanticClass.PEDESTRIAN, float(self.position[0]),
+                              float(self.position[1]), float(self.heading), self.LENGTH, self.WIDTH,
+                              self.HEIGHT, self.color)
+
+
+class PedestrianCrowd:
+    """All pedestrians of a world and the rules they walk by."""
+
+    def __init__(self, town: Town, count: int, rng: np.random.Generator, first_id: int,
+                 jaywalk_probability: float = 0.0) -> None:
+        self.town = town
+        self.rng = rng
+        self.jaywalk_probability = jaywalk_probability
+        self.peds: list[Pedestrian] = []
+        self._corner_next = self._link_corners()
+        crosswalks = town.crosswalks
+        for k in range(count if crosswalks else 0):
+            cw = crosswalks[int(rng.integers(len(crosswalks)))]
+            at_start = bool(rng.random() < 0.5)
+            base = cw.start if at_start else cw.end
+            pos = base + rng.uniform(-0.8, 0.8, 2)
+            self.peds.append(Pedestrian(first_id + k, pos, 0.0, float(rng.uniform(1.1, 1.6)),
+                                        SHIRT_COLORS[int(rng.integers(len(SHIRT_COLORS)))], cw.index, at_start))
+
+    def _link_corners(self) -> dict[tuple[int, bool], tuple[int, bool]]:
+        """For each kerb end of a crossing, the end of the crossing round the same corner."""
+        ends = [(cw.index, s, cw.start if s else cw.end, cw.node) for cw in self.town.crosswalks for s in (True, False)]
+        links: dict[tuple[int, bool], tuple[int, bool]] = {}
+        for idx, s, p, node in ends:
+            best = None
+            for idx2, s2, p2, node2 in ends:
+                if node2 != node or idx2 == idx:
+                    continue
+                d = float(np.linalg.norm(p2 - p))
+                if d < 9.0 and (best is None or d < best[0]):
+                    best = (d, (idx2, s2))
+            links[(idx, s)] = best[1] if best else (idx, s)
+        return links
+
+    def walk_allowed(self, cw: Crosswalk, lights: TrafficLights, crossing_time_s: float) -> bool:
+        return lights.red_remaining_s(cw.approach) > crossing_time_s
+
+    @staticmethod
+    def _vehicle_blocks(cw: Crosswalk, vehicles: np.ndarray, speeds: np.ndarray, headings: np.ndarray,
+                        point: np.ndarray, radius_m: float) -> bool:
+        """A vehicle on the crossing near the pedestrian's line, or about to drive onto it."""
+        if len(vehicles) == 0:
+            return False
+        d = np.linalg.norm(vehicles - point, axis=1)
+        if np.any(d < radius_m):
+            return True
+        centre = cw.polygon.mean(axis=0)
+        to_cw = centre - vehicles
+        dist = np.linalg.norm(to_cw, axis=1)
+        heading_vec = np.stack([np.cos(headings), np.sin(headings)], axis=1)
+        approaching = np.sum(heading_vec * to_cw, axis=1) > 0
+        time_to = dist / np.maximum(speeds, 0.1)
+        return bool(np.any(approaching & (dist < 25.0) & (time_to < 4.0) & (speeds > 0.5)))
+
+    def step(self, dt: float, lights: TrafficLights, vehicles: np.ndarray, speeds: np.ndarray,
+             headings: np.ndarray) -> None:
+        for ped in self.peds:
+            cw = self.town.crosswalks[ped.crosswalk]
+            ped.moving = False
+            if ped.state == "waiting":
+                here = cw.start if ped.at_start else cw.end
+                there = cw.end if ped.at_start else cw.start
+                crossing_time = float(np.linalg.norm(there - here)) / ped.speed_mps + 1.0
+                if not ped.jaywalk and self.jaywalk_probability > 0 and self.rng.random() < self.jaywalk_probability * dt:
+                    ped.jaywalk = True
+                go = ped.jaywalk or self.walk_allowed(cw, lights, crossing_time)
+                if go and not self._vehicle_blocks(cw, vehicles, speeds, headings, ped.position, 7.0):
+                    ped.state, ped.target = "crossing", there.copy()
+            elif ped.state == "crossing":
+                ahead = ped.position + 1.2 * np.array([math.cos(ped.heading), math.sin(ped.heading)])
+                if len(vehicles) and np.any(np.linalg.norm(vehicles - ahead, axis=1) < 2.8):
+                    continue  # a car is in the way: wait on the crossing
+                if self._advance(ped, dt):
+                    ped.jaywalk = False
+                    ped.at_start = not ped.at_start
+                    nxt, nxt_start = self._corner_next[(ped.crosswalk, ped.at_start)]
+                    nxt_cw = self.town.crosswalks[nxt]
+                    ped.crosswalk, ped.at_start = nxt, nxt_start
+                    ped.state, ped.target = "walking", (nxt_cw.start if nxt_start else nxt_cw.end).copy()
+            elif ped.state == "walking" and self._advance(ped, dt):
+                ped.state, ped.target = "waiting", None
+
+    @staticmethod
+    def _advance(ped: Pedestrian, dt: float) -> bool:
+        """Walk towards the target; True on arrival."""
+        assert ped.target is not None
+        delta = ped.target - ped.position
+        dist = float(np.linalg.norm(delta))
+        step = ped.speed_mps * dt
+        if dist <= step:
+            ped.position = ped.target.copy()
+            return True
+        ped.heading = math.atan2(delta[1], delta[0])
+        ped.position = ped.position + delta / dist * step
+        ped.moving = True
+        return False

@@ -1,0 +1,497 @@
+"""Camera renderer: pybullet TinyRenderer (CPU, headless) plus a numpy post-process.
+
+The static town is a few merged meshes (see ``sim.scene_meshes``); each traffic light and each
+moving object is one multibody whose links carry lamps, cabins and wheels. ``render`` returns RGB,
+metric z-depth, per-pixel (semantic class, object id) and the intrinsics, all from one
+``getCameraImage`` call. Sky, colour grade, fog and night headlights are numpy post-processing,
+since TinyRenderer has no sky, no emissive materials and only one directional light.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import cv2
+import numpy as np
+import pybullet as p
+
+from sim.objects import LightState, ObjectSnapshot, SemanticClass
+from sim.scene_meshes import (
+    HOUSING_HALF,
+    LAMP_SPACING_M,
+    Z_SLAB,
+    build_static_groups,
+    light_lamp_disc,
+    to_world,
+    yaw_of,
+)
+from sim.town import Town
+
+LIGHT_ID_BASE = 10000  # segmentation object id of approach k's light: LIGHT_ID_BASE + k
+MAX_LINKS = 8  # links per body the segmentation lookup tables can tell apart
+HIDDEN_Z = -500.0  # where pooled, unused object bodies wait (below the ground, beyond the far plane)
+
+
+# --------------------------------------------------------------------------- camera
+@dataclass(frozen=True)
+class CameraConfig:
+    """A forward pinhole camera rigidly mounted on the vehicle."""
+
+    width: int = 320
+    height: int = 160
+    hfov_deg: float = 90.0
+    mount_height_m: float = 1.3
+    mount_forward_m: float = 1.0  # ahead of the vehicle centre
+    pitch_deg: float = -4.0  # negative looks down
+    near_m: float = 0.5
+    far_m: float = 250.0
+    stereo: bool = False
+    stereo_baseline_m: float = 0.12  # ZED-like
+
+    @property
+    def focal_px(self) -> float:
+        """Square-pixel focal length from the horizontal field of view."""
+        return (self.width / 2) / math.tan(math.radians(self.hfov_deg) / 2)
+
+    @property
+    def vfov_deg(self) -> float:
+        """Vertical field of view implied by hfov and the aspect ratio (what pybullet's projection takes)."""
+        return math.degrees(2 * math.atan((self.height / 2) / self.focal_px))
+
+    def intrinsics(self) -> np.ndarray:
+        """3x3 K so that ``K @ [X, Y, Z]`` (camera frame: x right, y down, z forward) lands on TinyRenderer's pixel.
+
+        TinyRenderer samples pixel i at viewport coordinate i (not i + 0.5), so the principal point
+        is (W/2, H/2) rather than ((W-1)/2, (H-1)/2); ``test`` in /tmp/render_demo.py checks this.
+        """
+        f = self.focal_px
+        return np.array([[f, 0.0, self.width / 2], [0.0, f, self.height / 2], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class CameraFrame:
+    """One camera image with its ground truth."""
+
+    rgb: np.ndarray  # HxWx3 uint8
+    depth_m: np.ndarray  # HxW float32, z-depth along the optical axis (far_m where there is only sky)
+    segmentation: np.ndarray  # HxWx2 int32: [..., 0] SemanticClass, [..., 1] object id (0 = static scenery)
+    intrinsics: np.ndarray  # 3x3 K
+
+
+# --------------------------------------------------------------------------- lighting
+@dataclass(frozen=True)
+class LightingPreset:
+    """TinyRenderer's sun and shading coefficients plus the numpy post-process of one time of day."""
+
+    light_direction: tuple[float, float, float]  # towards the sun, world frame (z up)
+    light_color: tuple[float, float, float]
+    ambient: float
+    diffuse: float
+    specular: float
+    sky_top: tuple[int, int, int]  # RGB at the top row of the image
+    sky_horizon: tuple[int, int, int]  # RGB at the horizon
+    gain: tuple[float, float, float] = (1.0, 1.0, 1.0)  # per-channel colour grade
+    lift: tuple[float, float, float] = (0.0, 0.0, 0.0)  # added after the gain, 0..255 units
+    fog_distance_m: float = 0.0  # 0 = no fog; else colour = mix(colour, sky_horizon, 1 - exp(-d / fog))
+    headlights: bool = False  # night: the ego's headlight cone lights the lower middle of the image
+    headlight_ambient: float = 1.0  # scene brightness outside the cone (multiplies the graded colour)
+    headlight_gain: float = 0.0  # extra brightness at the cone's centre, before distance falloff
+    emissive_windows: bool = False  # lit window bands glow
+    glow: float = 0.0  # strength of the bloom around emissive pixels
+
+
+LIGHTING_PRESETS: dict[str, LightingPreset] = {
+    "noon": LightingPreset(light_direction=(0.35, 0.25, 0.9), light_color=(1.0, 0.98, 0.92), ambient=0.55,
+                           diffuse=0.55, specular=0.05, sky_top=(70, 130, 215), sky_horizon=(175, 205, 235),
+                           fog_distance_m=600.0),
+    "dusk": LightingPreset(light_direction=(-0.9, 0.3, 0.18), light_color=(1.0, 0.7, 0.45), ambient=0.42,
+                           diffuse=0.6, specular=0.05, sky_top=(55, 60, 120), sky_horizon=(245, 150, 90),
+                           gain=(1.0, 0.82, 0.72), lift=(8.0, 2.0, 10.0), fog_distance_m=350.0, glow=0.6),
+    "overcast": LightingPreset(light_direction=(0.1, 0.2, 1.0), light_color=(0.9, 0.92, 0.95), ambient=0.72,
+                               diffuse=0.28, specular=0.0, sky_top=(150, 155, 162), sky_horizon=(196, 198, 202),
+                               gain=(0.95, 0.97, 1.0), fog_distance_m=180.0),
+    "night": LightingPreset(light_direction=(0.3, 0.5, 0.8), light_color=(0.6, 0.7, 1.0), ambient=0.6,
+                            diffuse=0.25, specular=0.0, sky_top=(3, 5, 14), sky_horizon=(22, 26, 44),
+                            gain=(0.55, 0.62, 0.85), fog_distance_m=0.0, headlights=True, headlight_ambient=0.22,
+                            headlight_gain=2.6, emissive_windows=True, glow=1.0),
+}
+
+
+# --------------------------------------------------------------------------- lamps and vehicles
+LAMP_ON_RGB = {LightState.RED: (1.0, 0.12, 0.08), LightState.YELLOW: (1.0, 0.72, 0.05),
+               LightState.GREEN: (0.15, 1.0, 0.35)}
+LAMP_OFF_RGB = {LightState.RED: (0.22, 0.06, 0.05), LightState.YELLOW: (0.22, 0.17, 0.04),
+                LightState.GREEN: (0.05, 0.18, 0.08)}
+LAMP_ORDER = (LightState.RED, LightState.YELLOW, LightState.GREEN)  # links 0, 1, 2: top to bottom
+HOUSING_RGB = (0.10, 0.10, 0.11)
+GLASS_RGB = (0.10, 0.13, 0.17)
+TYRE_RGB = (0.06, 0.06, 0.06)
+HEADLAMP_RGB = (1.0, 0.97, 0.85)
+TAILLAMP_RGB = (0.85, 0.05, 0.04)
+PANTS_RGB = (0.16, 0.17, 0.22)
+SKIN_RGB = (0.80, 0.62, 0.50)
+
+
+def _sun(preset: LightingPreset) -> np.ndarray:
+    d = np.asarray(preset.light_direction, float)
+    return d / np.linalg.norm(d)
+
+
+@dataclass
+class _Body:
+    """A pooled moving-object body and what it currently shows."""
+
+    uid: int
+    kind: SemanticClass
+    dims: tuple[float, float, float]
+    color: tuple[float, float, float] = (-1.0, -1.0, -1.0)
+    body_links: tuple[int, ...] = (-1,)  # links painted in the object's colour
+    lamp_links: dict[int, tuple[float, float, float]] = field(default_factory=dict)  # link -> emissive colour
+
+
+# --------------------------------------------------------------------------- renderer
+class SceneRenderer:
+    """Renders a town and its moving objects with its own pybullet DIRECT client."""
+
+    def __init__(self, town: Town, seed: int = 0) -> None:
+        self.town = town
+        self.client = p.connect(p.DIRECT)
+        self._cid = {"physicsClientId": self.client}
+        n = 4096
+        # Per (uid, link) lookup tables, index = uid * (MAX_LINKS + 1) + (link + 1); the last row is the sky.
+        self._class_lut = np.zeros(n * (MAX_LINKS + 1) + 1, np.int32)
+        self._id_lut = np.zeros_like(self._class_lut)
+        self._emissive = np.zeros((len(self._class_lut), 3), np.float32)  # 0..1 RGB, only where _emit_mask
+        self._emit_mask = np.zeros(len(self._class_lut), bool)
+        self._night_emit = np.zeros(len(self._class_lut), bool)  # emissive only when the preset says so
+        self.triangle_count = 0
+        self._build_static(seed)
+        self._light_bodies: list[int] = []
+        self._light_states: list[LightState | None] = []
+        self._build_lights()
+        self._pool: dict[tuple[SemanticClass, tuple[float, float, float]], list[_Body]] = {}
+        self._active: dict[int, _Body] = {}
+        self._shapes: dict[tuple, int] = {}
+
+    # ----------------------------------------------------------------- lookup tables
+    def _key(self, uid: int, link: int) -> int:
+        return uid * (MAX_LINKS + 1) + link + 1
+
+    def _ensure_lut(self, uid: int) -> None:
+        need = (uid + 1) * (MAX_LINKS + 1) + 1
+        if need <= len(self._class_lut):
+            return
+        size = max(need, 2 * len(self._class_lut))
+        for name in ("_class_lut", "_id_lut", "_emit_mask", "_night_emit"):
+            old = getattr(self, name)
+            new = np.zeros(size, old.dtype)
+            new[:len(old) - 1] = old[:-1]  # the sky row moves to the new end (it is all zeros)
+            setattr(self, name, new)
+        new_e = np.zeros((size, 3), np.float32)
+        new_e[:len(self._emissive) - 1] = self._emissive[:-1]
+        self._emissive = new_e
+
+    def _label(self, uid: int, links: Sequence[int], semantic: SemanticClass, object_id: int) -> None:
+        self._ensure_lut(uid)
+        for link in links:
+            k = self._key(uid, link)
+            self._class_lut[k] = int(semantic)
+            self._id_lut[k] = object_id
+
+    def _set_emissive(self, uid: int, link: int, rgb: tuple[float, float, float] | None, night_only: bool) -> None:
+        k = self._key(uid, link)
+        self._emit_mask[k] = rgb is not None
+        self._night_emit[k] = night_only and rgb is not None
+        if rgb is not None:
+            self._emissive[k] = rgb
+
+    # ----------------------------------------------------------------- static scene
+    def _build_static(self, seed: int) -> None:
+        for g in build_static_groups(self.town, seed):
+            v, idx, nrm = g.mesh.arrays()
+            vs = p.createVisualShape(p.GEOM_MESH, vertices=v, indices=idx, normals=nrm, rgbaColor=list(g.rgba),
+                                     specularColor=[0.0, 0.0, 0.0], **self._cid)
+            uid = p.createMultiBody(baseMass=0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=vs, **self._cid)
+            self._label(uid, [-1], g.semantic, 0)
+            if g.emissive_at_night is not None:
+                self._set_emissive(uid, -1, g.emissive_at_night, night_only=True)
+            self.triangle_count += g.mesh.triangle_count
+
+    def _build_lights(self) -> None:
+        """One multibody per approach: housing base, lamp links 0-2 (red, yellow, green) facing the traffic."""
+        hx, hy, hz = HOUSING_HALF
+        housing = p.createVisualShape(p.GEOM_BOX, halfExtents=[hx, hy, hz], rgbaColor=[*HOUSING_RGB, 1.0],
+                                      specularColor=[0.0, 0.0, 0.0], **self._cid)
+        v, idx, nrm = light_lamp_disc()
+        lamps = [p.createVisualShape(p.GEOM_MESH, vertices=v, indices=idx, normals=nrm,
+                                     rgbaColor=[*LAMP_OFF_RGB[s], 1.0], **self._cid) for s in LAMP_ORDER]
+        for ap in self.town.approaches:
+            pos = to_world(ap.light_head[0], ap.light_head[1], Town.LIGHT_HEAD_HEIGHT_M)
+            # Local +x must look at the oncoming traffic, i.e. along -travel_heading on the map.
+            orn = p.getQuaternionFromEuler([0.0, 0.0, yaw_of(ap.travel_heading + math.pi)])
+            uid = p.createMultiBody(
+                baseMass=0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=housing, basePosition=pos.tolist(),
+                baseOrientation=orn, linkMasses=[0.0] * 3, linkCollisionShapeIndices=[-1] * 3,
+                linkVisualShapeIndices=lamps,
+                linkPositions=[[hx + 0.02, 0.0, LAMP_SPACING_M * (1 - k)] for k in range(3)],
+                linkOrientations=[[0, 0, 0, 1]] * 3, linkInertialFramePositions=[[0, 0, 0]] * 3,
+                linkInertialFrameOrientations=[[0, 0, 0, 1]] * 3, linkParentIndices=[0] * 3,
+                linkJointTypes=[p.JOINT_FIXED] * 3, linkJointAxis=[[0, 0, 1]] * 3, **self._cid)
+            self._label(uid, [-1], SemanticClass.TRAFFIC_LIGHT, LIGHT_ID_BASE + ap.index)
+            self._label(uid, [0, 1, 2], SemanticClass.TRAFFIC_LAMP, LIGHT_ID_BASE + ap.index)
+            self._light_bodies.append(uid)
+            self._light_states.append(None)
+            self.triangle_count += 12 + 3 * 6
+
+    def set_light_states(self, states: Sequence[LightState]) -> None:
+        """Recolour lamps, touching pybullet only for lights whose state changed."""
+        for k, (uid, state) in enumerate(zip(self._light_bodies, states, strict=False)):
+            state = LightState(state)
+            if self._light_states[k] == state:
+                continue
+            for link, lamp in enumerate(LAMP_ORDER):
+                on = lamp == state
+                rgb = LAMP_ON_RGB[lamp] if on else LAMP_OFF_RGB[lamp]
+                p.changeVisualShape(uid, link, rgbaColor=[*rgb, 1.0], **self._cid)
+                self._set_emissive(uid, link, LAMP_ON_RGB[lamp] if on else None, night_only=False)
+            self._light_states[k] = state
+
+    # ----------------------------------------------------------------- moving objects
+    def _box_shape(self, half: Sequence[float], offset: Sequence[float], rgb: Sequence[float]) -> int:
+        key = ("box", tuple(round(float(h), 3) for h in half), tuple(round(float(o), 3) for o in offset),
+               tuple(round(float(c), 3) for c in rgb))
+        if key not in self._shapes:
+            self._shapes[key] = p.createVisualShape(p.GEOM_BOX, halfExtents=list(key[1]), visualFramePosition=list(key[2]),
+                                                    rgbaColor=[*key[3], 1.0], specularColor=[0.0, 0.0, 0.0],
+                                                    **self._cid)
+        return self._shapes[key]
+
+    def _box_array(self, halves: list[Sequence[float]], offsets: list[Sequence[float]], rgb: Sequence[float]) -> int:
+        key = ("array", tuple(tuple(round(float(h), 3) for h in hh) for hh in halves),
+               tuple(tuple(round(float(o), 3) for o in oo) for oo in offsets), tuple(round(float(c), 3) for c in rgb))
+        if key not in self._shapes:
+            self._shapes[key] = p.createVisualShapeArray(
+                shapeTypes=[p.GEOM_BOX] * len(halves), halfExtents=[list(h) for h in key[1]],
+                visualFramePositions=[list(o) for o in key[2]], **self._cid)
+        return self._shapes[key]
+
+    def _multibody(self, base: int, links: list[int]) -> int:
+        n = len(links)
+        return p.createMultiBody(
+            baseMass=0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=base, basePosition=[0, 0, HIDDEN_Z],
+            linkMasses=[0.0] * n, linkCollisionShapeIndices=[-1] * n, linkVisualShapeIndices=links,
+            linkPositions=[[0, 0, 0]] * n, linkOrientations=[[0, 0, 0, 1]] * n,
+            linkInertialFramePositions=[[0, 0, 0]] * n, linkInertialFrameOrientations=[[0, 0, 0, 1]] * n,
+            linkParentIndices=[0] * n, linkJointTypes=[p.JOINT_FIXED] * n, linkJointAxis=[[0, 0, 1]] * n, **self._cid)
+
+    def _new_body(self, kind: SemanticClass, dims: tuple[float, float, float]) -> _Body:
+        """Build the multibody of one object kind and size (colours are set on use)."""
+        length, width, height = dims
+        grey = (0.5, 0.5, 0.5)
+        if kind == SemanticClass.PEDESTRIAN:
+            w, d = max(width, 0.3), max(length, 0.2)
+            legs = self._box_shape([d * 0.3, w * 0.3, height * 0.23], [0, 0, height * 0.23], PANTS_RGB)
+            torso = self._box_shape([d * 0.42, w * 0.5, height * 0.19], [0, 0, height * 0.64], grey)
+            head = self._box_shape([0.11, 0.1, height * 0.07], [0.01, 0, height * 0.9], SKIN_RGB)
+            uid = self._multibody(legs, [torso, head])
+            body = _Body(uid, kind, dims, body_links=(0,))
+            links = [-1, 0, 1]
+        else:
+            truck = kind == SemanticClass.TRUCK
+            wheel_r = 0.45 if truck else 0.33
+            clear = 0.5 if truck else 0.22
+            wx, wy = length / 2 - (0.9 if truck else 0.75), width / 2 - 0.16
+            wheels = self._box_array([[wheel_r, 0.15, wheel_r]] * 4,
+                                     [[sx * wx, sy * wy, wheel_r] for sx in (-1, 1) for sy in (-1, 1)], TYRE_RGB)
+            lamp_z = clear + (0.55 if truck else 0.4)
+            heads = self._box_array([[0.03, 0.16, 0.08]] * 2,
+                                    [[length / 2 + 0.01, sy * (width / 2 - 0.28), lamp_z] for sy in (-1, 1)],
+                                    HEADLAMP_RGB)
+            tails = self._box_array([[0.03, 0.14, 0.08]] * 2,
+                                    [[-length / 2 - 0.01, sy * (width / 2 - 0.25), lamp_z] for sy in (-1, 1)],
+                                    TAILLAMP_RGB)
+            if truck:
+                cab_len = min(2.2, 0.3 * length)
+                cargo = self._box_shape([(length - cab_len) / 2 - 0.05, width / 2, (height - clear) / 2],
+                                        [-cab_len / 2, 0, (height + clear) / 2], grey)
+                cab_h = 0.8 * height
+                cab = self._box_shape([cab_len / 2, width / 2 - 0.05, (cab_h - clear) / 2],
+                                      [length / 2 - cab_len / 2, 0, (cab_h + clear) / 2], grey)
+                glass = self._box_shape([0.03, width / 2 - 0.2, 0.35 * (cab_h - clear) / 2],
+                                        [length / 2 + 0.01, 0, cab_h - 0.38 * (cab_h - clear) / 2 - 0.1], GLASS_RGB)
+                uid = self._multibody(cargo, [cab, wheels, heads, tails, glass])
+                body = _Body(uid, kind, dims, body_links=(-1, 0))
+                links = [-1, 0, 1, 2, 3, 4]
+            else:
+                belt = clear + 0.52 * (height - clear)
+                hull = self._box_shape([length / 2, width / 2, (belt - clear) / 2], [0, 0, (belt + clear) / 2], grey)
+                cabin = self._box_shape([0.27 * length, width / 2 - 0.1, (height - belt) / 2],
+                                        [-0.06 * length, 0, (height + belt) / 2], GLASS_RGB)
+                uid = self._multibody(hull, [cabin, wheels, heads, tails])
+                body = _Body(uid, kind, dims, body_links=(-1,))
+                links = [-1, 0, 1, 2, 3]
+            body.lamp_links = {2: HEADLAMP_RGB, 3: (1.0, 0.1, 0.06)}
+        self._label(uid, links, kind, 0)
+        for link, rgb in body.lamp_links.items():
+            self._set_emissive(uid, link, rgb, night_only=True)
+        return body
+
+    def sync(self, objects: Sequence[ObjectSnapshot], light_states: Sequence[LightState] = ()) -> None:
+        """Make the scene's moving objects and lamp colours match the world's snapshot."""
+        if light_states:
+            self.set_light_states(light_states)
+        seen = set()
+        for obj in objects:
+            seen.add(obj.object_id)
+            dims = (round(obj.length_m, 2), round(obj.width_m, 2), round(obj.height_m, 2))
+            body = self._active.get(obj.object_id)
+            if body is not None and (body.kind != obj.kind or body.dims != dims):
+                self._release(obj.object_id)
+                body = None
+            if body is None:
+                pool = self._pool.setdefault((obj.kind, dims), [])
+                body = pool.pop() if pool else self._new_body(obj.kind, dims)
+                self._active[obj.object_id] = body
+                self._label(body.uid, [-1, *range(MAX_LINKS)], obj.kind, obj.object_id)
+            color = tuple(round(float(c), 4) for c in obj.color)
+            if color != body.color:
+                for link in body.body_links:
+                    p.changeVisualShape(body.uid, link, rgbaColor=[*color, 1.0], **self._cid)
+                body.color = color  # type: ignore[assignment]
+            z = 0.0
+            if obj.kind == SemanticClass.PEDESTRIAN and not self.town.on_road(np.array([obj.x, obj.y]), 0.2):
+                z = Z_SLAB
+            pos = to_world(obj.x, obj.y, z)
+            orn = p.getQuaternionFromEuler([0.0, 0.0, yaw_of(obj.heading)])
+            p.resetBasePositionAndOrientation(body.uid, pos.tolist(), orn, **self._cid)
+        for oid in [k for k in self._active if k not in seen]:
+            self._release(oid)
+
+    def _release(self, object_id: int) -> None:
+        body = self._active.pop(object_id)
+        p.resetBasePositionAndOrientation(body.uid, [0.0, 0.0, HIDDEN_Z], [0, 0, 0, 1], **self._cid)
+        self._label(body.uid, [-1, *range(MAX_LINKS)], body.kind, 0)
+        self._pool.setdefault((body.kind, body.dims), []).append(body)
+
+    # ----------------------------------------------------------------- cameras
+    def camera_position(self, camera_pose: tuple[float, float, float], camera: CameraConfig,
+                        lateral_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """World-frame eye and unit forward vector of the camera for a vehicle pose (x, y, heading)."""
+        x, y, h = camera_pose
+        cx = x + camera.mount_forward_m * math.cos(h) - lateral_m * math.sin(h)
+        cy = y + camera.mount_forward_m * math.sin(h) + lateral_m * math.cos(h)
+        eye = to_world(cx, cy, camera.mount_height_m)
+        yaw, pitch = yaw_of(h), math.radians(camera.pitch_deg)
+        forward = np.array([math.cos(yaw) * math.cos(pitch), math.sin(yaw) * math.cos(pitch), math.sin(pitch)])
+        return eye, forward
+
+    def render(self, camera_pose: tuple[float, float, float], camera: CameraConfig | None = None,
+               lighting: str = "noon") -> CameraFrame:
+        """One frame from the camera on a vehicle at ``camera_pose`` = (x, y, heading) on the map."""
+        return self._render(camera_pose, camera or CameraConfig(), lighting, 0.0)
+
+    def render_stereo(self, camera_pose: tuple[float, float, float], camera: CameraConfig | None = None,
+                      lighting: str = "noon") -> tuple[CameraFrame, CameraFrame]:
+        """Left (reference) and right frames, each half a baseline off the mount point."""
+        camera = camera or CameraConfig(stereo=True)
+        half = camera.stereo_baseline_m / 2
+        return (self._render(camera_pose, camera, lighting, -half), self._render(camera_pose, camera, lighting, half))
+
+    def _render(self, camera_pose: tuple[float, float, float], camera: CameraConfig, lighting: str,
+                lateral_m: float) -> CameraFrame:
+        preset = LIGHTING_PRESETS[lighting]
+        eye, forward = self.camera_position(camera_pose, camera, lateral_m)
+        view = p.computeViewMatrix(eye.tolist(), (eye + forward).tolist(), [0.0, 0.0, 1.0], **self._cid)
+        proj = _projection(camera)
+        _, _, rgba, buf, seg = p.getCameraImage(
+            camera.width, camera.height, viewMatrix=view, projectionMatrix=proj, renderer=p.ER_TINY_RENDERER,
+            flags=p.ER_SEGMENTATION_MASK_OBJECT_AND_LINKINDEX, lightDirection=list(_sun(preset)),
+            lightColor=list(preset.light_color), lightAmbientCoeff=preset.ambient,
+            lightDiffuseCoeff=preset.diffuse, lightSpecularCoeff=preset.specular, shadow=0, **self._cid)
+        rgba = np.asarray(rgba, np.uint8).reshape(camera.height, camera.width, 4)
+        buf = np.asarray(buf, np.float32).reshape(camera.height, camera.width)
+        seg = np.asarray(seg, np.int32).reshape(camera.height, camera.width)
+        near, far = camera.near_m, camera.far_m
+        depth = (far * near / (far - (far - near) * buf)).astype(np.float32)
+        sky = seg < 0
+        key = (seg & 0xFFFFFF) * (MAX_LINKS + 1) + (seg >> 24)
+        key = np.where(sky, len(self._class_lut) - 1, key)
+        semantic = np.stack([self._class_lut[key], self._id_lut[key]], axis=-1)
+        rgb = self._post_process(rgba, depth, sky, key, camera, preset)
+        return CameraFrame(rgb, depth, semantic, camera.intrinsics())
+
+    def _post_process(self, rgba: np.ndarray, depth: np.ndarray, sky: np.ndarray, key: np.ndarray,
+                      camera: CameraConfig, preset: LightingPreset) -> np.ndarray:
+        """Sky gradient, fog, colour grade, night headlights and emissive lamps, all vectorised."""
+        img = rgba[..., :3].astype(np.float32)
+        gain = np.asarray(preset.gain, np.float32)
+        if preset.fog_distance_m > 0:
+            fog = (1.0 - np.exp(-depth / preset.fog_distance_m))[..., None]
+            img += (np.asarray(preset.sky_horizon, np.float32) - img) * fog
+        img *= gain
+        if any(preset.lift):
+            img += np.asarray(preset.lift, np.float32)
+        if preset.headlights:
+            cone = _headlight_cone(camera)
+            illum = preset.headlight_ambient + preset.headlight_gain * cone / (1.0 + (depth / 15.0) ** 2)
+            img *= illum[..., None]
+        emit = self._emit_mask[key]
+        if not preset.emissive_windows:
+            emit &= ~self._night_emit[key]
+        if emit.any():
+            glow_src = np.where(emit[..., None], self._emissive[key] * 255.0, 0.0).astype(np.float32)
+            img = np.where(emit[..., None], glow_src, img)
+            if preset.glow > 0:
+                sigma = max(0.8, camera.width / 220.0)
+                img += preset.glow * cv2.GaussianBlur(glow_src, (0, 0), sigma)
+        img = np.where(sky[..., None], _sky_image(camera, preset), img)
+        return np.clip(img, 0, 255).astype(np.uint8)
+
+    def close(self) -> None:
+        """Disconnect this renderer's pybullet client."""
+        if self.client >= 0:
+            p.disconnect(**self._cid)
+            self.client = -1
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001 - interpreter shutdown may have unloaded pybullet already
+            pass
+
+
+@lru_cache(maxsize=32)
+def _projection(camera: CameraConfig) -> tuple[float, ...]:
+    """OpenGL projection for the camera (cached: it depends only on the config)."""
+    return tuple(p.computeProjectionMatrixFOV(camera.vfov_deg, camera.width / camera.height,
+                                              camera.near_m, camera.far_m))
+
+
+@lru_cache(maxsize=32)
+def _headlight_cone(camera: CameraConfig) -> np.ndarray:
+    """Headlight footprint in the image: bright lower middle, soft edges, nothing above the horizon line."""
+    u = (np.arange(camera.width, dtype=np.float32) - camera.width / 2) / camera.focal_px  # tan of azimuth
+    v = (np.arange(camera.height, dtype=np.float32) - camera.height / 2) / camera.focal_px  # tan below axis
+    v = v + math.tan(math.radians(-camera.pitch_deg))  # relative to the horizontal
+    horiz = np.exp(-(u / 0.55) ** 2)
+    vert = np.clip((v + 0.06) / 0.12, 0.0, 1.0)
+    cone = (vert[:, None] * horiz[None, :]).astype(np.float32)
+    cone.setflags(write=False)
+    return cone
+
+
+@lru_cache(maxsize=32)
+def _sky_image(camera: CameraConfig, preset: LightingPreset) -> np.ndarray:
+    """Vertical sky gradient from the zenith colour to the horizon colour at the true horizon row."""
+    f = camera.focal_px
+    rows = np.arange(camera.height, dtype=np.float32)
+    elev = np.degrees(np.arctan((camera.height / 2 - rows) / f)) + camera.pitch_deg  # elevation of each row
+    t = np.clip(elev / 35.0, 0.0, 1.0) ** 0.7
+    top, hor = np.asarray(preset.sky_top, np.float32), np.asarray(preset.sky_horizon, np.float32)
+    col = hor[None, :] * (1 - t[:, None]) + top[None, :] * t[:, None]
+    img = np.repeat(col[:, None, :], camera.width, axis=1).astype(np.float32)
+    img.setflags(write=False)
+    return img

@@ -1,0 +1,96 @@
+"""Top-down map view drawn with OpenCV, for people and videos (not for drivers).
+
+The static town is drawn once into a cached image; each frame copies it and draws the lights,
+vehicles, pedestrians, the ego and its route on top.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+
+from sim.geometry import rect_corners
+from sim.town import Town
+
+if TYPE_CHECKING:
+    from sim.world import World
+
+LIGHT_BGR = {0: (60, 200, 60), 1: (40, 210, 240), 2: (50, 50, 230)}  # green, yellow, red (BGR)
+MARKING_RGB = {"dashed_white": (235, 235, 235), "solid_white": (235, 235, 235),
+               "solid_yellow": (240, 200, 40), "stop_line": (250, 250, 250), "crosswalk": (250, 250, 250)}
+
+
+class TopDownMap:
+    """Renders a town (and optionally a world's moving parts) as an RGB image."""
+
+    def __init__(self, town: Town, pixels_per_m: float = 2.0) -> None:
+        self.town = town
+        self.ppm = pixels_per_m
+        xmin, ymin, xmax, ymax = town.extent
+        self.origin = np.array([xmin, ymin])
+        self.size = (int((xmax - xmin) * self.ppm), int((ymax - ymin) * self.ppm))
+        self._static = self._draw_static()
+
+    def to_px(self, pts: np.ndarray) -> np.ndarray:
+        """Map-frame metres to integer pixel coordinates (OpenCV drawing is in int32)."""
+        return np.round((np.asarray(pts) - self.origin) * self.ppm).astype(np.int32)
+
+    def _poly(self, img: np.ndarray, poly: np.ndarray, rgb: tuple[int, int, int]) -> None:
+        cv2.fillConvexPoly(img, self.to_px(poly), rgb, lineType=cv2.LINE_AA)
+
+    def _draw_static(self) -> np.ndarray:
+        t = self.town
+        img = np.zeros((self.size[1], self.size[0], 3), np.uint8)
+        img[:] = (96, 140, 72)
+        for p in t.road_polygons:
+            self._poly(img, p, (62, 62, 66))
+        for p in t.slab_polygons:
+            self._poly(img, p, (178, 176, 170))
+        for p in t.grass_polygons:
+            self._poly(img, p, (104, 158, 80))
+        for kind, quads in t.markings.items():
+            for q in quads:
+                self._poly(img, q, MARKING_RGB[kind])
+        for b in t.buildings:
+            c = tuple(int(255 * v * 0.85) for v in b.color)
+            self._poly(img, b.footprint, c)
+            cv2.polylines(img, [self.to_px(b.footprint)], True, (70, 70, 70), 1)
+        for tr in t.trees:
+            cv2.circle(img, tuple(self.to_px(tr.position)), max(2, int(tr.canopy_radius_m * self.ppm)),
+                       (40, 110, 40), -1, lineType=cv2.LINE_AA)
+        return img
+
+    def render(self, world: World | None = None) -> np.ndarray:
+        """The whole town with the world's current state, as an RGB uint8 image."""
+        img = self._static.copy()
+        if world is None:
+            return img
+        r = max(2, int(0.6 * self.ppm))
+        for ap in self.town.approaches:
+            state = int(world.lights.state(ap.index))
+            rgb = LIGHT_BGR[state][::-1]
+            cv2.circle(img, tuple(self.to_px(ap.light_head)), r, rgb, -1, lineType=cv2.LINE_AA)
+        route = world.ego_route_polyline()
+        if route is not None and len(route) > 1:
+            cv2.polylines(img, [self.to_px(route)], False, (80, 170, 255), max(1, int(self.ppm)), lineType=cv2.LINE_AA)
+        for v in world.npcs:
+            corners = rect_corners(v.position, v.heading, v.LENGTH, v.WIDTH)
+            self._poly(img, corners, tuple(int(255 * c) for c in v.color))
+        for p in world.pedestrians:
+            cv2.circle(img, tuple(self.to_px(p.position)), max(2, int(0.4 * self.ppm)), (230, 60, 200), -1)
+        ego = world.ego
+        self._poly(img, rect_corners(ego.position, ego.heading, ego.LENGTH, ego.WIDTH), (255, 255, 255))
+        tip = self.to_px(ego.position + 0.5 * ego.LENGTH * np.array([np.cos(ego.heading), np.sin(ego.heading)]))
+        cv2.circle(img, tuple(tip), max(1, int(0.4 * self.ppm)), (255, 40, 40), -1)
+        return img
+
+    def render_around(self, world: World, size_px: int = 320, radius_m: float = 40.0) -> np.ndarray:
+        """A square crop centred on the ego (north-up), for side-by-side videos."""
+        full = self.render(world)
+        centre = self.to_px(world.ego.position)
+        half = int(radius_m * self.ppm)
+        pad = cv2.copyMakeBorder(full, half, half, half, half, cv2.BORDER_CONSTANT, value=(96, 140, 72))
+        crop = pad[centre[1]:centre[1] + 2 * half, centre[0]:centre[0] + 2 * half]
+        return cv2.resize(crop, (size_px, size_px), interpolation=cv2.INTER_AREA)

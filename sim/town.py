@@ -1,0 +1,573 @@
+"""Procedural town: a grid of blocks joined by two-way, two-lane-per-direction roads.
+
+The drivable lanes live in a highway-env ``RoadNetwork`` (``StraightLane`` and ``CircularLane``),
+so IDM/MOBIL vehicles drive on it unchanged. Everything else the town holds (road surfaces,
+markings, sidewalks, buildings, trees, light poles, crosswalks) is plain 2D geometry plus heights,
+which the renderer turns into meshes and the world uses for collisions. The town knows nothing of
+pybullet.
+
+Layout: a grid of ``(blocks_x + 1) x (blocks_y + 1)`` nodes. The four outer corners are curved
+bends; every other node is a signalled junction (four arms inside, three on the border). Node
+names in the network are ``"i-j" + arm + "i"|"o"``: the end of a road arriving at that node via
+that arm ("i") or the start of a road leaving by it ("o").
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from enum import IntEnum
+
+import numpy as np
+from highway_env.road.lane import AbstractLane, CircularLane, LineType, StraightLane
+from highway_env.road.road import RoadNetwork
+
+from sim.geometry import right_of, wrap_to_pi
+
+LaneIndex = tuple[str, str, int]
+Edge = tuple[str, str]
+
+
+class Arm(IntEnum):
+    """Directions of the arms of a node, in the map frame (y down: S is +y)."""
+
+    E = 0
+    S = 1
+    W = 2
+    N = 3
+
+
+ARM_VEC: dict[Arm, np.ndarray] = {
+    Arm.E: np.array([1.0, 0.0]),
+    Arm.S: np.array([0.0, 1.0]),
+    Arm.W: np.array([-1.0, 0.0]),
+    Arm.N: np.array([0.0, -1.0]),
+}
+OPPOSITE = {Arm.E: Arm.W, Arm.W: Arm.E, Arm.S: Arm.N, Arm.N: Arm.S}
+
+
+class Command(IntEnum):
+    """Route command given before an intersection (conditional imitation learning style)."""
+
+    FOLLOW = 0
+    LEFT = 1
+    RIGHT = 2
+    STRAIGHT = 3
+
+
+@dataclass(frozen=True)
+class TownConfig:
+    """Size and look of a town. Defaults make a 3x3-block town of about 300 m x 300 m."""
+
+    blocks_x: int = 3
+    blocks_y: int = 3
+    block_size_m: float = 95.0
+    block_jitter_m: float = 12.0
+    lane_width_m: float = 3.5
+    sidewalk_width_m: float = 3.5
+    bend_radius_m: float = 22.0
+    stop_line_setback_m: float = 12.0
+    park_probability: float = 0.15
+    tree_spacing_m: float = 16.0
+    outer_buildings: bool = True
+
+    def __post_init__(self) -> None:
+        if self.blocks_x < 1 or self.blocks_y < 1:
+            raise ValueError("A town needs at least one block in each direction (blocks_x, blocks_y >= 1).")
+        if self.block_size_m - self.block_jitter_m < 2 * self.stop_line_setback_m + 30:
+            raise ValueError("block_size_m is too small for junctions and buildings; use at least 60 m.")
+
+
+@dataclass(frozen=True)
+class LaneInfo:
+    """What a lane of the network is for."""
+
+    kind: str  # "road", "connector" (inside a junction) or "bend" (curved town corner)
+    node: tuple[int, int] | None  # the junction or bend a connector/bend belongs to
+    command: Command  # the command that selects this lane at a junction (FOLLOW elsewhere)
+
+
+@dataclass(frozen=True)
+class Approach:
+    """One signalled approach to a junction: its incoming road, stop line and traffic light."""
+
+    index: int
+    node: tuple[int, int]
+    arm: Arm  # the arm the traffic arrives from
+    edge: Edge  # the incoming road edge (ends at the stop line)
+    stop_line_center: np.ndarray  # middle of the stop bar's near edge, map frame
+    travel_heading: float  # heading of traffic arriving on this approach
+    light_pole: np.ndarray  # pole foot
+    light_head: np.ndarray  # head position (x, y); its height is LIGHT_HEAD_HEIGHT_M
+
+
+@dataclass(frozen=True)
+class Crosswalk:
+    """A zebra crossing across one arm of a junction, kerb to kerb."""
+
+    index: int
+    node: tuple[int, int]
+    arm: Arm
+    start: np.ndarray  # waiting point on one kerb
+    end: np.ndarray  # waiting point on the other kerb
+    polygon: np.ndarray  # 4x2 painted area
+    approach: int  # the approach whose traffic it crosses (its arm's incoming lanes)
+
+
+@dataclass(frozen=True)
+class Building:
+    footprint: np.ndarray  # 4x2, axis aligned rectangle corners
+    height_m: float
+    color: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Tree:
+    position: np.ndarray
+    height_m: float
+    canopy_radius_m: float
+    color: tuple[float, float, float]
+
+
+@dataclass
+class Town:
+    """A generated town: road network, lane metadata, signals, and static scenery."""
+
+    config: TownConfig
+    seed: int
+    xs: np.ndarray
+    ys: np.ndarray
+    network: RoadNetwork
+    lane_info: dict[LaneIndex, LaneInfo]
+    approaches: list[Approach]
+    crosswalks: list[Crosswalk]
+    buildings: list[Building]
+    trees: list[Tree]
+    road_polygons: list[np.ndarray]  # convex asphalt pieces
+    slab_polygons: list[np.ndarray]  # convex raised sidewalk/block pieces
+    grass_polygons: list[np.ndarray]  # parks on top of slabs
+    markings: dict[str, list[np.ndarray]]  # kind -> convex quads
+    poles: list[np.ndarray] = field(default_factory=list)  # light pole feet (collision circles)
+    _grid: dict[tuple[int, int], list[LaneIndex]] = field(default_factory=dict, repr=False)
+    _approach_by_edge: dict[Edge, Approach] = field(default_factory=dict, repr=False)
+
+    GRID_CELL_M = 8.0
+    POLE_RADIUS_M = 0.15
+    TRUNK_RADIUS_M = 0.25
+    LIGHT_HEAD_HEIGHT_M = 5.2
+
+    # ----------------------------------------------------------------- lanes
+    @property
+    def lane_width(self) -> float:
+        return self.config.lane_width_m
+
+    def lane(self, index: LaneIndex) -> AbstractLane:
+        return self.network.graph[index[0]][index[1]][index[2]]
+
+    def lanes_near(self, position: np.ndarray) -> list[LaneIndex]:
+        """Lanes that pass within about a lane width of a point (spatial hash, no full scan)."""
+        key = (int(math.floor(position[0] / self.GRID_CELL_M)), int(math.floor(position[1] / self.GRID_CELL_M)))
+        return self._grid.get(key, [])
+
+    def locate(self, position: np.ndarray, heading: float | None = None) -> tuple[LaneIndex, float, float] | None:
+        """The lane a pose is on: (lane index, longitudinal s, lateral offset), or None off road.
+
+        Among overlapping lanes (junctions), prefer the one whose direction best matches the
+        heading, then the smallest lateral offset.
+        """
+        best: tuple[float, LaneIndex, float, float] | None = None
+        half = self.lane_width / 2
+        for index in self.lanes_near(position):
+            lane = self.lane(index)
+            s, lat = lane.local_coordinates(position)
+            if not (-0.5 <= s <= lane.length + 0.5) or abs(lat) > half + 0.05:
+                continue
+            cost = abs(lat)
+            if heading is not None:
+                cost += 4.0 * abs(wrap_to_pi(lane.heading_at(s) - heading))
+            if best is None or cost < best[0]:
+                best = (cost, index, float(s), float(lat))
+        if best is None:
+            return None
+        return best[1], best[2], best[3]
+
+    def on_road(self, position: np.ndarray, margin_m: float = 0.0) -> bool:
+        """Whether a point is on asphalt: within some lane's width (plus a margin)."""
+        half = self.lane_width / 2 + margin_m
+        for index in self.lanes_near(position):
+            lane = self.lane(index)
+            s, lat = lane.local_coordinates(position)
+            if -0.5 <= s <= lane.length + 0.5 and abs(lat) <= half:
+                return True
+        return False
+
+    def approach_for_edge(self, edge: Edge) -> Approach | None:
+        """The signalled approach an incoming road edge leads to, if any."""
+        return self._approach_by_edge.get(edge)
+
+    def road_lanes(self) -> list[LaneIndex]:
+        """Lanes on plain road segments (spawn places)."""
+        return [k for k, v in self.lane_info.items() if v.kind == "road"]
+
+    def node_position(self, node: tuple[int, int]) -> np.ndarray:
+        return np.array([self.xs[node[0]], self.ys[node[1]]])
+
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """(xmin, ymin, xmax, ymax) of the whole scene, scenery included."""
+        m = 60.0
+        return (float(self.xs[0] - m), float(self.ys[0] - m), float(self.xs[-1] + m), float(self.ys[-1] + m))
+
+
+# --------------------------------------------------------------------------- generation
+BUILDING_COLORS = [
+    (0.78, 0.70, 0.58), (0.66, 0.40, 0.32), (0.85, 0.83, 0.78), (0.55, 0.58, 0.62),
+    (0.72, 0.55, 0.42), (0.90, 0.78, 0.55), (0.45, 0.47, 0.52), (0.80, 0.62, 0.55),
+    (0.62, 0.68, 0.72), (0.93, 0.90, 0.84),
+]
+
+
+def _node_name(node: tuple[int, int], arm: Arm, end: str) -> str:
+    return f"{node[0]}-{node[1]}{arm.name}{end}"
+
+
+def _arms(node: tuple[int, int], nx: int, ny: int) -> list[Arm]:
+    i, j = node
+    arms = []
+    if i < nx:
+        arms.append(Arm.E)
+    if j < ny:
+        arms.append(Arm.S)
+    if i > 0:
+        arms.append(Arm.W)
+    if j > 0:
+        arms.append(Arm.N)
+    return arms
+
+
+def _is_bend(node: tuple[int, int], nx: int, ny: int) -> bool:
+    return node[0] in (0, nx) and node[1] in (0, ny)
+
+
+def _arc_lane(center: np.ndarray, start: np.ndarray, end: np.ndarray, width: float) -> CircularLane:
+    """A quarter-circle lane about ``center`` from ``start`` to ``end`` (both at the same radius)."""
+    radius = float(np.linalg.norm(start - center))
+    a0 = math.atan2(start[1] - center[1], start[0] - center[0])
+    a1 = math.atan2(end[1] - center[1], end[0] - center[0])
+    delta = wrap_to_pi(a1 - a0)
+    return CircularLane(center, radius, a0, a0 + delta, clockwise=delta > 0, width=width,
+                        line_types=(LineType.NONE, LineType.NONE))
+
+
+def _sample_lane(lane: AbstractLane, lateral: float, step_m: float) -> np.ndarray:
+    n = max(2, int(math.ceil(lane.length / step_m)) + 1)
+    return np.array([lane.position(s, lateral) for s in np.linspace(0.0, lane.length, n)])
+
+
+def _strip_quads(lane: AbstractLane, lat0: float, lat1: float, s0: float, s1: float, step_m: float) -> list[np.ndarray]:
+    """Convex quads covering a lane-aligned strip between two lateral offsets."""
+    straight = isinstance(lane, StraightLane)
+    n = 1 if straight else max(1, int(math.ceil((s1 - s0) / step_m)))
+    ss = np.linspace(s0, s1, n + 1)
+    quads = []
+    for a, b in zip(ss[:-1], ss[1:], strict=True):
+        quads.append(np.array([lane.position(a, lat0), lane.position(b, lat0), lane.position(b, lat1), lane.position(a, lat1)]))
+    return quads
+
+
+def _dashes(lane: AbstractLane, lateral: float, half_width: float, dash: float, gap: float) -> list[np.ndarray]:
+    quads = []
+    s = gap / 2
+    while s + dash <= lane.length:
+        quads += _strip_quads(lane, lateral - half_width, lateral + half_width, s, s + dash, 1.5)
+        s += dash + gap
+    return quads
+
+
+JUNCTION_KERB_RADIUS_M = 3.0
+
+
+def _rounded_rect(x0: float, y0: float, x1: float, y1: float, radii: list[float], segments: int = 6) -> np.ndarray:
+    """Convex polygon of a rectangle whose corners (TL, TR, BR, BL on the map) are rounded."""
+    corners = [(x0, y0, 1, 1), (x1, y0, -1, 1), (x1, y1, -1, -1), (x0, y1, 1, -1)]
+    pts = []
+    for k, ((cx, cy, ix, iy), r) in enumerate(zip(corners, radii, strict=True)):
+        centre = np.array([cx + ix * r, cy + iy * r])
+        for t in np.linspace(math.pi + k * math.pi / 2, math.pi + (k + 1) * math.pi / 2, segments + 1):
+            pts.append(centre + r * np.array([math.cos(t), math.sin(t)]))
+    return np.array(pts)
+
+
+def _rect(x0: float, y0: float, x1: float, y1: float) -> np.ndarray:
+    return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], dtype=float)
+
+
+def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
+    """Build a town from a config and a seed; the same pair always gives the same town."""
+    config = config or TownConfig()
+    rng = np.random.default_rng(seed)
+    nx, ny = config.blocks_x, config.blocks_y
+    w = config.lane_width_m
+    half_road = 2 * w
+    sw = config.sidewalk_width_m
+    d_junction = config.stop_line_setback_m
+    rc = config.bend_radius_m
+
+    steps_x = config.block_size_m + rng.uniform(-config.block_jitter_m, config.block_jitter_m, nx)
+    steps_y = config.block_size_m + rng.uniform(-config.block_jitter_m, config.block_jitter_m, ny)
+    xs = np.concatenate([[0.0], np.cumsum(steps_x)])
+    ys = np.concatenate([[0.0], np.cumsum(steps_y)])
+
+    def centre(node: tuple[int, int]) -> np.ndarray:
+        return np.array([xs[node[0]], ys[node[1]]])
+
+    def attach(node: tuple[int, int]) -> float:
+        return rc if _is_bend(node, nx, ny) else d_junction
+
+    network = RoadNetwork()
+    lane_info: dict[LaneIndex, LaneInfo] = {}
+    road_polys: list[np.ndarray] = []
+    markings: dict[str, list[np.ndarray]] = {"dashed_white": [], "solid_white": [], "solid_yellow": [],
+                                              "stop_line": [], "crosswalk": []}
+    line_half = 0.07
+
+    def add_markings(lane0: AbstractLane, lane1: AbstractLane, with_centre: bool) -> None:
+        """Markings of one direction of a road: its half of the centre line, divider and edge."""
+        if with_centre:
+            markings["solid_yellow"] += _strip_quads(lane0, -w / 2 + 0.06, -w / 2 + 0.06 + 2 * line_half, 0, lane0.length, 2.0)
+        markings["dashed_white"] += _dashes(lane0, w / 2, line_half, 3.0, 6.0)
+        markings["solid_white"] += _strip_quads(lane1, w / 2 - 0.35, w / 2 - 0.35 + 2 * line_half, 0, lane1.length, 2.0)
+
+    # Roads between neighbouring nodes, both directions.
+    nodes = [(i, j) for i in range(nx + 1) for j in range(ny + 1)]
+    for node in nodes:
+        for arm in _arms(node, nx, ny):
+            d = ARM_VEC[arm]
+            nbr = (node[0] + int(d[0]), node[1] + int(d[1]))
+            a = centre(node) + d * attach(node)
+            b = centre(nbr) - d * attach(nbr)
+            r = right_of(d)
+            lanes = [StraightLane(a + r * (k + 0.5) * w, b + r * (k + 0.5) * w, width=w,
+                                  line_types=(LineType.NONE, LineType.NONE)) for k in range(2)]
+            frm, to = _node_name(node, arm, "o"), _node_name(nbr, OPPOSITE[arm], "i")
+            for k, lane in enumerate(lanes):
+                network.add_lane(frm, to, lane)
+                lane_info[(frm, to, k)] = LaneInfo("road", None, Command.FOLLOW)
+            road_polys += _strip_quads(lanes[0], -w / 2, w / 2 + w, 0, lanes[0].length, 2.0)
+            add_markings(lanes[0], lanes[1], with_centre=True)
+
+    # Junction connectors, bends, stop lines, crosswalks, lights.
+    approaches: list[Approach] = []
+    crosswalks: list[Crosswalk] = []
+    poles: list[np.ndarray] = []
+    for node in nodes:
+        c = centre(node)
+        arms = _arms(node, nx, ny)
+        bend = _is_bend(node, nx, ny)
+        dist = attach(node)
+        for a in arms:
+            travel = -ARM_VEC[a]
+            for b in arms:
+                if b == a:
+                    continue
+                out_dir = ARM_VEC[b]
+                if np.allclose(out_dir, travel):
+                    command = Command.STRAIGHT
+                elif np.allclose(out_dir, right_of(travel)):
+                    command = Command.RIGHT
+                else:
+                    command = Command.LEFT
+                frm, to = _node_name(node, a, "i"), _node_name(node, b, "o")
+                for k in range(2):
+                    start = c + ARM_VEC[a] * dist + right_of(travel) * (k + 0.5) * w
+                    end = c + out_dir * dist + right_of(out_dir) * (k + 0.5) * w
+                    if command == Command.STRAIGHT:
+                        lane: AbstractLane = StraightLane(start, end, width=w, line_types=(LineType.NONE, LineType.NONE))
+                    else:
+                        lane = _arc_lane(c + ARM_VEC[a] * dist + out_dir * dist, start, end, w)
+                    network.add_lane(frm, to, lane)
+                    lane_info[(frm, to, k)] = LaneInfo("bend" if bend else "connector", node,
+                                                      Command.FOLLOW if bend else command)
+                if bend:
+                    lanes = [network.graph[frm][to][k] for k in range(2)]
+                    road_polys += _strip_quads(lanes[0], -w / 2, w / 2 + w, 0, lanes[0].length, 2.0)
+                    add_markings(lanes[0], lanes[1], with_centre=True)
+        if bend:
+            continue
+        # Junction asphalt: a square out to the stop lines (kerb-side corners lie under the slabs).
+        ext = {arm: (dist if arm in arms else half_road) for arm in Arm}
+        road_polys.append(_rect(c[0] - ext[Arm.W], c[1] - ext[Arm.N], c[0] + ext[Arm.E], c[1] + ext[Arm.S]))
+        for a in arms:
+            u, r = ARM_VEC[a], right_of(ARM_VEC[a])
+            travel = -u
+            tr = right_of(travel)
+            # Stop bar across the incoming lanes, on the approach side of the lane end.
+            near = c + u * (dist + 0.5)
+            far = c + u * dist
+            markings["stop_line"].append(np.array([far + tr * 0.1, near + tr * 0.1, near + tr * (2 * w - 0.1), far + tr * (2 * w - 0.1)]))
+            # Zebra across the whole arm, between the junction box and the stop bar.
+            cw0, cw1 = half_road + 0.6, half_road + 0.6 + 3.0
+            for lat in np.arange(-half_road + 0.4, half_road - 0.3, 1.0):
+                q0, q1 = c + u * cw0 + r * lat, c + u * cw1 + r * lat
+                markings["crosswalk"].append(np.array([q0, q1, q1 + r * 0.5, q0 + r * 0.5]))
+            mid = c + u * (cw0 + cw1) / 2
+            kerb = half_road + sw / 2
+            # Traffic light on the far-right corner, on a mast arm over the lane divider.
+            pole = c + travel * (half_road + sw / 2) + tr * (half_road + sw / 2)
+            head = c + travel * (half_road + sw / 2) + tr * w
+            poles.append(pole)
+            approach_edge = (_node_name((node[0] + int(u[0]), node[1] + int(u[1])), OPPOSITE[a], "o"),
+                             _node_name(node, a, "i"))
+            ap = Approach(len(approaches), node, a, approach_edge, c + u * (dist + 0.5) + tr * w,
+                          math.atan2(travel[1], travel[0]), pole, head)
+            approaches.append(ap)
+            crosswalks.append(Crosswalk(len(crosswalks), node, a, mid - r * kerb, mid + r * kerb,
+                                        np.array([c + u * cw0 - r * half_road, c + u * cw1 - r * half_road,
+                                                  c + u * cw1 + r * half_road, c + u * cw0 + r * half_road]),
+                                        ap.index))
+
+    # Blocks: raised slabs (sidewalk level), parks, buildings and street trees.
+    slab_polys: list[np.ndarray] = []
+    grass_polys: list[np.ndarray] = []
+    buildings: list[Building] = []
+    trees: list[Tree] = []
+    centre_xy = np.array([xs[-1] / 2, ys[-1] / 2])
+    max_r = float(np.linalg.norm(centre_xy)) + 1.0
+
+    def bend_of(node: tuple[int, int]) -> np.ndarray | None:
+        """``[arc centre, inward]`` of a bend node, None for junctions."""
+        if not _is_bend(node, nx, ny):
+            return None
+        inward = np.array([1.0 if node[0] == 0 else -1.0, 1.0 if node[1] == 0 else -1.0])
+        return np.array([centre(node) + inward * rc, inward])
+
+    def add_building_row(x0: float, y0: float, x1: float, y1: float, along_x: bool, depth_max: float,
+                         front_at_min: bool, forbid: list[np.ndarray]) -> None:
+        """Place buildings along one side of a rectangle, fronts on one of its edges."""
+        length = (x1 - x0) if along_x else (y1 - y0)
+        pos = 0.0
+        while pos < length - 8.0:
+            frontage = min(float(rng.uniform(10, 24)), length - pos)
+            depth = min(float(rng.uniform(12, 22)), depth_max)
+            if along_x:
+                bx0, bx1 = x0 + pos, x0 + pos + frontage
+                by0, by1 = (y0, y0 + depth) if front_at_min else (y1 - depth, y1)
+            else:
+                by0, by1 = y0 + pos, y0 + pos + frontage
+                bx0, bx1 = (x0, x0 + depth) if front_at_min else (x1 - depth, x1)
+            rect = _rect(bx0, by0, bx1, by1)
+            bc = rect.mean(axis=0)
+            if not any(_cuts_bend(rect, f, rc - half_road - sw - 0.5) for f in forbid):
+                closeness = 1.0 - float(np.linalg.norm(bc - centre_xy)) / max_r
+                height = float(rng.uniform(6, 14) + rng.uniform(0, 34) * closeness ** 2)
+                color = BUILDING_COLORS[int(rng.integers(len(BUILDING_COLORS)))]
+                buildings.append(Building(rect, height, color))
+            pos += frontage + float(rng.uniform(0.5, 4.0))
+
+    def add_street_trees(p0: np.ndarray, p1: np.ndarray, forbid: list[np.ndarray]) -> None:
+        length = float(np.linalg.norm(p1 - p0))
+        direction = (p1 - p0) / max(length, 1e-9)
+        s = float(rng.uniform(4, config.tree_spacing_m))
+        while s < length - 4:
+            pos = p0 + direction * s
+            if rng.random() < 0.8 and not any(_cuts_bend(pos[None, :], f, rc - half_road - 1.5) for f in forbid):
+                trees.append(Tree(pos, float(rng.uniform(4.5, 7.5)), float(rng.uniform(1.6, 2.6)),
+                                  (0.18 + 0.1 * float(rng.random()), 0.42 + 0.15 * float(rng.random()), 0.16)))
+            s += config.tree_spacing_m * float(rng.uniform(0.8, 1.3))
+
+    for i in range(nx):
+        for j in range(ny):
+            x0, x1 = xs[i] + half_road, xs[i + 1] - half_road
+            y0, y1 = ys[j] + half_road, ys[j + 1] - half_road
+            corners = [(i, j), (i + 1, j), (i + 1, j + 1), (i, j + 1)]
+            forbid = [p for p in (bend_of(n) for n in corners) if p is not None]
+            # Slab: the block rectangle with rounded kerbs (tight at junctions, wide at bends).
+            radii = []
+            for n in corners:
+                radii.append(rc - half_road if _is_bend(n, nx, ny) else JUNCTION_KERB_RADIUS_M)
+            poly = _rounded_rect(x0, y0, x1, y1, radii)
+            slab_polys.append(poly)
+            ix0, iy0, ix1, iy1 = x0 + sw + 0.5, y0 + sw + 0.5, x1 - sw - 0.5, y1 - sw - 0.5
+            if rng.random() < config.park_probability:
+                grass_polys.append(_rect(x0 + sw, y0 + sw, x1 - sw, y1 - sw))
+                for _ in range(int(rng.integers(6, 12))):
+                    pos = np.array([rng.uniform(ix0 + 2, ix1 - 2), rng.uniform(iy0 + 2, iy1 - 2)])
+                    if not any(_cuts_bend(pos[None, :], f, rc - half_road - sw - 2.0) for f in forbid):
+                        trees.append(Tree(pos, float(rng.uniform(5, 9)), float(rng.uniform(2.0, 3.2)),
+                                          (0.16, 0.40 + 0.15 * float(rng.random()), 0.14)))
+            else:
+                row_depth = min(22.0, (iy1 - iy0) / 2 - 1.0)
+                side_depth = (ix1 - ix0) / 2 - 1.0
+                add_building_row(ix0, iy0, ix1, iy1, True, row_depth, True, forbid)
+                add_building_row(ix0, iy0, ix1, iy1, True, row_depth, False, forbid)
+                add_building_row(ix0, iy0 + row_depth + 1.5, ix1, iy1 - row_depth - 1.5, False, side_depth, True, forbid)
+                add_building_row(ix0, iy0 + row_depth + 1.5, ix1, iy1 - row_depth - 1.5, False, side_depth, False, forbid)
+            kerb = 1.0
+            add_street_trees(np.array([x0 + d_junction, y0 + kerb]), np.array([x1 - d_junction, y0 + kerb]), forbid)
+            add_street_trees(np.array([x0 + d_junction, y1 - kerb]), np.array([x1 - d_junction, y1 - kerb]), forbid)
+            add_street_trees(np.array([x0 + kerb, y0 + d_junction]), np.array([x0 + kerb, y1 - d_junction]), forbid)
+            add_street_trees(np.array([x1 - kerb, y0 + d_junction]), np.array([x1 - kerb, y1 - d_junction]), forbid)
+
+    # Outside the ring road: a sidewalk along it and a row of buildings facing it.
+    X0, X1, Y0, Y1 = xs[0] - half_road, xs[-1] + half_road, ys[0] - half_road, ys[-1] + half_road
+    outer_sides = [
+        _rect(xs[0] + rc, Y0 - sw, xs[-1] - rc, Y0),
+        _rect(xs[0] + rc, Y1, xs[-1] - rc, Y1 + sw),
+        _rect(X0 - sw, ys[0] + rc, X0, ys[-1] - rc),
+        _rect(X1, ys[0] + rc, X1 + sw, ys[-1] - rc),
+    ]
+    slab_polys += outer_sides
+    for node in [(0, 0), (nx, 0), (nx, ny), (0, ny)]:
+        bend = bend_of(node)
+        assert bend is not None
+        bc = bend[0]
+        outward = centre(node) - bc
+        mid = math.atan2(outward[1], outward[0])
+        r0, r1 = rc + half_road, rc + half_road + sw
+        angs = np.linspace(mid - math.pi / 4, mid + math.pi / 4, 7)
+        for a0, a1 in zip(angs[:-1], angs[1:], strict=True):
+            u0, u1 = np.array([math.cos(a0), math.sin(a0)]), np.array([math.cos(a1), math.sin(a1)])
+            slab_polys.append(np.array([bc + u0 * r0, bc + u1 * r0, bc + u1 * r1, bc + u0 * r1]))
+    if config.outer_buildings:
+        gap = 2.0
+        add_building_row(xs[0] + rc, Y0 - sw - gap - 22, xs[-1] - rc, Y0 - sw - gap, True, 20, False, [])
+        add_building_row(xs[0] + rc, Y1 + sw + gap, xs[-1] - rc, Y1 + sw + gap + 22, True, 20, True, [])
+        add_building_row(X0 - sw - gap - 22, ys[0] + rc, X0 - sw - gap, ys[-1] - rc, False, 20, False, [])
+        add_building_row(X1 + sw + gap, ys[0] + rc, X1 + sw + gap + 22, ys[-1] - rc, False, 20, True, [])
+    # Trees are not allowed on the asphalt (bend inner corners, junction stubs).
+    town = Town(config, seed, xs, ys, network, lane_info, approaches, crosswalks, buildings, [],
+                road_polys, slab_polys, grass_polys, markings, poles)
+    _index_lanes(town)
+    town.trees = [t for t in trees if not town.on_road(t.position, margin_m=0.4)]
+    town._approach_by_edge = {ap.edge: ap for ap in approaches}
+    return town
+
+
+def _cuts_bend(points: np.ndarray, bend: np.ndarray, radius: float) -> bool:
+    """Whether any point lies in a bend's corner square but outside its inner kerb circle.
+
+    ``bend`` is ``[centre, inward]``: the bend's arc centre and the (+-1, +-1) direction from the
+    town corner to it. The block slab is rounded there, so such a point would hang over the road.
+    """
+    centre, inward = bend
+    for p in np.atleast_2d(points):
+        rel = p - centre
+        if rel[0] * inward[0] < 0 and rel[1] * inward[1] < 0 and float(np.linalg.norm(rel)) > radius:
+            return True
+    return False
+
+
+def _index_lanes(town: Town) -> None:
+    """Fill the spatial hash: every cell within a lane width of a lane lists that lane."""
+    cell = Town.GRID_CELL_M
+    reach = town.lane_width
+    grid: dict[tuple[int, int], set[LaneIndex]] = {}
+    for frm, tos in town.network.graph.items():
+        for to, lanes in tos.items():
+            for k, lane in enumerate(lanes):
+                for p in _sample_lane(lane, 0.0, 2.0):
+                    for dx in (-reach, 0.0, reach):
+                        for dy in (-reach, 0.0, reach):
+                            key = (int(math.floor((p[0] + dx) / cell)), int(math.floor((p[1] + dy) / cell)))
+                            grid.setdefault(key, set()).add((frm, to, k))
+    town._grid = {k: sorted(v) for k, v in grid.items()}

@@ -1,0 +1,210 @@
+"""NPC vehicles: highway-env IDM/MOBIL vehicles that follow routes and obey the town's signals.
+
+highway-env gives the lane geometry, lane following (``steering_control``, ``follow_road``), the
+bicycle model and MOBIL lane changes. On top of it, the longitudinal decision takes the closest of:
+the vehicle ahead on the planned path (NPCs and the ego), a red or yellow stop line, and a
+pedestrian in the path; each is fed to the IDM as a gap. highway-env's own neighbour search and
+collision handling scan every vehicle and every lane, so they are replaced by a path search over
+nearby agents only.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from highway_env.road.lane import AbstractLane
+from highway_env.road.road import Road
+from highway_env.vehicle.behavior import IDMVehicle
+from highway_env.vehicle.kinematics import Vehicle
+
+from sim.geometry import wrap_to_pi
+from sim.objects import LightState, ObjectSnapshot, SemanticClass
+from sim.routes import random_next_edge
+from sim.town import Town
+
+CAR_COLORS = [
+    (0.75, 0.08, 0.08), (0.08, 0.20, 0.60), (0.92, 0.92, 0.90), (0.10, 0.10, 0.11), (0.55, 0.56, 0.58),
+    (0.85, 0.65, 0.10), (0.10, 0.42, 0.20), (0.35, 0.55, 0.80), (0.60, 0.30, 0.10), (0.95, 0.45, 0.65),
+]
+
+
+@dataclass(frozen=True)
+class Agents:
+    """Positions and shapes of everything that can block a path, gathered once per step."""
+
+    positions: np.ndarray  # (N, 2)
+    headings: np.ndarray
+    speeds: np.ndarray
+    half_lengths: np.ndarray
+    is_pedestrian: np.ndarray
+    ids: np.ndarray
+
+
+def idm_acceleration(speed: float, target_speed: float, gap_m: float | None, closing_mps: float,
+                     a_max: float = IDMVehicle.COMFORT_ACC_MAX, b: float = -IDMVehicle.COMFORT_ACC_MIN,
+                     min_gap_m: float = 2.0, headway_s: float = 1.2, delta: float = IDMVehicle.DELTA) -> float:
+    """Intelligent Driver Model with a bumper-to-bumper gap (highway-env's constants by default)."""
+    acc = a_max * (1.0 - (max(speed, 0.0) / max(target_speed, 0.1)) ** delta)
+    if gap_m is not None:
+        desired = min_gap_m + speed * headway_s + speed * closing_mps / (2.0 * math.sqrt(a_max * b))
+        acc -= a_max * (max(desired, min_gap_m) / max(gap_m, 0.1)) ** 2
+    return acc
+
+
+def path_gap(path: list[tuple[AbstractLane, float]], my_s: float, my_half: float, agents: Agents, skip_id: int,
+             origin: np.ndarray, lookahead_m: float, vehicle_lateral_m: float = 2.2,
+             pedestrian_lateral_m: float = 2.6) -> tuple[float | None, float]:
+    """Bumper gap to the nearest agent on a path of lanes, and that agent's speed along it.
+
+    ``path`` lists lanes with the path coordinate at which each starts. Vehicles count only when
+    they head roughly along the path (crossing traffic is not a leader); pedestrians always count.
+    """
+    if len(agents.positions) == 0:
+        return None, 0.0
+    d2 = np.sum((agents.positions - origin) ** 2, axis=1)
+    near = np.nonzero((d2 < (lookahead_m + 8.0) ** 2) & (agents.ids != skip_id))[0]
+    best: float | None = None
+    best_speed = 0.0
+    for k in near:
+        pos = agents.positions[k]
+        ped = bool(agents.is_pedestrian[k])
+        tol = pedestrian_lateral_m if ped else vehicle_lateral_m
+        for lane, offset in path:
+            s, lat = lane.local_coordinates(pos)
+            if abs(lat) > tol or s < -agents.half_lengths[k] or s > lane.length + agents.half_lengths[k]:
+                continue
+            if not ped and abs(wrap_to_pi(float(agents.headings[k]) - lane.heading_at(s))) > 1.0:
+                continue
+            along = offset + s
+            if along <= my_s:
+                break
+            gap = along - my_s - my_half - float(agents.half_lengths[k])
+            if best is None or gap < best:
+                best = gap
+                best_speed = 0.0 if ped else float(agents.speeds[k]) * math.cos(
+                    wrap_to_pi(float(agents.headings[k]) - lane.heading_at(s)))
+            break
+    return best, best_speed
+
+
+class TownVehicle(IDMVehicle):
+    """An NPC car or van/truck driving a random never-ending route through the town."""
+
+    LANE_CHANGE_DELAY = 2.0
+
+    def __init__(self, road: Road, town: Town, lane_index: tuple[str, str, int], s: float, object_id: int,
+                 kind: SemanticClass, color: tuple[float, float, float], target_speed: float,
+                 rng: np.random.Generator) -> None:
+        lane = town.lane(lane_index)
+        self.town = town
+        self.object_id = object_id
+        self.kind = kind
+        self.color = color
+        self.rng = rng
+        if kind == SemanticClass.TRUCK:
+            self.LENGTH, self.WIDTH, self.HEIGHT = 6.8, 2.3, 2.8
+        else:
+            self.LENGTH, self.WIDTH, self.HEIGHT = 4.5, 1.9, 1.5
+        super().__init__(road, lane.position(s, 0.0), lane.heading_at(s), speed=target_speed * 0.5,
+                         target_lane_index=lane_index, target_speed=target_speed,
+                         route=[(lane_index[0], lane_index[1], None)])
+        self._extend_route()
+
+    # highway-env looks up the closest lane among all lanes on every state update; the target
+    # edge's two lanes are enough here.
+    def on_state_update(self) -> None:
+        if getattr(self, "town", None) is None or self.target_lane_index is None:
+            return
+        frm, to, _ = self.target_lane_index
+        lanes = self.town.network.graph[frm][to]
+        k = min(range(len(lanes)), key=lambda i: abs(lanes[i].local_coordinates(self.position)[1]))
+        self.lane_index = (frm, to, k)
+        self.lane = lanes[k]
+
+    def _extend_route(self) -> None:
+        while len(self.route) < 4:
+            last = self.route[-1]
+            frm, to = random_next_edge(self.town, (last[0], last[1]), self.rng)
+            self.route.append((frm, to, None))
+
+    def path(self, lookahead_m: float) -> tuple[list[tuple[AbstractLane, float]], float]:
+        """Lanes ahead along the route (same lane id) and the vehicle's coordinate on the first."""
+        frm, to, k = self.target_lane_index
+        lane = self.town.lane(self.target_lane_index)
+        s0 = float(lane.local_coordinates(self.position)[0])
+        path = [(lane, 0.0)]
+        total = lane.length
+        started = False
+        for rf, rt, _ in self.route:
+            if (rf, rt) == (frm, to):
+                started = True
+                continue
+            if not started or total - s0 > lookahead_m:
+                continue
+            nxt = self.town.network.graph[rf][rt][k]
+            path.append((nxt, total))
+            total += nxt.length
+        return path, s0
+
+    def change_lane_policy(self) -> None:
+        """MOBIL only on plain roads, well before the stop line (keeps turn lanes sane)."""
+        info = self.town.lane_info[self.target_lane_index]
+        lane = self.town.lane(self.target_lane_index)
+        if info.kind != "road" or lane.length - lane.local_coordinates(self.position)[0] < 30.0:
+            if self.lane_index[:2] == self.target_lane_index[:2] and self.lane_index != self.target_lane_index:
+                self.target_lane_index = self.lane_index
+            return
+        super().change_lane_policy()
+
+    def decide(self, agents: Agents, lights_state: list[LightState], enable_lane_change: bool) -> None:
+        """Set this step's steering and acceleration (highway-env action dict)."""
+        if self.crashed:
+            return
+        self.follow_road()
+        self._extend_route()
+        if enable_lane_change:
+            self.change_lane_policy()
+        steering = float(np.clip(self.steering_control(self.target_lane_index), -self.MAX_STEERING_ANGLE,
+                                 self.MAX_STEERING_ANGLE))
+        lookahead = 12.0 + 3.0 * self.speed
+        path, s0 = self.path(lookahead)
+        half = self.LENGTH / 2
+        gap, lead_speed = path_gap(path, s0, half, agents, self.object_id, self.position, lookahead)
+        acc = idm_acceleration(self.speed, self.target_speed, gap, self.speed - lead_speed)
+        stop = self._stop_line_gap(path, s0, lights_state)
+        if stop is not None:
+            acc = min(acc, idm_acceleration(self.speed, self.target_speed, stop, self.speed, min_gap_m=0.5))
+        acc = float(np.clip(acc, -8.0, self.COMFORT_ACC_MAX))
+        Vehicle.act(self, {"steering": steering, "acceleration": acc})
+
+    def _stop_line_gap(self, path: list[tuple[AbstractLane, float]], s0: float,
+                       lights_state: list[LightState]) -> float | None:
+        """Gap to a stop line ahead whose light says stop (yellow only if a comfortable stop is possible)."""
+        frm, to, _ = self.target_lane_index
+        edges = [(frm, to)] + [(r[0], r[1]) for r in self.route if (r[0], r[1]) != (frm, to)]
+        along = 0.0
+        for (lane, offset), edge in zip(path, edges, strict=False):
+            approach = self.town.approach_for_edge(edge)
+            along = offset + lane.length
+            if approach is None:
+                continue
+            state = lights_state[approach.index]
+            gap = along - 0.5 - s0 - self.LENGTH / 2
+            if gap < -0.5:
+                return None
+            if state == LightState.RED:
+                return max(gap, 0.0)
+            if state == LightState.YELLOW and self.speed ** 2 / (2 * max(gap, 0.1)) < 3.5:
+                return max(gap, 0.0)
+            return None
+        return None
+
+    def step(self, dt: float) -> None:
+        super().step(dt)
+        self.speed = max(self.speed, 0.0)
+
+    def snapshot(self) -> ObjectSnapshot:
+        return ObjectSnapshot(self.object_id, self.kind, float(self.position[0]), float(self.position[1]),
+                              float(self.heading), self.LENGTH, self.WIDTH, self.HEIGHT, self.color)

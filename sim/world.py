@@ -1,0 +1,356 @@
+"""The simulated world: town, lights, NPC traffic, pedestrians and the ego, stepped in 2D.
+
+The world is the ground truth. It knows nothing of cameras: the renderer reads
+``object_snapshots()`` and ``lights.states``; the environment reads ``ego_state()`` and the
+infractions. Every random choice comes from one seeded generator, so a seed and a list of
+actions replay bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from highway_env.road.road import Road
+
+from sim.ego import EgoVehicle
+from sim.geometry import circle_polygon_intersect, polygons_intersect, rect_corners, wrap_to_pi
+from sim.lights import LightTiming, TrafficLights
+from sim.objects import LightState, ObjectSnapshot, SemanticClass
+from sim.pedestrians import PedestrianCrowd
+from sim.routes import command_at, edge_length, random_route, route_length
+from sim.town import Command, Edge, Town, TownConfig, generate_town
+from sim.traffic import CAR_COLORS, Agents, TownVehicle
+
+PEDESTRIAN_ID_BASE = 1000
+EGO_ID = 999
+
+
+@dataclass(frozen=True)
+class WorldConfig:
+    """What lives in the town besides the roads. Defaults run out of the box."""
+
+    town: TownConfig = field(default_factory=TownConfig)
+    lights: LightTiming = field(default_factory=LightTiming)
+    npc_count: int = 16
+    truck_fraction: float = 0.2
+    npc_speed_range_mps: tuple[float, float] = (7.0, 11.0)
+    pedestrian_count: int = 24
+    jaywalk_probability: float = 0.0  # per pedestrian per second of waiting
+    enable_lane_change: bool = True
+    dt_s: float = 0.05
+    route_min_length_m: float = 300.0
+    route_deviation_s: float = 2.0  # how long off the route before it counts
+
+
+@dataclass(frozen=True)
+class Infraction:
+    """One ground-truth infraction of the ego."""
+
+    kind: str  # collision_vehicle | collision_pedestrian | collision_static | off_road | wrong_way |
+    #            red_light | route_deviation
+    time_s: float
+    x: float
+    y: float
+    other_id: int = 0
+
+
+TERMINAL_INFRACTIONS = {"collision_vehicle", "collision_pedestrian", "collision_static", "off_road"}
+
+
+@dataclass(frozen=True)
+class NextLight:
+    approach: int
+    state: LightState
+    distance_m: float  # from the ego's front bumper to the stop bar's near edge
+
+
+_TOWN_CACHE: dict[tuple[TownConfig, int], Town] = {}
+
+
+def cached_town(config: TownConfig, seed: int) -> Town:
+    """Towns are immutable once built; build each (config, seed) once per process."""
+    key = (config, seed)
+    if key not in _TOWN_CACHE:
+        if len(_TOWN_CACHE) > 16:
+            _TOWN_CACHE.clear()
+        _TOWN_CACHE[key] = generate_town(config, seed)
+    return _TOWN_CACHE[key]
+
+
+class StaticObstacles:
+    """Buildings (rectangles) and poles/trunks (circles) in a spatial hash for collision tests."""
+
+    CELL_M = 10.0
+
+    def __init__(self, town: Town) -> None:
+        self.grid: dict[tuple[int, int], list[tuple[str, np.ndarray, float]]] = {}
+        for b in town.buildings:
+            lo, hi = b.footprint.min(axis=0), b.footprint.max(axis=0)
+            self._add(("rect", b.footprint, 0.0), lo, hi)
+        for p in town.poles:
+            self._add(("circle", p, Town.POLE_RADIUS_M), p - 1, p + 1)
+        for t in town.trees:
+            self._add(("circle", t.position, Town.TRUNK_RADIUS_M), t.position - 1, t.position + 1)
+
+    def _add(self, item: tuple[str, np.ndarray, float], lo: np.ndarray, hi: np.ndarray) -> None:
+        c = self.CELL_M
+        for i in range(int(math.floor(lo[0] / c)), int(math.floor(hi[0] / c)) + 1):
+            for j in range(int(math.floor(lo[1] / c)), int(math.floor(hi[1] / c)) + 1):
+                self.grid.setdefault((i, j), []).append(item)
+
+    def hits(self, polygon: np.ndarray) -> bool:
+        c = self.CELL_M
+        lo, hi = polygon.min(axis=0), polygon.max(axis=0)
+        for i in range(int(math.floor(lo[0] / c)), int(math.floor(hi[0] / c)) + 1):
+            for j in range(int(math.floor(lo[1] / c)), int(math.floor(hi[1] / c)) + 1):
+                for kind, shape, r in self.grid.get((i, j), []):
+                    if kind == "rect" and polygons_intersect(polygon, shape):
+                        return True
+                    if kind == "circle" and circle_polygon_intersect(shape, r, polygon):
+                        return True
+        return False
+
+
+class World:
+    """One episode's world. Build it with a town, a config and a seed; step it with ego actions."""
+
+    def __init__(self, town: Town, config: WorldConfig, seed: int, start: tuple[str, str, int] | None = None,
+                 start_s: float = 8.0, goal: Edge | None = None, spawn_traffic: bool = True) -> None:
+        self.town = town
+        self.config = config
+        self.rng = np.random.default_rng(seed)
+        self.time_s = 0.0
+        self.step_count = 0
+        self.lights = TrafficLights(town, config.lights, self.rng)
+        self.road = Road(network=town.network, vehicles=[], np_random=np.random.RandomState(seed % (2**32)))
+        # Ego and its route.
+        roads = town.road_lanes()
+        if start is None:
+            start = roads[int(self.rng.integers(len(roads)))]
+        lane = town.lane(start)
+        self.ego = EgoVehicle(self.road, lane.position(start_s, 0.0), lane.heading_at(start_s), 0.0)
+        self.road.vehicles.append(self.ego)
+        if goal is None:
+            self.route = random_route(town, start[:2], self.rng, config.route_min_length_m)
+        else:
+            from sim.routes import shortest_route
+
+            self.route = shortest_route(town, start[:2], goal)
+        self.route_total_m = route_length(town, self.route)
+        self._route_starts = np.concatenate([[0.0], np.cumsum([edge_length(town, e) for e in self.route])])
+        self.route_index = 0
+        self.route_s = start_s
+        self._off_route_s = 0.0
+        self.deviated = False
+        self.npcs: list[TownVehicle] = []
+        self.crowd = PedestrianCrowd(town, config.pedestrian_count if spawn_traffic else 0, self.rng,
+                                     PEDESTRIAN_ID_BASE, config.jaywalk_probability)
+        if spawn_traffic:
+            for _ in range(config.npc_count):
+                self.spawn_npc()
+        self.static = StaticObstacles(town)
+        self.infractions: list[Infraction] = []
+        self.new_infractions: list[Infraction] = []
+        self._wrong_way = False
+        self._watched_approach: tuple[int, float] | None = None  # approach, front s on its lane
+        self.ego_lane: tuple[tuple[str, str, int], float, float] | None = town.locate(self.ego.position, self.ego.heading)
+        self.distance_m = 0.0
+
+    # ---------------------------------------------------------------- population
+    @property
+    def pedestrians(self) -> list:
+        return self.crowd.peds
+
+    def spawn_npc(self, lane_index: tuple[str, str, int] | None = None, s: float | None = None,
+                  kind: SemanticClass | None = None, color: tuple[float, float, float] | None = None,
+                  target_speed: float | None = None, min_gap_m: float = 14.0) -> TownVehicle | None:
+        """Add one NPC, at a random free place unless told where. Returns None if no room was found."""
+        roads = self.town.road_lanes()
+        for _ in range(50):
+            li = lane_index or roads[int(self.rng.integers(len(roads)))]
+            lane = self.town.lane(li)
+            ss = s if s is not None else float(self.rng.uniform(6.0, max(7.0, lane.length - 25.0)))
+            pos = lane.position(ss, 0.0)
+            others = [self.ego.position] + [v.position for v in self.npcs]
+            if lane_index is None and min(float(np.linalg.norm(pos - o)) for o in others) < min_gap_m:
+                continue
+            k = kind if kind is not None else (SemanticClass.TRUCK if self.rng.random() < self.config.truck_fraction
+                                               else SemanticClass.CAR)
+            col = color or CAR_COLORS[int(self.rng.integers(len(CAR_COLORS)))]
+            speed = target_speed if target_speed is not None else float(self.rng.uniform(*self.config.npc_speed_range_mps))
+            npc = TownVehicle(self.road, self.town, li, ss, 1 + len(self.npcs), k, col, speed, self.rng)
+            self.npcs.append(npc)
+            self.road.vehicles.append(npc)
+            return npc
+        return None
+
+    # ---------------------------------------------------------------- stepping
+    def _agents(self) -> Agents:
+        vehicles = [self.ego] + self.npcs
+        peds = self.crowd.peds
+        n = len(vehicles) + len(peds)
+        pos = np.zeros((n, 2))
+        head = np.zeros(n)
+        spd = np.zeros(n)
+        half = np.zeros(n)
+        is_ped = np.zeros(n, dtype=bool)
+        ids = np.zeros(n, dtype=np.int64)
+        for k, v in enumerate(vehicles):
+            pos[k], head[k], spd[k], half[k] = v.position, v.heading, v.speed, v.LENGTH / 2
+            ids[k] = EGO_ID if v is self.ego else v.object_id
+        for k, p in enumerate(peds, start=len(vehicles)):
+            pos[k], head[k], spd[k], half[k] = p.position, p.heading, p.speed_mps if p.moving else 0.0, p.RADIUS
+            is_ped[k], ids[k] = True, p.object_id
+        return Agents(pos, head, spd, half, is_ped, ids)
+
+    def step(self, action: np.ndarray) -> list[Infraction]:
+        """Advance one tick of ``config.dt_s`` with the ego's ``[steer, throttle_brake]``."""
+        dt = self.config.dt_s
+        self.time_s = round(self.time_s + dt, 9)
+        self.step_count += 1
+        self.lights.update(self.time_s)
+        agents = self._agents()
+        states = self.lights.states
+        for npc in self.npcs:
+            npc.decide(agents, states, self.config.enable_lane_change)
+        self.ego.apply(action)
+        before = self.ego.position.copy()
+        for v in self.road.vehicles:
+            v.step(dt)
+        self.distance_m += float(np.linalg.norm(self.ego.position - before))
+        vehicles = [self.ego] + self.npcs
+        vpos = np.array([v.position for v in vehicles])
+        vspd = np.array([v.speed for v in vehicles])
+        vhead = np.array([v.heading for v in vehicles])
+        self.crowd.step(dt, self.lights, vpos, vspd, vhead)
+        self.new_infractions = self._check_ego()
+        self.infractions += self.new_infractions
+        return self.new_infractions
+
+    # ---------------------------------------------------------------- ground truth
+    def _record(self, kind: str, other: int = 0) -> Infraction:
+        return Infraction(kind, self.time_s, float(self.ego.position[0]), float(self.ego.position[1]), other)
+
+    def _check_ego(self) -> list[Infraction]:
+        ego = self.ego
+        out: list[Infraction] = []
+        poly = rect_corners(ego.position, ego.heading, ego.LENGTH, ego.WIDTH)
+        for npc in self.npcs:
+            if float(np.linalg.norm(npc.position - ego.position)) < (npc.LENGTH + ego.LENGTH) / 2 + 1.0:
+                if polygons_intersect(poly, rect_corners(npc.position, npc.heading, npc.LENGTH, npc.WIDTH)):
+                    npc.crashed = True
+                    out.append(self._record("collision_vehicle", npc.object_id))
+                    break
+        for ped in self.crowd.peds:
+            if float(np.linalg.norm(ped.position - ego.position)) < ego.LENGTH and circle_polygon_intersect(
+                    ped.position, ped.RADIUS, poly):
+                out.append(self._record("collision_pedestrian", ped.object_id))
+                break
+        if self.static.hits(poly):
+            out.append(self._record("collision_static"))
+        self.ego_lane = self.town.locate(ego.position, ego.heading)
+        if self.ego_lane is None:
+            out.append(self._record("off_road"))
+        else:
+            out += self._check_direction_and_route()
+        out += self._check_red_light()
+        return out
+
+    def _check_direction_and_route(self) -> list[Infraction]:
+        out: list[Infraction] = []
+        assert self.ego_lane is not None
+        nearest = self.town.locate(self.ego.position)
+        wrong = False
+        if nearest is not None and self.town.lane_info[nearest[0]].kind != "connector":
+            lane = self.town.lane(nearest[0])
+            wrong = abs(wrap_to_pi(lane.heading_at(nearest[1]) - self.ego.heading)) > math.radians(100)
+        if wrong and not self._wrong_way:
+            out.append(self._record("wrong_way"))
+        self._wrong_way = wrong
+        # Route progress: stay on the current edge or move on to one of the next two.
+        edge, s = self.ego_lane[0][:2], self.ego_lane[1]
+        window = self.route[self.route_index:self.route_index + 3]
+        if edge in window:
+            self.route_index += window.index(edge)
+            self.route_s = max(s, self.route_s) if window.index(edge) == 0 else s
+            self._off_route_s = 0.0
+        else:
+            self._off_route_s += self.config.dt_s
+            if self._off_route_s >= self.config.route_deviation_s and not self.deviated:
+                self.deviated = True
+                out.append(self._record("route_deviation"))
+        return out
+
+    def _check_red_light(self) -> list[Infraction]:
+        """Red-light run: the ego's front bumper passes the end of an approach lane on red."""
+        ego = self.ego
+        front = ego.position + ego.LENGTH / 2 * np.array([math.cos(ego.heading), math.sin(ego.heading)])
+        out: list[Infraction] = []
+        if self._watched_approach is not None:
+            idx, prev_s = self._watched_approach
+            ap = self.town.approaches[idx]
+            lane = self.town.network.graph[ap.edge[0]][ap.edge[1]][0]
+            s = float(lane.local_coordinates(front)[0])
+            if prev_s < lane.length <= s and self.lights.state(idx) == LightState.RED:
+                out.append(self._record("red_light", idx))
+            self._watched_approach = (idx, s) if s < lane.length + 10 else None
+        if self._watched_approach is None and self.ego_lane is not None:
+            ap = self.town.approach_for_edge(self.ego_lane[0][:2])
+            if ap is not None:
+                lane = self.town.network.graph[ap.edge[0]][ap.edge[1]][0]
+                s = float(lane.local_coordinates(front)[0])
+                if s < lane.length:
+                    self._watched_approach = (ap.index, s)
+        return out
+
+    # ---------------------------------------------------------------- views for env, renderer, drivers
+    @property
+    def route_progress_m(self) -> float:
+        return float(self._route_starts[self.route_index] + self.route_s)
+
+    @property
+    def route_completion(self) -> float:
+        return float(np.clip(self.route_progress_m / max(self.route_total_m, 1e-6), 0.0, 1.0))
+
+    @property
+    def route_done(self) -> bool:
+        return self.route_total_m - self.route_progress_m < 5.0
+
+    def command(self) -> Command:
+        return command_at(self.town, self.route, self.route_index, self.route_s)
+
+    def lane_offset_m(self) -> float:
+        """Signed lateral offset from the current lane's centre (positive: right of it); nan off road."""
+        return float(self.ego_lane[2]) if self.ego_lane is not None else float("nan")
+
+    def next_light(self, horizon_m: float = 150.0) -> NextLight | None:
+        """The next signal on the route ahead and the distance to its stop line."""
+        front_s = self.route_s + self.ego.LENGTH / 2
+        along = -front_s
+        for k in range(self.route_index, len(self.route)):
+            along += edge_length(self.town, self.route[k])
+            if along - 0.5 > horizon_m:
+                return None
+            ap = self.town.approach_for_edge(self.route[k])
+            if ap is not None and along > -0.5:
+                return NextLight(ap.index, self.lights.state(ap.index), along - 0.5)
+        return None
+
+    def object_snapshots(self) -> list[ObjectSnapshot]:
+        return [v.snapshot() for v in self.npcs] + [p.snapshot() for p in self.crowd.peds]
+
+    def ego_route_polyline(self) -> np.ndarray:
+        pts = []
+        for frm, to in self.route[self.route_index:]:
+            lane = self.town.network.graph[frm][to][0]
+            for s in np.linspace(0, lane.length, max(2, int(lane.length / 4))):
+                pts.append(lane.position(s, 0.0))
+        return np.array(pts)
+
+
+def make_world(config: WorldConfig | None = None, town_seed: int = 0, seed: int = 0, **kwargs: object) -> World:
+    """Convenience: a world on a cached town."""
+    config = config or WorldConfig()
+    return World(cached_town(config.town, town_seed), config, seed, **kwargs)  # type: ignore[arg-type]
