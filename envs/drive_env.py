@@ -1,0 +1,329 @@
+"""``Drive-v0``: drive the ego car through the town from first-person camera frames.
+
+Observation (a Dict):
+  ``image``    camera RGB, uint8 H x W x 3 (default 320 x 160)
+  ``speed``    ego speed in m/s, float32 shape (1,)
+  ``command``  route command, int: 0 follow lane, 1 left, 2 right, 3 straight
+  and, when asked for in ``DriveConfig``: ``depth`` (metres, float32 H x W), ``segmentation``
+  (int32 H x W x 2: semantic class, object id) and ``stereo`` (uint8 2 x H x W x 3: left, right).
+
+Action: Box([-1, -1], [1, 1]) = ``[steer, throttle_brake]``.
+
+Reward per step (documented, simple, dense):
+  + route progress in metres / 10
+  - 0.02 x |lane offset in metres|
+  - 10 on a terminal infraction (collision with a vehicle, pedestrian or static object; leaving the road)
+  - 5 for running a red light, - 2 for entering the wrong way or deviating from the route.
+
+Termination: a terminal infraction, route deviation (if ``terminate_on_route_deviation``), or the end
+of the route. Truncation: ``max_time_s`` or ``max_distance_m``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from sim.objects import LightState, SemanticClass
+from sim.render import LIGHTING_PRESETS, CameraConfig, CameraFrame, SceneRenderer
+from sim.topdown import TopDownMap
+from sim.town import Command
+from sim.world import TERMINAL_INFRACTIONS, World, WorldConfig, cached_town
+
+LIGHT_ID_BASE = 10000
+INFRACTION_REWARD = {"red_light": -5.0, "wrong_way": -2.0, "route_deviation": -2.0}
+
+
+@dataclass(frozen=True)
+class DriveConfig:
+    """Everything an episode is made of. Defaults: the default town at noon with traffic."""
+
+    world: WorldConfig = field(default_factory=WorldConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    town_seed: int = 0
+    weather: str = "noon"
+    render_camera: bool = True  # False: no pictures at all (image is zeros), for fast non-visual use
+    observe_depth: bool = False
+    observe_segmentation: bool = False
+    observe_stereo: bool = False
+    max_time_s: float = 180.0
+    max_distance_m: float = 3000.0
+    terminate_on_route_deviation: bool = True
+    max_visible_range_m: float = 80.0
+
+
+class DriveEnv(gym.Env):
+    """The town as a Gymnasium environment. See the module docstring for spaces and reward."""
+
+    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 20}
+
+    def __init__(self, config: DriveConfig | None = None, render_mode: str | None = None, **overrides: Any) -> None:
+        config = config or DriveConfig()
+        if overrides:
+            config = replace(config, **overrides)
+        if config.weather not in LIGHTING_PRESETS:
+            raise ValueError(f"Unknown weather {config.weather!r}; choose one of {sorted(LIGHTING_PRESETS)}.")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"Unknown render_mode {render_mode!r}; use 'rgb_array' or 'human'.")
+        self.config = config
+        self.render_mode = render_mode
+        self.metadata = {**self.metadata, "render_fps": int(round(1.0 / config.world.dt_s))}
+        cam = config.camera
+        obs: dict[str, spaces.Space] = {
+            "image": spaces.Box(0, 255, (cam.height, cam.width, 3), np.uint8),
+            "speed": spaces.Box(0.0, 50.0, (1,), np.float32),
+            "command": spaces.Discrete(len(Command)),
+        }
+        if config.observe_depth:
+            obs["depth"] = spaces.Box(0.0, cam.far_m, (cam.height, cam.width), np.float32)
+        if config.observe_segmentation:
+            obs["segmentation"] = spaces.Box(-1, 2**31 - 1, (cam.height, cam.width, 2), np.int32)
+        if config.observe_stereo:
+            obs["stereo"] = spaces.Box(0, 255, (2, cam.height, cam.width, 3), np.uint8)
+        self.observation_space = spaces.Dict(obs)
+        self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self.world: World | None = None
+        self.renderer: SceneRenderer | None = None
+        self._renderer_town: int | None = None
+        self._topdown: TopDownMap | None = None
+        self.weather = config.weather
+        self.frame: CameraFrame | None = None
+        self._window: Any = None
+        self._last_progress = 0.0
+
+    # ------------------------------------------------------------------ gym API
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[dict, dict]:
+        """Start an episode. ``options`` may set ``town_seed``, ``weather``, ``traffic_density``
+        (multiplies NPCs and pedestrians), ``start`` (lane index), ``goal`` (edge) and ``world``
+        (a ready-made World, used by scenarios)."""
+        super().reset(seed=seed)
+        options = dict(options or {})
+        unknown = set(options) - {"town_seed", "weather", "traffic_density", "start", "goal", "world"}
+        if unknown:
+            raise ValueError(f"Unknown reset option(s) {sorted(unknown)}; see DriveEnv.reset's docstring.")
+        episode_seed = int(self.np_random.integers(2**31 - 1))
+        town_seed = int(options.get("town_seed", self.config.town_seed))
+        self.weather = str(options.get("weather", self.config.weather))
+        if self.weather not in LIGHTING_PRESETS:
+            raise ValueError(f"Unknown weather {self.weather!r}; choose one of {sorted(LIGHTING_PRESETS)}.")
+        wcfg = self.config.world
+        density = float(options.get("traffic_density", 1.0))
+        if density != 1.0:
+            wcfg = replace(wcfg, npc_count=int(round(wcfg.npc_count * density)),
+                           pedestrian_count=int(round(wcfg.pedestrian_count * density)))
+        if "world" in options:
+            self.world = options["world"]
+        else:
+            town = cached_town(wcfg.town, town_seed)
+            kwargs: dict[str, Any] = {}
+            if "start" in options:
+                kwargs["start"] = tuple(options["start"])
+            if "goal" in options:
+                kwargs["goal"] = tuple(options["goal"])
+            self.world = World(town, wcfg, episode_seed, **kwargs)
+        world = self.world
+        assert world is not None
+        if self.config.render_camera and (self.renderer is None or self._renderer_town != id(world.town)):
+            if self.renderer is not None:
+                self.renderer.close()
+            self.renderer = SceneRenderer(world.town, seed=world.town.seed)
+            self._renderer_town = id(world.town)
+            self._topdown = None
+        self._last_progress = world.route_progress_m
+        obs = self._observe()
+        return obs, self._info([])
+
+    def step(self, action: np.ndarray) -> tuple[dict, float, bool, bool, dict]:
+        world = self._require_world()
+        action = np.asarray(action, dtype=np.float32).reshape(-1)
+        if action.shape != (2,) or not np.all(np.isfinite(action)):
+            raise ValueError(f"Action must be two finite numbers [steer, throttle_brake]; got {action!r}.")
+        new = world.step(action)
+        progress = world.route_progress_m
+        reward = (progress - self._last_progress) / 10.0
+        self._last_progress = progress
+        offset = world.lane_offset_m()
+        if math.isfinite(offset):
+            reward -= 0.02 * abs(offset)
+        terminated = False
+        for inf in new:
+            if inf.kind in TERMINAL_INFRACTIONS:
+                reward -= 10.0
+                terminated = True
+            else:
+                reward += INFRACTION_REWARD.get(inf.kind, 0.0)
+                if inf.kind == "route_deviation" and self.config.terminate_on_route_deviation:
+                    terminated = True
+        if world.route_done:
+            terminated = True
+        truncated = not terminated and (world.time_s >= self.config.max_time_s
+                                        or world.distance_m >= self.config.max_distance_m)
+        obs = self._observe()
+        info = self._info(new)
+        if self.render_mode == "human":
+            self.render()
+        return obs, float(reward), terminated, truncated, info
+
+    def render(self) -> np.ndarray | None:
+        """Camera view beside a top-down map around the ego (``rgb_array``), or shown in a window (``human``)."""
+        if self.render_mode is None:
+            return None
+        image = self.composite()
+        if self.render_mode == "rgb_array":
+            return image
+        self._show(image)
+        return None
+
+    def close(self) -> None:
+        if self.renderer is not None:
+            self.renderer.close()
+            self.renderer = None
+        if self._window is not None:
+            import pygame
+
+            pygame.display.quit()
+            self._window = None
+
+    # ------------------------------------------------------------------ pictures
+    def composite(self) -> np.ndarray:
+        """The camera frame scaled to 320 px wide next to a matching top-down crop."""
+        import cv2
+
+        world = self._require_world()
+        if self._topdown is None:
+            self._topdown = TopDownMap(world.town, pixels_per_m=3.0)
+        cam = self.frame.rgb if self.frame is not None else np.zeros((160, 320, 3), np.uint8)
+        h = int(round(cam.shape[0] * 320 / cam.shape[1]))
+        cam = cv2.resize(cam, (320, h), interpolation=cv2.INTER_LINEAR)
+        side = h
+        top = self._topdown.render_around(world, size_px=side, radius_m=35.0)
+        return np.concatenate([cam, top], axis=1)
+
+    def _show(self, image: np.ndarray) -> None:
+        import pygame
+
+        if self._window is None:
+            pygame.init()
+            self._window = pygame.display.set_mode((image.shape[1] * 2, image.shape[0] * 2))
+            pygame.display.set_caption("Drive-v0")
+        surf = pygame.surfarray.make_surface(np.ascontiguousarray(image.transpose(1, 0, 2)))
+        self._window.blit(pygame.transform.scale(surf, self._window.get_size()), (0, 0))
+        pygame.event.pump()
+        pygame.display.flip()
+
+    # ------------------------------------------------------------------ internals
+    def _require_world(self) -> World:
+        if self.world is None:
+            raise RuntimeError("Call reset() before step() or render().")
+        return self.world
+
+    def _pose(self) -> tuple[float, float, float]:
+        ego = self._require_world().ego
+        return float(ego.position[0]), float(ego.position[1]), float(ego.heading)
+
+    def _observe(self) -> dict[str, Any]:
+        world = self._require_world()
+        cfg = self.config
+        cam = cfg.camera
+        obs: dict[str, Any] = {
+            "speed": np.array([world.ego.speed], dtype=np.float32),
+            "command": int(world.command()),
+        }
+        if cfg.render_camera and self.renderer is not None:
+            self.renderer.sync(world.object_snapshots(), world.lights.states)
+            if cfg.observe_stereo:
+                left, right = self.renderer.render_stereo(self._pose(), cam, self.weather)
+                obs["stereo"] = np.stack([left.rgb, right.rgb])
+            self.frame = self.renderer.render(self._pose(), cam, self.weather)
+            obs["image"] = self.frame.rgb
+            if cfg.observe_depth:
+                obs["depth"] = self.frame.depth_m.astype(np.float32)
+            if cfg.observe_segmentation:
+                obs["segmentation"] = self.frame.segmentation.astype(np.int32)
+        else:
+            self.frame = None
+            obs["image"] = np.zeros((cam.height, cam.width, 3), np.uint8)
+            if cfg.observe_depth:
+                obs["depth"] = np.full((cam.height, cam.width), cam.far_m, np.float32)
+            if cfg.observe_segmentation:
+                obs["segmentation"] = np.zeros((cam.height, cam.width, 2), np.int32)
+            if cfg.observe_stereo:
+                obs["stereo"] = np.zeros((2, cam.height, cam.width, 3), np.uint8)
+        return {k: obs[k] for k in self.observation_space.spaces}
+
+    def _visible_objects(self) -> list[dict[str, Any]]:
+        """Every moving object and traffic light with pixels in the frame: class, id, position, 2D box."""
+        world = self._require_world()
+        if self.frame is None:
+            return []
+        ids = self.frame.segmentation[..., 1]
+        ys, xs = np.nonzero(ids > 0)
+        if len(ys) == 0:
+            return []
+        vals = ids[ys, xs]
+        uniq, inv = np.unique(vals, return_inverse=True)
+        x0 = np.full(len(uniq), 1 << 30)
+        y0 = np.full(len(uniq), 1 << 30)
+        x1 = np.full(len(uniq), -1)
+        y1 = np.full(len(uniq), -1)
+        np.minimum.at(x0, inv, xs)
+        np.minimum.at(y0, inv, ys)
+        np.maximum.at(x1, inv, xs)
+        np.maximum.at(y1, inv, ys)
+        counts = np.bincount(inv)
+        snaps = {s.object_id: s for s in world.object_snapshots()}
+        ego = world.ego
+        out = []
+        for k, oid in enumerate(uniq.tolist()):
+            if oid >= LIGHT_ID_BASE:
+                ap = world.town.approaches[oid - LIGHT_ID_BASE]
+                x, y, heading = float(ap.light_head[0]), float(ap.light_head[1]), ap.travel_heading + math.pi
+                cls, extra = SemanticClass.TRAFFIC_LIGHT, {"state": world.lights.state(ap.index).name.lower(),
+                                                          "approach": ap.index}
+            elif oid in snaps:
+                s = snaps[oid]
+                x, y, heading, cls, extra = s.x, s.y, s.heading, s.kind, {}
+            else:
+                continue
+            out.append({"id": int(oid), "class": SemanticClass(cls).name.lower(), "x": x, "y": y,
+                        "heading": float(heading),
+                        "distance_m": float(math.hypot(x - ego.position[0], y - ego.position[1])),
+                        "bbox": [int(x0[k]), int(y0[k]), int(x1[k]) + 1, int(y1[k]) + 1],
+                        "pixels": int(counts[k]), **extra})
+        return out
+
+    def _info(self, new_infractions: list) -> dict[str, Any]:
+        world = self._require_world()
+        ego = world.ego
+        nl = world.next_light()
+        lane = world.ego_lane
+        return {
+            "time_s": world.time_s,
+            "ego": {"x": float(ego.position[0]), "y": float(ego.position[1]), "heading": float(ego.heading),
+                    "speed_mps": float(ego.speed)},
+            "lane_index": None if lane is None else list(lane[0]),
+            "lane_offset_m": world.lane_offset_m(),
+            "command": Command(world.command()).name.lower(),
+            "next_light": None if nl is None else {"approach": nl.approach, "state": LightState(nl.state).name.lower(),
+                                                   "distance_m": float(nl.distance_m)},
+            "objects": self._visible_objects(),
+            "infractions": [inf.__dict__.copy() for inf in new_infractions],
+            "infraction_counts": _count(world.infractions),
+            "route": {"progress_m": world.route_progress_m, "total_m": world.route_total_m,
+                      "completion": world.route_completion},
+            "distance_m": world.distance_m,
+            "weather": self.weather,
+            "town_seed": world.town.seed,
+        }
+
+
+def _count(infractions: list) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for inf in infractions:
+        out[inf.kind] = out.get(inf.kind, 0) + 1
+    return out
