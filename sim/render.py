@@ -64,11 +64,12 @@ class CameraConfig:
     def intrinsics(self) -> np.ndarray:
         """3x3 K so that ``K @ [X, Y, Z]`` (camera frame: x right, y down, z forward) lands on TinyRenderer's pixel.
 
-        TinyRenderer samples pixel i at viewport coordinate i (not i + 0.5), so the principal point
-        is (W/2, H/2) rather than ((W-1)/2, (H-1)/2); ``test`` in /tmp/render_demo.py checks this.
+        TinyRenderer samples pixel column u at viewport x = u (not u + 0.5) and stores rows bottom-up,
+        so image row v samples viewport y = v + 1 from the top: the principal point is (W/2, H/2 - 1).
+        tests/test_env.py checks this against the metric depth of the ground plane.
         """
         f = self.focal_px
-        return np.array([[f, 0.0, self.width / 2], [0.0, f, self.height / 2], [0.0, 0.0, 1.0]])
+        return np.array([[f, 0.0, self.width / 2], [0.0, f, self.height / 2 - 1.0], [0.0, 0.0, 1.0]])
 
 
 @dataclass(frozen=True)

@@ -79,19 +79,32 @@ class Mesh:
         for k in range(1, len(pts) - 1):
             self.tri(pts[0], pts[k], pts[k + 1], up)
 
-    def prism_sides(self, poly: np.ndarray, z0: float, z1: float) -> None:
+    def polygon_top_tiled(self, poly: np.ndarray, z: float, cell_m: float) -> None:
+        """Like ``polygon_top`` but cut along a grid, so no triangle has a huge screen bounding box.
+
+        TinyRenderer tests every pixel of each triangle's clamped bounding box; long thin
+        triangles seen in perspective cost far more than the pixels they cover.
+        """
+        for piece in grid_pieces(poly, cell_m):
+            self.polygon_top(piece, z)
+
+    def prism_sides(self, poly: np.ndarray, z0: float, z1: float, max_len_m: float = 1e9) -> None:
         """Outward-facing vertical walls of a convex map-frame polygon between two heights."""
         pts = to_world(poly[:, 0], poly[:, 1], 0.0)
         centre = pts.mean(axis=0)
         for k in range(len(pts)):
             p, q = pts[k], pts[(k + 1) % len(pts)]
-            if float(np.linalg.norm(q - p)) < 1e-6:
+            length = float(np.linalg.norm(q - p))
+            if length < 1e-6:
                 continue
             n = np.array([q[1] - p[1], -(q[0] - p[0]), 0.0])
             if float(np.dot(n, (p + q) / 2 - centre)) < 0:
                 n = -n
             dz0, dz1 = np.array([0, 0, z0]), np.array([0, 0, z1])
-            self.quad(p + dz0, q + dz0, q + dz1, p + dz1, n)
+            cuts = np.linspace(0.0, 1.0, int(math.ceil(length / max_len_m)) + 1)
+            for t0, t1 in zip(cuts[:-1], cuts[1:], strict=True):
+                a, b = p + (q - p) * t0, p + (q - p) * t1
+                self.quad(a + dz0, b + dz0, b + dz1, a + dz1, n)
 
     def box(self, centre: np.ndarray, half: np.ndarray, top: bool = True, bottom: bool = False) -> None:
         """An axis-aligned world-frame box (the camera never sees bottoms, so they are optional)."""
@@ -117,6 +130,46 @@ class Mesh:
         v = np.asarray(self.vertices, float).round(4)
         n = np.asarray(self.normals, float).round(5)
         return v.tolist(), list(range(len(v))), n.tolist()
+
+
+def _clip_half_plane(poly: np.ndarray, axis: int, bound: float, keep_below: bool) -> np.ndarray:
+    """Sutherland-Hodgman step: the part of a convex polygon on one side of an axis-aligned line."""
+    out = []
+    n = len(poly)
+    for k in range(n):
+        p, q = poly[k], poly[(k + 1) % n]
+        p_in = p[axis] <= bound if keep_below else p[axis] >= bound
+        q_in = q[axis] <= bound if keep_below else q[axis] >= bound
+        if p_in:
+            out.append(p)
+        if p_in != q_in:
+            t = (bound - p[axis]) / (q[axis] - p[axis])
+            out.append(p + t * (q - p))
+    return np.array(out) if out else np.zeros((0, 2))
+
+
+def grid_pieces(poly: np.ndarray, cell_m: float) -> list[np.ndarray]:
+    """A convex map-frame polygon cut into convex pieces along a square grid of ``cell_m``."""
+    lo, hi = poly.min(axis=0), poly.max(axis=0)
+    if float((hi - lo).max()) <= cell_m * 1.25:
+        return [poly]
+    pieces = []
+    xs = np.arange(math.floor(lo[0] / cell_m) * cell_m, hi[0], cell_m)
+    ys = np.arange(math.floor(lo[1] / cell_m) * cell_m, hi[1], cell_m)
+    for x in xs:
+        column = _clip_half_plane(_clip_half_plane(poly, 0, x, False), 0, x + cell_m, True)
+        if len(column) < 3:
+            continue
+        for y in ys:
+            piece = _clip_half_plane(_clip_half_plane(column, 1, y, False), 1, y + cell_m, True)
+            if len(piece) >= 3 and _area(piece) > 1e-4:
+                pieces.append(piece)
+    return pieces
+
+
+def _area(poly: np.ndarray) -> float:
+    x, y = poly[:, 0], poly[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
 
 
 @dataclass
@@ -148,67 +201,56 @@ def _rgba(rgb: tuple[float, float, float]) -> tuple[float, float, float, float]:
 
 
 def build_static_groups(town: Town, seed: int = 0) -> list[MeshGroup]:
-    """All static scenery (no traffic-light housings or lamps) as merged per-colour meshes."""
+    """All static scenery except the grass ground (drawn in post) and the light housings/lamps.
+
+    Groups come back in draw order, nearest-to-the-eye layers first: TinyRenderer rejects a pixel
+    on the depth test before running its costly shader, so occluders (windows, walls, trees) are
+    drawn before the ground layers they hide, and markings before the asphalt under them.
+    """
     rng = np.random.default_rng(seed)
     groups: dict[str, MeshGroup] = {}
+    order = ["windows_lit", "windows", "building", "canopy", "trunks", "poles", "crosswalks", "stop_lines",
+             "white_lines", "yellow_lines", "kerb", "park", "sidewalk", "road"]
 
     def group(name: str, semantic: SemanticClass, rgb: tuple[float, float, float]) -> Mesh:
         if name not in groups:
             groups[name] = MeshGroup(name, semantic, _rgba(rgb), Mesh())
         return groups[name].mesh
 
-    # Ground: one quad well past the far plane from any point of the town.
-    xmin, ymin, xmax, ymax = town.extent
-    m = 300.0
-    group("ground", SemanticClass.GROUND, GRASS_RGB).polygon_top(
-        np.array([[xmin - m, ymin - m], [xmax + m, ymin - m], [xmax + m, ymax + m], [xmin - m, ymax + m]]), Z_GROUND)
-    road = group("road", SemanticClass.ROAD, ROAD_RGB)
-    for poly in town.road_polygons:
-        road.polygon_top(poly, Z_ROAD)
-    marking_groups = {"dashed_white": ("white_lines", SemanticClass.LANE_MARKING, WHITE_RGB),
-                      "solid_white": ("white_lines", SemanticClass.LANE_MARKING, WHITE_RGB),
-                      "solid_yellow": ("yellow_lines", SemanticClass.LANE_MARKING, YELLOW_RGB),
-                      "stop_line": ("stop_lines", SemanticClass.STOP_LINE, WHITE_RGB),
-                      "crosswalk": ("crosswalks", SemanticClass.CROSSWALK, WHITE_RGB)}
-    for kind, quads in town.markings.items():
-        name, sem, rgb = marking_groups[kind]
-        mesh = group(name, sem, rgb)
-        for q in quads:
-            mesh.polygon_top(q, Z_MARKING)
-    top, kerb = group("sidewalk", SemanticClass.SIDEWALK, SIDEWALK_RGB), group("kerb", SemanticClass.SIDEWALK, KERB_RGB)
-    for poly in town.slab_polygons:
-        top.polygon_top(poly, Z_SLAB)
-        kerb.prism_sides(poly, Z_ROAD - 0.02, Z_SLAB)
-    park = group("park", SemanticClass.GROUND, PARK_RGB)
-    for poly in town.grass_polygons:
-        park.polygon_top(poly, Z_PARK)
-
-    # Buildings: walls (and roof) in their palette colour, a dark glass band per floor per facade.
+    # Buildings: walls (and roof) in their palette colour, a dark glass band per floor on each
+    # street-facing facade (back facades face the block interior, which no street camera sees).
+    sw = town.config.sidewalk_width_m
     for b in town.buildings:
         key = "building_" + "_".join(f"{c:.2f}" for c in b.color)
         walls = group(key, SemanticClass.BUILDING, b.color)
         walls.prism_sides(b.footprint, Z_SLAB - 0.05, b.height_m)
         walls.polygon_top(b.footprint, b.height_m)
         floors = int((b.height_m - 1.0) // FLOOR_HEIGHT_M)
-        pts = to_world(b.footprint[:, 0], b.footprint[:, 1], 0.0)
-        centre = pts.mean(axis=0)
-        for k in range(len(pts)):
-            p, q = pts[k], pts[(k + 1) % len(pts)]
-            length = float(np.linalg.norm(q - p))
+        centre2 = b.footprint.mean(axis=0)
+        for k in range(len(b.footprint)):
+            p2, q2 = b.footprint[k], b.footprint[(k + 1) % len(b.footprint)]
+            length = float(np.linalg.norm(q2 - p2))
             if length < 4.0:
                 continue
-            along = (q - p) / length
-            n = np.array([along[1], -along[0], 0.0])
-            if float(np.dot(n, (p + q) / 2 - centre)) < 0:
-                n = -n
+            along2 = (q2 - p2) / length
+            out2 = np.array([-along2[1], along2[0]])
+            if float(np.dot(out2, (p2 + q2) / 2 - centre2)) < 0:
+                out2 = -out2
+            if not town.on_road((p2 + q2) / 2 + out2 * (sw + 3.0), margin_m=2.0):
+                continue
+            p, q = to_world(p2[0], p2[1]), to_world(q2[0], q2[1])
+            n = to_world(out2[0], out2[1])
             inset = min(1.2, 0.15 * length)
-            a, c = p + along * inset + n * WINDOW_OFFSET_M, q - along * inset + n * WINDOW_OFFSET_M
+            a, c = p + (q - p) * inset / length + n * WINDOW_OFFSET_M, q - (q - p) * inset / length + n * WINDOW_OFFSET_M
+            pieces = int(math.ceil(float(np.linalg.norm(c - a)) / 6.0))
             for f in range(floors):
                 lit = rng.random() < WINDOW_LIT_FRACTION
                 mesh = group("windows_lit" if lit else "windows", SemanticClass.BUILDING, GLASS_RGB)
                 z0 = Z_SLAB + f * FLOOR_HEIGHT_M + WINDOW_BOTTOM_M
                 z1 = Z_SLAB + f * FLOOR_HEIGHT_M + WINDOW_TOP_M
-                mesh.quad(a + [0, 0, z0], c + [0, 0, z0], c + [0, 0, z1], a + [0, 0, z1], n)
+                for t in range(pieces):
+                    u, v = a + (c - a) * t / pieces, a + (c - a) * (t + 1) / pieces
+                    mesh.quad(u + [0, 0, z0], v + [0, 0, z0], v + [0, 0, z1], u + [0, 0, z1], n)
     if "windows_lit" in groups:
         groups["windows_lit"].emissive_at_night = LIT_WINDOW_RGB
 
@@ -224,16 +266,7 @@ def build_static_groups(town: Town, seed: int = 0) -> list[MeshGroup]:
         g = t.color[1]
         shade = 0 if g < 0.47 else (1 if g < 0.53 else 2)
         canopy = group(f"canopy_{shade}", SemanticClass.VEGETATION, shades[shade])
-        mid = base + [0, 0, z_canopy + 0.9 * r]
-        apex_up, apex_down = base + [0, 0, t.height_m], base + [0, 0, z_canopy]
-        phase = float(rng.uniform(0, math.pi / 3))
-        ring = [mid + r * np.array([math.cos(phase + k * math.pi / 3), math.sin(phase + k * math.pi / 3), 0.0])
-                for k in range(6)]
-        for k in range(6):
-            p, q = ring[k], ring[(k + 1) % 6]
-            out = (p + q) / 2 - mid
-            canopy.tri(p, q, apex_up, out + np.array([0, 0, 0.6 * r]))
-            canopy.tri(p, q, apex_down, out - np.array([0, 0, 0.6 * r]))
+        _canopy(canopy, base, z_canopy, t.height_m, r, float(rng.uniform(0, math.pi / 3)))
 
     # Light poles and mast arms (the housings and lamps are per-light bodies, see render.py).
     poles = group("poles", SemanticClass.POLE, POLE_RGB)
@@ -247,13 +280,56 @@ def build_static_groups(town: Town, seed: int = 0) -> list[MeshGroup]:
         span = head - arm_foot
         length = float(np.linalg.norm(span))
         if length > 1e-6:
-            d = span / length
-            end = head + d * 0.3
-            centre = (arm_foot + end) / 2
+            end = head + span / length * 0.3
             half = np.abs(end - arm_foot) / 2 + ARM_HALF_M
             half[2] = ARM_HALF_M
-            poles.box(centre, half, top=True, bottom=True)
-    return [g for g in groups.values() if g.mesh.triangle_count > 0]
+            poles.box((arm_foot + end) / 2, half, top=True, bottom=True)
+
+    # Ground layers, cut along a grid so that no triangle's screen bounding box is huge.
+    marking_groups = {"dashed_white": ("white_lines", SemanticClass.LANE_MARKING, WHITE_RGB),
+                      "solid_white": ("white_lines", SemanticClass.LANE_MARKING, WHITE_RGB),
+                      "solid_yellow": ("yellow_lines", SemanticClass.LANE_MARKING, YELLOW_RGB),
+                      "stop_line": ("stop_lines", SemanticClass.STOP_LINE, WHITE_RGB),
+                      "crosswalk": ("crosswalks", SemanticClass.CROSSWALK, WHITE_RGB)}
+    for kind, quads in town.markings.items():
+        name, sem, rgb = marking_groups[kind]
+        mesh = group(name, sem, rgb)
+        for quad in quads:
+            mesh.polygon_top_tiled(quad, Z_MARKING, 6.0)
+    top, kerb = group("sidewalk", SemanticClass.SIDEWALK, SIDEWALK_RGB), group("kerb", SemanticClass.SIDEWALK, KERB_RGB)
+    for poly in town.slab_polygons:
+        top.polygon_top_tiled(poly, Z_SLAB, 12.0)
+        kerb.prism_sides(poly, Z_ROAD - 0.02, Z_SLAB, max_len_m=6.0)
+    park = group("park", SemanticClass.GROUND, PARK_RGB)
+    for poly in town.grass_polygons:
+        park.polygon_top_tiled(poly, Z_PARK, 12.0)
+    road = group("road", SemanticClass.ROAD, ROAD_RGB)
+    for poly in town.road_polygons:
+        road.polygon_top_tiled(poly, Z_ROAD, 8.0)
+
+    def rank(g: MeshGroup) -> int:
+        return next(k for k, prefix in enumerate(order) if g.name.startswith(prefix))
+
+    return sorted((g for g in groups.values() if g.mesh.triangle_count > 0), key=rank)
+
+
+def _canopy(mesh: Mesh, base: np.ndarray, z0: float, z1: float, r: float, phase: float) -> None:
+    """A low-poly rounded crown: two offset hexagonal rings between a bottom and a top apex."""
+    lo, hi = base + [0, 0, z0 + 0.45 * (z1 - z0) * 0.6], base + [0, 0, z0 + 0.72 * (z1 - z0)]
+
+    def ring(centre: np.ndarray, radius: float, offset: float) -> list[np.ndarray]:
+        return [centre + radius * np.array([math.cos(offset + k * math.pi / 3), math.sin(offset + k * math.pi / 3), 0.0])
+                for k in range(6)]
+
+    low, high = ring(lo, r, phase), ring(hi, 0.8 * r, phase + math.pi / 6)
+    bottom, top = base + [0, 0, z0], base + [0, 0, z1]
+    mid = (lo + hi) / 2
+    for k in range(6):
+        j = (k + 1) % 6
+        mesh.tri(low[k], low[j], bottom, (low[k] + low[j]) / 2 - lo - np.array([0, 0, 0.8 * r]))
+        mesh.tri(high[k], high[j], top, (high[k] + high[j]) / 2 - hi + np.array([0, 0, 0.9 * r]))
+        mesh.tri(low[k], low[j], high[k], (low[k] + low[j] + high[k]) / 3 - mid)
+        mesh.tri(high[k], high[j], low[j], (high[k] + high[j] + low[j]) / 3 - mid)
 
 
 def light_lamp_disc(radius: float = LAMP_RADIUS_M, sides: int = 8) -> tuple[list[list[float]], list[int], list[list[float]]]:
