@@ -20,9 +20,12 @@ import pybullet as p
 
 from sim.objects import LightState, ObjectSnapshot, SemanticClass
 from sim.scene_meshes import (
+    GRASS_RGB,
     HOUSING_HALF,
     LAMP_SPACING_M,
+    Z_GROUND,
     Z_SLAB,
+    Mesh,
     build_static_groups,
     light_lamp_disc,
     to_world,
@@ -33,6 +36,7 @@ from sim.town import Town
 LIGHT_ID_BASE = 10000  # segmentation object id of approach k's light: LIGHT_ID_BASE + k
 MAX_LINKS = 8  # links per body the segmentation lookup tables can tell apart
 HIDDEN_Z = -500.0  # where pooled, unused object bodies wait (below the ground, beyond the far plane)
+CALIBRATION_Z = -3000.0  # a grass patch far below the town, rendered once per preset to learn the grass colour
 
 
 # --------------------------------------------------------------------------- camera
@@ -170,6 +174,7 @@ class SceneRenderer:
         self._night_emit = np.zeros(len(self._class_lut), bool)  # emissive only when the preset says so
         self.triangle_count = 0
         self._build_static(seed)
+        self._build_calibration_patch()
         self._light_bodies: list[int] = []
         self._light_states: list[LightState | None] = []
         self._build_lights()
@@ -220,6 +225,31 @@ class SceneRenderer:
             if g.emissive_at_night is not None:
                 self._set_emissive(uid, -1, g.emissive_at_night, night_only=True)
             self.triangle_count += g.mesh.triangle_count
+
+    def _build_calibration_patch(self) -> None:
+        """A grass quad out of every view; its lit colour is the colour of the analytic ground."""
+        mesh = Mesh()
+        mesh.polygon_top(np.array([[-5.0, -5.0], [5.0, -5.0], [5.0, 5.0], [-5.0, 5.0]]), CALIBRATION_Z)
+        v, idx, nrm = mesh.arrays()
+        vs = p.createVisualShape(p.GEOM_MESH, vertices=v, indices=idx, normals=nrm, rgbaColor=[*GRASS_RGB, 1.0],
+                                 specularColor=[0.0, 0.0, 0.0], **self._cid)
+        uid = p.createMultiBody(baseMass=0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=vs, **self._cid)
+        self._label(uid, [-1], SemanticClass.GROUND, 0)
+        self._ground_rgb: dict[str, np.ndarray] = {}
+
+    def _ground_color(self, lighting: str, preset: LightingPreset) -> np.ndarray:
+        """TinyRenderer's shading of the grass under a preset (learned once from the calibration patch)."""
+        if lighting not in self._ground_rgb:
+            eye = [0.0, 0.0, CALIBRATION_Z + 10.0]
+            view = p.computeViewMatrix(eye, [0.0, 0.0, CALIBRATION_Z], [1.0, 0.0, 0.0], **self._cid)
+            proj = p.computeProjectionMatrixFOV(30.0, 1.0, 1.0, 50.0, **self._cid)
+            _, _, rgba, _, _ = p.getCameraImage(
+                4, 4, viewMatrix=view, projectionMatrix=proj, renderer=p.ER_TINY_RENDERER,
+                lightDirection=list(_sun(preset)), lightColor=list(preset.light_color),
+                lightAmbientCoeff=preset.ambient, lightDiffuseCoeff=preset.diffuse,
+                lightSpecularCoeff=preset.specular, shadow=0, **self._cid)
+            self._ground_rgb[lighting] = np.asarray(rgba, np.float32).reshape(4, 4, 4)[2, 2, :3].copy()
+        return self._ground_rgb[lighting]
 
     def _build_lights(self) -> None:
         """One multibody per approach: housing base, lamp links 0-2 (red, yellow, green) facing the traffic."""
@@ -417,17 +447,24 @@ class SceneRenderer:
         seg = np.asarray(seg, np.int32).reshape(camera.height, camera.width)
         near, far = camera.near_m, camera.far_m
         depth = (far * near / (far - (far - near) * buf)).astype(np.float32)
-        sky = seg < 0
+        empty = seg < 0
+        ground_depth = _ground_depth(camera)
+        ground = empty & (ground_depth < far)[:, None]
+        sky = empty & ~ground
+        depth = np.where(ground, ground_depth[:, None], depth)
         key = (seg & 0xFFFFFF) * (MAX_LINKS + 1) + (seg >> 24)
-        key = np.where(sky, len(self._class_lut) - 1, key)
+        key = np.where(empty, len(self._class_lut) - 1, key)
         semantic = np.stack([self._class_lut[key], self._id_lut[key]], axis=-1)
+        semantic[..., 0][ground] = int(SemanticClass.GROUND)
+        rgba = rgba[..., :3].copy()
+        rgba[ground] = self._ground_color(lighting, preset).astype(np.uint8)
         rgb = self._post_process(rgba, depth, sky, key, camera, preset)
         return CameraFrame(rgb, depth, semantic, camera.intrinsics())
 
     def _post_process(self, rgba: np.ndarray, depth: np.ndarray, sky: np.ndarray, key: np.ndarray,
                       camera: CameraConfig, preset: LightingPreset) -> np.ndarray:
         """Sky gradient, fog, colour grade, night headlights and emissive lamps, all vectorised."""
-        img = rgba[..., :3].astype(np.float32)
+        img = rgba.astype(np.float32)
         gain = np.asarray(preset.gain, np.float32)
         if preset.fog_distance_m > 0:
             fog = (1.0 - np.exp(-depth / preset.fog_distance_m))[..., None]
@@ -469,6 +506,20 @@ def _projection(camera: CameraConfig) -> tuple[float, ...]:
     """OpenGL projection for the camera (cached: it depends only on the config)."""
     return tuple(p.computeProjectionMatrixFOV(camera.vfov_deg, camera.width / camera.height,
                                               camera.near_m, camera.far_m))
+
+
+@lru_cache(maxsize=32)
+def _ground_depth(camera: CameraConfig) -> np.ndarray:
+    """Z-depth of each image row's hit on the grass plane (inf above the horizon); rows only, as there is no roll."""
+    t = (np.arange(camera.height, dtype=np.float64) - camera.height / 2) / camera.focal_px
+    pitch = math.radians(camera.pitch_deg)
+    down = t * math.cos(pitch) - math.sin(pitch)  # metres of drop per metre of z-depth
+    height = camera.mount_height_m - Z_GROUND
+    with np.errstate(divide="ignore"):
+        depth = np.where(down > 1e-6, height / np.maximum(down, 1e-6), np.inf)
+    out = depth.astype(np.float32)
+    out.setflags(write=False)
+    return out
 
 
 @lru_cache(maxsize=32)

@@ -16,7 +16,9 @@ import numpy as np
 from sim.objects import SemanticClass
 from sim.town import Town
 
-# Heights of the layered ground (metres). The camera's near plane (0.5 m) keeps these apart.
+# Heights of the layered ground (metres). The camera's near plane (0.5 m) keeps these apart. The grass
+# plane at Z_GROUND is not a mesh: the renderer fills it in analytically (a full-screen triangle
+# would cost TinyRenderer more than the rest of the town).
 Z_GROUND = -0.05
 Z_ROAD = 0.0
 Z_MARKING = 0.03
@@ -31,9 +33,9 @@ WINDOW_LIT_FRACTION = 0.35  # share of window bands that glow at night
 
 POLE_HALF_M = 0.14
 ARM_HALF_M = 0.09
-HOUSING_HALF = (0.25, 0.25, 0.75)  # x (depth), y (width), z (height) of a light's housing
-LAMP_RADIUS_M = 0.2
-LAMP_SPACING_M = 0.46
+HOUSING_HALF = (0.3, 0.42, 1.05)  # x (depth), y (width), z (height) of a light's housing
+LAMP_RADIUS_M = 0.3
+LAMP_SPACING_M = 0.68
 
 
 def to_world(x: float | np.ndarray, y: float | np.ndarray, z: float | np.ndarray = 0.0) -> np.ndarray:

@@ -1,0 +1,100 @@
+"""Drive-v0 throughput: env steps per second at 200x66 and 320x160 on the default town with traffic,
+the bare ``getCameraImage`` cost of the same scene measured in the same run (so the simulation's own
+overhead is a ratio), and steps per second with no camera.
+
+Run: ``python bench/bench_env.py`` (add ``--steps N`` for longer runs). Pins itself to one core
+where the OS allows, as the targets are for one core.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pybullet as p
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from agent.lane_keeper import PrivilegedLaneKeeper  # noqa: E402
+from envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
+from sim.render import CameraConfig, _projection  # noqa: E402
+
+TARGETS = {(200, 66): 150.0, (320, 160): 60.0}
+
+
+def bare_camera_image_ms(env: DriveEnv, repeats: int) -> float:
+    """The raw TinyRenderer call for the env's current scene and pose, nothing else (median ms)."""
+    r = env.renderer
+    assert r is not None and env.world is not None
+    cam = env.config.camera
+    ego = env.world.ego
+    eye, forward = r.camera_position((float(ego.position[0]), float(ego.position[1]), float(ego.heading)), cam)
+    view = p.computeViewMatrix(eye.tolist(), (eye + forward).tolist(), [0.0, 0.0, 1.0], **r._cid)
+    proj = _projection(cam)
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        p.getCameraImage(cam.width, cam.height, viewMatrix=view, projectionMatrix=proj, renderer=p.ER_TINY_RENDERER,
+                         flags=p.ER_SEGMENTATION_MASK_OBJECT_AND_LINKINDEX, **r._cid)
+        times.append(time.perf_counter() - t)
+    return 1000 * statistics.median(times)
+
+
+def run(config: DriveConfig, steps: int, seed: int) -> dict[str, float]:
+    env = DriveEnv(config)
+    driver = PrivilegedLaneKeeper()
+    env.reset(seed=seed)
+    step_times, bare = [], []
+    done = 0
+    while done < steps:
+        assert env.world is not None
+        action = driver.act(env.world)
+        t = time.perf_counter()
+        _, _, term, trunc, _ = env.step(action)
+        step_times.append(time.perf_counter() - t)
+        done += 1
+        if config.render_camera and done % 25 == 0:
+            bare.append(bare_camera_image_ms(env, 3))
+        if term or trunc:
+            env.reset(seed=seed + done)
+    env.close()
+    step_ms = 1000 * statistics.median(step_times)
+    out = {"steps_per_s": 1000.0 / step_ms, "step_ms_p50": step_ms,
+           "step_ms_p95": 1000 * float(np.percentile(step_times, 95))}
+    if bare:
+        out["bare_render_ms"] = statistics.median(bare)
+        out["overhead_fraction"] = max(0.0, 1.0 - out["bare_render_ms"] / step_ms)
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--steps", type=int, default=400)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
+    print(f"Drive-v0 on the default town with traffic, {args.steps} steps each, one core")
+    print(f"{'camera':>10} {'steps/s':>9} {'p50 ms':>8} {'p95 ms':>8} {'bare render ms':>15} {'sim overhead':>13} {'target':>8}")
+    ok = True
+    for (w, h), target in TARGETS.items():
+        res = run(DriveConfig(camera=CameraConfig(width=w, height=h)), args.steps, args.seed)
+        met = res["steps_per_s"] >= target and res["overhead_fraction"] <= 0.30
+        ok &= met
+        print(f"{f'{w}x{h}':>10} {res['steps_per_s']:9.1f} {res['step_ms_p50']:8.2f} {res['step_ms_p95']:8.2f} "
+              f"{res['bare_render_ms']:15.2f} {100 * res['overhead_fraction']:12.1f}% "
+              f"{'>=' + str(int(target)):>8} {'met' if met else 'NOT MET'}")
+    res = run(DriveConfig(render_camera=False), args.steps * 3, args.seed)
+    print(f"{'none':>10} {res['steps_per_s']:9.1f} {res['step_ms_p50']:8.2f} {res['step_ms_p95']:8.2f}")
+    print("targets: >=150 steps/s at 200x66, >=60 at 320x160, simulation overhead <= 30% of the step")
+    print("all targets met" if ok else "some targets NOT met (see rows above)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
