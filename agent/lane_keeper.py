@@ -73,8 +73,5 @@ class PrivilegedLaneKeeper:
             if light.state == LightState.RED or comfortable:
                 acc = min(acc, idm_acceleration(ego.speed, self.target_speed, max(light.distance_m - 0.8, 0.0),
                                                 ego.speed, min_gap_m=0.5))
-        if acc >= 0:
-            throttle = acc / ego.MAX_ACCEL_MPS2
-        else:
-            throttle = acc / ego.MAX_BRAKE_MPS2
+        throttle = acc / ego.MAX_ACCEL_MPS2 if acc >= 0 else acc / ego.MAX_BRAKE_MPS2
         return np.array([steer, float(np.clip(throttle, -1.0, 1.0))], dtype=np.float32)

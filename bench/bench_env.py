@@ -20,9 +20,9 @@ import pybullet as p
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.lane_keeper import PrivilegedLaneKeeper  # noqa: E402
-from envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
-from sim.render import CameraConfig, _projection  # noqa: E402
+from agent.lane_keeper import PrivilegedLaneKeeper
+from envs.drive_env import DriveConfig, DriveEnv
+from sim.render import CameraConfig, _projection
 
 TARGETS = {(200, 66): 150.0, (320, 160): 60.0}
 

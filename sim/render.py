@@ -9,6 +9,7 @@ since TinyRenderer has no sky, no emissive materials and only one directional li
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -20,12 +21,16 @@ import pybullet as p
 
 from sim.objects import LightState, ObjectSnapshot, SemanticClass
 from sim.scene_meshes import (
-    GRASS_RGB,
     HOUSING_HALF,
     LAMP_SPACING_M,
+    SURFACE_CLASS,
+    SURFACE_RAISED,
+    SURFACE_RGB,
     Z_GROUND,
     Z_SLAB,
+    GroundMap,
     Mesh,
+    build_ground_map,
     build_static_groups,
     light_lamp_disc,
     to_world,
@@ -173,6 +178,7 @@ class SceneRenderer:
         self._emit_mask = np.zeros(len(self._class_lut), bool)
         self._night_emit = np.zeros(len(self._class_lut), bool)  # emissive only when the preset says so
         self.triangle_count = 0
+        self.ground_map = _ground_map(town)
         self._build_static(seed)
         self._build_calibration_patch()
         self._light_bodies: list[int] = []
@@ -180,6 +186,7 @@ class SceneRenderer:
         self._build_lights()
         self._pool: dict[tuple[SemanticClass, tuple[float, float, float]], list[_Body]] = {}
         self._active: dict[int, _Body] = {}
+        self._last_pose: dict[int, tuple[float, float, float, int]] = {}  # skip resets of still objects
         self._shapes: dict[tuple, int] = {}
 
     # ----------------------------------------------------------------- lookup tables
@@ -227,19 +234,21 @@ class SceneRenderer:
             self.triangle_count += g.mesh.triangle_count
 
     def _build_calibration_patch(self) -> None:
-        """A grass quad out of every view; its lit colour is the colour of the analytic ground."""
+        """A grey quad out of every view: its lit colour tells how TinyRenderer shades flat ground."""
         mesh = Mesh()
         mesh.polygon_top(np.array([[-5.0, -5.0], [5.0, -5.0], [5.0, 5.0], [-5.0, 5.0]]), CALIBRATION_Z)
         v, idx, nrm = mesh.arrays()
-        vs = p.createVisualShape(p.GEOM_MESH, vertices=v, indices=idx, normals=nrm, rgbaColor=[*GRASS_RGB, 1.0],
+        vs = p.createVisualShape(p.GEOM_MESH, vertices=v, indices=idx, normals=nrm, rgbaColor=[0.5, 0.5, 0.5, 1.0],
                                  specularColor=[0.0, 0.0, 0.0], **self._cid)
-        uid = p.createMultiBody(baseMass=0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=vs, **self._cid)
-        self._label(uid, [-1], SemanticClass.GROUND, 0)
-        self._ground_rgb: dict[str, np.ndarray] = {}
+        p.createMultiBody(baseMass=0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=vs, **self._cid)
+        self._ground_palette: dict[str, np.ndarray] = {}
 
-    def _ground_color(self, lighting: str, preset: LightingPreset) -> np.ndarray:
-        """TinyRenderer's shading of the grass under a preset (learned once from the calibration patch)."""
-        if lighting not in self._ground_rgb:
+    def _surface_palette(self, lighting: str, preset: LightingPreset) -> np.ndarray:
+        """RGB (float, 0..255) of each ``Surface`` as TinyRenderer would shade it flat under a preset.
+
+        Learned once per preset from the calibration patch, so ground and meshes match exactly.
+        """
+        if lighting not in self._ground_palette:
             eye = [0.0, 0.0, CALIBRATION_Z + 10.0]
             view = p.computeViewMatrix(eye, [0.0, 0.0, CALIBRATION_Z], [1.0, 0.0, 0.0], **self._cid)
             proj = p.computeProjectionMatrixFOV(30.0, 1.0, 1.0, 50.0, **self._cid)
@@ -248,8 +257,9 @@ class SceneRenderer:
                 lightDirection=list(_sun(preset)), lightColor=list(preset.light_color),
                 lightAmbientCoeff=preset.ambient, lightDiffuseCoeff=preset.diffuse,
                 lightSpecularCoeff=preset.specular, shadow=0, **self._cid)
-            self._ground_rgb[lighting] = np.asarray(rgba, np.float32).reshape(4, 4, 4)[2, 2, :3].copy()
-        return self._ground_rgb[lighting]
+            factor = np.asarray(rgba, np.float32).reshape(4, 4, 4)[2, 2, :3] / 127.0
+            self._ground_palette[lighting] = np.clip(SURFACE_RGB * 255.0 * factor, 0, 255).astype(np.float32)
+        return self._ground_palette[lighting]
 
     def _build_lights(self) -> None:
         """One multibody per approach: housing base, lamp links 0-2 (red, yellow, green) facing the traffic."""
@@ -295,9 +305,9 @@ class SceneRenderer:
         key = ("box", tuple(round(float(h), 3) for h in half), tuple(round(float(o), 3) for o in offset),
                tuple(round(float(c), 3) for c in rgb))
         if key not in self._shapes:
-            self._shapes[key] = p.createVisualShape(p.GEOM_BOX, halfExtents=list(key[1]), visualFramePosition=list(key[2]),
-                                                    rgbaColor=[*key[3], 1.0], specularColor=[0.0, 0.0, 0.0],
-                                                    **self._cid)
+            self._shapes[key] = p.createVisualShape(
+                p.GEOM_BOX, halfExtents=list(key[1]), visualFramePosition=list(key[2]), rgbaColor=[*key[3], 1.0],
+                specularColor=[0.0, 0.0, 0.0], **self._cid)
         return self._shapes[key]
 
     def _box_array(self, halves: list[Sequence[float]], offsets: list[Sequence[float]], rgb: Sequence[float]) -> int:
@@ -392,6 +402,10 @@ class SceneRenderer:
                 for link in body.body_links:
                     p.changeVisualShape(body.uid, link, rgbaColor=[*color, 1.0], **self._cid)
                 body.color = color  # type: ignore[assignment]
+            pose = (obj.x, obj.y, obj.heading, body.uid)
+            if self._last_pose.get(obj.object_id) == pose:
+                continue  # standing still: nothing to move (most pedestrians, queued cars)
+            self._last_pose[obj.object_id] = pose
             z = 0.0
             if obj.kind == SemanticClass.PEDESTRIAN and not self.town.on_road(np.array([obj.x, obj.y]), 0.2):
                 z = Z_SLAB
@@ -399,6 +413,7 @@ class SceneRenderer:
             orn = p.getQuaternionFromEuler([0.0, 0.0, yaw_of(obj.heading)])
             p.resetBasePositionAndOrientation(body.uid, pos.tolist(), orn, **self._cid)
         for oid in [k for k in self._active if k not in seen]:
+            self._last_pose.pop(oid, None)
             self._release(oid)
 
     def _release(self, object_id: int) -> None:
@@ -447,24 +462,60 @@ class SceneRenderer:
         seg = np.asarray(seg, np.int32).reshape(camera.height, camera.width)
         near, far = camera.near_m, camera.far_m
         depth = (far * near / (far - (far - near) * buf)).astype(np.float32)
+        sky_key = len(self._class_lut) - 1
         empty = seg < 0
-        ground_depth = _ground_depth(camera)
-        ground = empty & (ground_depth < far)[:, None]
-        sky = empty & ~ground
-        depth = np.where(ground, ground_depth[:, None], depth)
-        key = (seg & 0xFFFFFF) * (MAX_LINKS + 1) + (seg >> 24)
-        key = np.where(empty, len(self._class_lut) - 1, key)
-        semantic = np.stack([self._class_lut[key], self._id_lut[key]], axis=-1)
-        semantic[..., 0][ground] = int(SemanticClass.GROUND)
-        rgba = rgba[..., :3].copy()
-        rgba[ground] = self._ground_color(lighting, preset).astype(np.uint8)
-        rgb = self._post_process(rgba, depth, sky, key, camera, preset)
+        key = np.where(empty, sky_key, (seg & 0xFFFFFF) * (MAX_LINKS + 1) + (seg >> 24))
+        cls, oid = self._class_lut[key], self._id_lut[key]
+        img = rgba[..., :3].astype(np.float32)
+        # Flat ground: ray-cast the rows below the horizon to the slab and road planes.
+        r0, g_depth, surface = self._ground(eye, forward, camera)
+        if r0 < camera.height:
+            use = g_depth < depth[r0:]
+            depth[r0:][use] = g_depth[use]
+            cls[r0:][use] = SURFACE_CLASS[surface[use]]
+            oid[r0:][use] = 0
+            img[r0:][use] = self._surface_palette(lighting, preset)[surface[use]]
+            empty[r0:] &= ~use
+        semantic = np.stack([cls, oid], axis=-1)
+        rgb = self._post_process(img, depth, empty, key, camera, preset)
         return CameraFrame(rgb, depth, semantic, camera.intrinsics())
 
-    def _post_process(self, rgba: np.ndarray, depth: np.ndarray, sky: np.ndarray, key: np.ndarray,
+    def _ground(self, eye: np.ndarray, forward: np.ndarray, camera: CameraConfig) -> tuple[int, np.ndarray, np.ndarray]:
+        """First image row that sees the ground, then per pixel below it: z-depth and ``Surface``.
+
+        Each pixel's ray meets the slab plane first; if the surface there is not raised, the ray
+        continues to the road plane. Points beyond the far plane get infinite depth.
+        """
+        right = np.cross(forward, [0.0, 0.0, 1.0])
+        right /= np.linalg.norm(right)
+        down = np.cross(forward, right)
+        f = camera.focal_px
+        k = camera.intrinsics()  # same principal point as TinyRenderer's own pixels (see intrinsics())
+        t = (np.arange(camera.height, dtype=np.float32) - k[1, 2]) / f
+        dir_z = forward[2] + t * down[2]
+        rows = np.nonzero(dir_z < -1e-4)[0]
+        if len(rows) == 0:
+            return camera.height, np.zeros((0, camera.width), np.float32), np.zeros((0, camera.width), np.uint8)
+        r0 = int(rows[0])
+        t, dir_z = t[r0:, None], dir_z[r0:, None]
+        s = ((np.arange(camera.width, dtype=np.float32) - k[0, 2]) / f)[None, :]
+        gm = self.ground_map
+        result = []
+        for z_plane in (Z_SLAB, Z_GROUND):
+            z = (z_plane - eye[2]) / dir_z  # H'x1 z-depth of the plane on each row
+            wx = eye[0] + z * (forward[0] + t * down[0]) + (z * right[0]) * s
+            wy = eye[1] + z * (forward[1] + t * down[1]) + (z * right[1]) * s
+            result.append((np.broadcast_to(z, wx.shape), gm.lookup(wx, -wy)))  # world (x, y) -> map (x, -y)
+        (z_hi, s_hi), (z_lo, s_lo) = result
+        raised = SURFACE_RAISED[s_hi]
+        depth = np.where(raised, z_hi, z_lo).astype(np.float32)
+        surface = np.where(raised, s_hi, s_lo)
+        depth[depth > camera.far_m] = np.inf
+        return r0, depth, surface
+
+    def _post_process(self, img: np.ndarray, depth: np.ndarray, sky: np.ndarray, key: np.ndarray,
                       camera: CameraConfig, preset: LightingPreset) -> np.ndarray:
-        """Sky gradient, fog, colour grade, night headlights and emissive lamps, all vectorised."""
-        img = rgba.astype(np.float32)
+        """Sky gradient, fog, colour grade, night headlights and emissive lamps, all vectorised (img: float HxWx3)."""
         gain = np.asarray(preset.gain, np.float32)
         if preset.fog_distance_m > 0:
             fog = (1.0 - np.exp(-depth / preset.fog_distance_m))[..., None]
@@ -495,10 +546,23 @@ class SceneRenderer:
             self.client = -1
 
     def __del__(self) -> None:
-        try:
+        with contextlib.suppress(Exception):  # interpreter shutdown may have unloaded pybullet already
             self.close()
-        except Exception:  # noqa: BLE001 - interpreter shutdown may have unloaded pybullet already
-            pass
+
+
+_GROUND_MAPS: dict[tuple[int, int], tuple[Town, GroundMap]] = {}
+
+
+def _ground_map(town: Town) -> GroundMap:
+    """One ground map per town object, shared by all renderers of it (it is ~16 MB)."""
+    key = (id(town), town.seed)
+    hit = _GROUND_MAPS.get(key)
+    if hit is None or hit[0] is not town:
+        if len(_GROUND_MAPS) > 8:
+            _GROUND_MAPS.clear()
+        hit = (town, build_ground_map(town))
+        _GROUND_MAPS[key] = hit
+    return hit[1]
 
 
 @lru_cache(maxsize=32)
@@ -506,20 +570,6 @@ def _projection(camera: CameraConfig) -> tuple[float, ...]:
     """OpenGL projection for the camera (cached: it depends only on the config)."""
     return tuple(p.computeProjectionMatrixFOV(camera.vfov_deg, camera.width / camera.height,
                                               camera.near_m, camera.far_m))
-
-
-@lru_cache(maxsize=32)
-def _ground_depth(camera: CameraConfig) -> np.ndarray:
-    """Z-depth of each image row's hit on the grass plane (inf above the horizon); rows only, as there is no roll."""
-    t = (np.arange(camera.height, dtype=np.float64) - camera.height / 2) / camera.focal_px
-    pitch = math.radians(camera.pitch_deg)
-    down = t * math.cos(pitch) - math.sin(pitch)  # metres of drop per metre of z-depth
-    height = camera.mount_height_m - Z_GROUND
-    with np.errstate(divide="ignore"):
-        depth = np.where(down > 1e-6, height / np.maximum(down, 1e-6), np.inf)
-    out = depth.astype(np.float32)
-    out.setflags(write=False)
-    return out
 
 
 @lru_cache(maxsize=32)

@@ -8,22 +8,24 @@ frame (x right, y down, heading = atan2(dy, dx)) to pybullet's z-up right-handed
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
+from enum import IntEnum
 
+import cv2
 import numpy as np
 
 from sim.objects import SemanticClass
 from sim.town import Town
 
-# Heights of the layered ground (metres). The camera's near plane (0.5 m) keeps these apart. The grass
-# plane at Z_GROUND is not a mesh: the renderer fills it in analytically (a full-screen triangle
-# would cost TinyRenderer more than the rest of the town).
-Z_GROUND = -0.05
+# Heights (metres). The flat layers are not meshes: TinyRenderer shades ~100 ns per pixel per layer
+# and tests every pixel of each triangle's bounding box, so ground meshes cost more than the rest of
+# the town together. ``GroundMap`` rasterises them top-down once; the renderer ray-casts each pixel
+# to two planes (road level, slab level) and looks the surface up.
+Z_GROUND = 0.0  # grass, asphalt and paint share the road plane
 Z_ROAD = 0.0
-Z_MARKING = 0.03
-Z_SLAB = 0.15
-Z_PARK = 0.17
+Z_SLAB = 0.15  # sidewalks, block slabs and parks
 
 FLOOR_HEIGHT_M = 3.2
 WINDOW_BOTTOM_M = 0.9  # above each floor's base
@@ -36,6 +38,11 @@ ARM_HALF_M = 0.09
 HOUSING_HALF = (0.3, 0.42, 1.05)  # x (depth), y (width), z (height) of a light's housing
 LAMP_RADIUS_M = 0.3
 LAMP_SPACING_M = 0.68
+
+
+def _dz(z: float) -> np.ndarray:
+    """A vertical offset (world frame)."""
+    return np.array([0.0, 0.0, z])
 
 
 def to_world(x: float | np.ndarray, y: float | np.ndarray, z: float | np.ndarray = 0.0) -> np.ndarray:
@@ -81,15 +88,6 @@ class Mesh:
         for k in range(1, len(pts) - 1):
             self.tri(pts[0], pts[k], pts[k + 1], up)
 
-    def polygon_top_tiled(self, poly: np.ndarray, z: float, cell_m: float) -> None:
-        """Like ``polygon_top`` but cut along a grid, so no triangle has a huge screen bounding box.
-
-        TinyRenderer tests every pixel of each triangle's clamped bounding box; long thin
-        triangles seen in perspective cost far more than the pixels they cover.
-        """
-        for piece in grid_pieces(poly, cell_m):
-            self.polygon_top(piece, z)
-
     def prism_sides(self, poly: np.ndarray, z0: float, z1: float, max_len_m: float = 1e9) -> None:
         """Outward-facing vertical walls of a convex map-frame polygon between two heights."""
         pts = to_world(poly[:, 0], poly[:, 1], 0.0)
@@ -103,8 +101,8 @@ class Mesh:
             if float(np.dot(n, (p + q) / 2 - centre)) < 0:
                 n = -n
             dz0, dz1 = np.array([0, 0, z0]), np.array([0, 0, z1])
-            cuts = np.linspace(0.0, 1.0, int(math.ceil(length / max_len_m)) + 1)
-            for t0, t1 in zip(cuts[:-1], cuts[1:], strict=True):
+            cuts = np.linspace(0.0, 1.0, math.ceil(length / max_len_m) + 1)
+            for t0, t1 in itertools.pairwise(cuts):
                 a, b = p + (q - p) * t0, p + (q - p) * t1
                 self.quad(a + dz0, b + dz0, b + dz1, a + dz1, n)
 
@@ -134,44 +132,70 @@ class Mesh:
         return v.tolist(), list(range(len(v))), n.tolist()
 
 
-def _clip_half_plane(poly: np.ndarray, axis: int, bound: float, keep_below: bool) -> np.ndarray:
-    """Sutherland-Hodgman step: the part of a convex polygon on one side of an axis-aligned line."""
-    out = []
-    n = len(poly)
-    for k in range(n):
-        p, q = poly[k], poly[(k + 1) % n]
-        p_in = p[axis] <= bound if keep_below else p[axis] >= bound
-        q_in = q[axis] <= bound if keep_below else q[axis] >= bound
-        if p_in:
-            out.append(p)
-        if p_in != q_in:
-            t = (bound - p[axis]) / (q[axis] - p[axis])
-            out.append(p + t * (q - p))
-    return np.array(out) if out else np.zeros((0, 2))
+class Surface(IntEnum):
+    """Texel values of the ground map, in paint order."""
+
+    GRASS = 0
+    ROAD = 1
+    SIDEWALK = 2
+    PARK = 3
+    WHITE = 4
+    YELLOW = 5
+    STOP = 6
+    CROSSWALK = 7
 
 
-def grid_pieces(poly: np.ndarray, cell_m: float) -> list[np.ndarray]:
-    """A convex map-frame polygon cut into convex pieces along a square grid of ``cell_m``."""
-    lo, hi = poly.min(axis=0), poly.max(axis=0)
-    if float((hi - lo).max()) <= cell_m * 1.25:
-        return [poly]
-    pieces = []
-    xs = np.arange(math.floor(lo[0] / cell_m) * cell_m, hi[0], cell_m)
-    ys = np.arange(math.floor(lo[1] / cell_m) * cell_m, hi[1], cell_m)
-    for x in xs:
-        column = _clip_half_plane(_clip_half_plane(poly, 0, x, False), 0, x + cell_m, True)
-        if len(column) < 3:
-            continue
-        for y in ys:
-            piece = _clip_half_plane(_clip_half_plane(column, 1, y, False), 1, y + cell_m, True)
-            if len(piece) >= 3 and _area(piece) > 1e-4:
-                pieces.append(piece)
-    return pieces
+GRASS_RGB = (0.30, 0.42, 0.22)
+SURFACE_RGB = np.array([GRASS_RGB, (0.24, 0.24, 0.26), (0.66, 0.65, 0.62), (0.34, 0.52, 0.26),
+                        (0.92, 0.92, 0.90), (0.95, 0.75, 0.18), (0.95, 0.95, 0.93), (0.92, 0.92, 0.90)], np.float32)
+SURFACE_CLASS = np.array([SemanticClass.GROUND, SemanticClass.ROAD, SemanticClass.SIDEWALK, SemanticClass.GROUND,
+                          SemanticClass.LANE_MARKING, SemanticClass.LANE_MARKING, SemanticClass.STOP_LINE,
+                          SemanticClass.CROSSWALK], np.int32)
+SURFACE_RAISED = np.array([False, False, True, True, False, False, False, False])  # at Z_SLAB, not Z_ROAD
 
 
-def _area(poly: np.ndarray) -> float:
-    x, y = poly[:, 0], poly[:, 1]
-    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+@dataclass
+class GroundMap:
+    """The town's flat layers as a top-down texel grid of ``Surface`` values (map frame, row = y)."""
+
+    texels: np.ndarray  # uint8 HxW
+    origin: np.ndarray  # map (x, y) of texel (0, 0)'s corner
+    texels_per_m: float
+
+    def lookup(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Surface under map points (grass outside the map), nearest texel."""
+        ix = ((x - self.origin[0]) * self.texels_per_m).astype(np.int32)
+        iy = ((y - self.origin[1]) * self.texels_per_m).astype(np.int32)
+        h, w = self.texels.shape
+        inside = (ix >= 0) & (ix < w) & (iy >= 0) & (iy < h)
+        out = self.texels[np.clip(iy, 0, h - 1), np.clip(ix, 0, w - 1)]
+        return np.where(inside, out, np.uint8(Surface.GRASS))
+
+
+def build_ground_map(town: Town, texels_per_m: float = 10.0) -> GroundMap:
+    """Rasterise asphalt, slabs, parks and markings (sub-texel accurate) into a ``GroundMap``."""
+    xmin, ymin, xmax, ymax = town.extent
+    origin = np.array([xmin, ymin])
+    w, h = math.ceil((xmax - xmin) * texels_per_m), math.ceil((ymax - ymin) * texels_per_m)
+    tex = np.zeros((h, w), np.uint8)
+    shift = 4
+
+    def fill(poly: np.ndarray, value: Surface) -> None:
+        pts = np.round((poly - origin) * texels_per_m * (1 << shift) - 0.5 * (1 << shift)).astype(np.int32)
+        cv2.fillConvexPoly(tex, pts, int(value), lineType=cv2.LINE_8, shift=shift)
+
+    for poly in town.road_polygons:
+        fill(poly, Surface.ROAD)
+    for poly in town.slab_polygons:
+        fill(poly, Surface.SIDEWALK)
+    for poly in town.grass_polygons:
+        fill(poly, Surface.PARK)
+    kinds = {"dashed_white": Surface.WHITE, "solid_white": Surface.WHITE, "solid_yellow": Surface.YELLOW,
+             "stop_line": Surface.STOP, "crosswalk": Surface.CROSSWALK}
+    for kind, quads in town.markings.items():
+        for quad in quads:
+            fill(quad, kinds[kind])
+    return GroundMap(tex, origin, texels_per_m)
 
 
 @dataclass
@@ -185,12 +209,6 @@ class MeshGroup:
     emissive_at_night: tuple[float, float, float] | None = None  # lit windows
 
 
-GRASS_RGB = (0.30, 0.42, 0.22)
-PARK_RGB = (0.34, 0.52, 0.26)
-ROAD_RGB = (0.24, 0.24, 0.26)
-WHITE_RGB = (0.92, 0.92, 0.90)
-YELLOW_RGB = (0.95, 0.75, 0.18)
-SIDEWALK_RGB = (0.66, 0.65, 0.62)
 KERB_RGB = (0.80, 0.79, 0.76)
 GLASS_RGB = (0.14, 0.18, 0.25)
 LIT_WINDOW_RGB = (1.0, 0.82, 0.5)
@@ -203,16 +221,14 @@ def _rgba(rgb: tuple[float, float, float]) -> tuple[float, float, float, float]:
 
 
 def build_static_groups(town: Town, seed: int = 0) -> list[MeshGroup]:
-    """All static scenery except the grass ground (drawn in post) and the light housings/lamps.
+    """All standing static scenery (not the flat ground layers, not the light housings/lamps).
 
     Groups come back in draw order, nearest-to-the-eye layers first: TinyRenderer rejects a pixel
-    on the depth test before running its costly shader, so occluders (windows, walls, trees) are
-    drawn before the ground layers they hide, and markings before the asphalt under them.
+    on the depth test before running its costly shader, so windows go before the walls they cover.
     """
     rng = np.random.default_rng(seed)
     groups: dict[str, MeshGroup] = {}
-    order = ["windows_lit", "windows", "building", "canopy", "trunks", "poles", "crosswalks", "stop_lines",
-             "white_lines", "yellow_lines", "kerb", "park", "sidewalk", "road"]
+    order = ["windows_lit", "windows", "building", "canopy", "trunks", "poles", "kerb"]
 
     def group(name: str, semantic: SemanticClass, rgb: tuple[float, float, float]) -> Mesh:
         if name not in groups:
@@ -243,8 +259,9 @@ def build_static_groups(town: Town, seed: int = 0) -> list[MeshGroup]:
             p, q = to_world(p2[0], p2[1]), to_world(q2[0], q2[1])
             n = to_world(out2[0], out2[1])
             inset = min(1.2, 0.15 * length)
-            a, c = p + (q - p) * inset / length + n * WINDOW_OFFSET_M, q - (q - p) * inset / length + n * WINDOW_OFFSET_M
-            pieces = int(math.ceil(float(np.linalg.norm(c - a)) / 6.0))
+            step = (q - p) * inset / length
+            a, c = p + step + n * WINDOW_OFFSET_M, q - step + n * WINDOW_OFFSET_M
+            pieces = math.ceil(float(np.linalg.norm(c - a)) / 6.0)
             for f in range(floors):
                 lit = rng.random() < WINDOW_LIT_FRACTION
                 mesh = group("windows_lit" if lit else "windows", SemanticClass.BUILDING, GLASS_RGB)
@@ -252,7 +269,7 @@ def build_static_groups(town: Town, seed: int = 0) -> list[MeshGroup]:
                 z1 = Z_SLAB + f * FLOOR_HEIGHT_M + WINDOW_TOP_M
                 for t in range(pieces):
                     u, v = a + (c - a) * t / pieces, a + (c - a) * (t + 1) / pieces
-                    mesh.quad(u + [0, 0, z0], v + [0, 0, z0], v + [0, 0, z1], u + [0, 0, z1], n)
+                    mesh.quad(u + _dz(z0), v + _dz(z0), v + _dz(z1), u + _dz(z1), n)
     if "windows_lit" in groups:
         groups["windows_lit"].emissive_at_night = LIT_WINDOW_RGB
 
@@ -263,7 +280,7 @@ def build_static_groups(town: Town, seed: int = 0) -> list[MeshGroup]:
         base = to_world(t.position[0], t.position[1], Z_SLAB)
         r = t.canopy_radius_m
         z_canopy = max(1.6, t.height_m - 2.0 * r)
-        trunk.box(base + [0, 0, z_canopy / 2], np.array([Town.TRUNK_RADIUS_M, Town.TRUNK_RADIUS_M, z_canopy / 2]),
+        trunk.box(base + _dz(z_canopy / 2), np.array([Town.TRUNK_RADIUS_M, Town.TRUNK_RADIUS_M, z_canopy / 2]),
                   top=False)
         g = t.color[1]
         shade = 0 if g < 0.47 else (1 if g < 0.53 else 2)
@@ -275,7 +292,7 @@ def build_static_groups(town: Town, seed: int = 0) -> list[MeshGroup]:
     top_z = Town.LIGHT_HEAD_HEIGHT_M + HOUSING_HALF[2] + 2 * ARM_HALF_M
     for ap in town.approaches:
         foot = to_world(ap.light_pole[0], ap.light_pole[1], Z_SLAB)
-        poles.box(foot + [0, 0, (top_z - Z_SLAB) / 2], np.array([POLE_HALF_M, POLE_HALF_M, (top_z - Z_SLAB) / 2]))
+        poles.box(foot + _dz((top_z - Z_SLAB) / 2), np.array([POLE_HALF_M, POLE_HALF_M, (top_z - Z_SLAB) / 2]))
         head = to_world(ap.light_head[0], ap.light_head[1], top_z - ARM_HALF_M)
         arm_foot = foot.copy()
         arm_foot[2] = head[2]
@@ -287,27 +304,11 @@ def build_static_groups(town: Town, seed: int = 0) -> list[MeshGroup]:
             half[2] = ARM_HALF_M
             poles.box((arm_foot + end) / 2, half, top=True, bottom=True)
 
-    # Ground layers, cut along a grid so that no triangle's screen bounding box is huge.
-    marking_groups = {"dashed_white": ("white_lines", SemanticClass.LANE_MARKING, WHITE_RGB),
-                      "solid_white": ("white_lines", SemanticClass.LANE_MARKING, WHITE_RGB),
-                      "solid_yellow": ("yellow_lines", SemanticClass.LANE_MARKING, YELLOW_RGB),
-                      "stop_line": ("stop_lines", SemanticClass.STOP_LINE, WHITE_RGB),
-                      "crosswalk": ("crosswalks", SemanticClass.CROSSWALK, WHITE_RGB)}
-    for kind, quads in town.markings.items():
-        name, sem, rgb = marking_groups[kind]
-        mesh = group(name, sem, rgb)
-        for quad in quads:
-            mesh.polygon_top_tiled(quad, Z_MARKING, 6.0)
-    top, kerb = group("sidewalk", SemanticClass.SIDEWALK, SIDEWALK_RGB), group("kerb", SemanticClass.SIDEWALK, KERB_RGB)
+    # Kerb faces only: the flat layers (asphalt, markings, sidewalk and park tops, grass) are the
+    # ground map below, drawn in numpy.
+    kerb = group("kerb", SemanticClass.SIDEWALK, KERB_RGB)
     for poly in town.slab_polygons:
-        top.polygon_top_tiled(poly, Z_SLAB, 12.0)
-        kerb.prism_sides(poly, Z_ROAD - 0.02, Z_SLAB, max_len_m=6.0)
-    park = group("park", SemanticClass.GROUND, PARK_RGB)
-    for poly in town.grass_polygons:
-        park.polygon_top_tiled(poly, Z_PARK, 12.0)
-    road = group("road", SemanticClass.ROAD, ROAD_RGB)
-    for poly in town.road_polygons:
-        road.polygon_top_tiled(poly, Z_ROAD, 8.0)
+        kerb.prism_sides(poly, Z_ROAD - 0.02, Z_SLAB, max_len_m=8.0)
 
     def rank(g: MeshGroup) -> int:
         return next(k for k, prefix in enumerate(order) if g.name.startswith(prefix))
@@ -317,14 +318,14 @@ def build_static_groups(town: Town, seed: int = 0) -> list[MeshGroup]:
 
 def _canopy(mesh: Mesh, base: np.ndarray, z0: float, z1: float, r: float, phase: float) -> None:
     """A low-poly rounded crown: two offset hexagonal rings between a bottom and a top apex."""
-    lo, hi = base + [0, 0, z0 + 0.45 * (z1 - z0) * 0.6], base + [0, 0, z0 + 0.72 * (z1 - z0)]
+    lo, hi = base + _dz(z0 + 0.45 * (z1 - z0) * 0.6), base + _dz(z0 + 0.72 * (z1 - z0))
 
     def ring(centre: np.ndarray, radius: float, offset: float) -> list[np.ndarray]:
-        return [centre + radius * np.array([math.cos(offset + k * math.pi / 3), math.sin(offset + k * math.pi / 3), 0.0])
-                for k in range(6)]
+        angles = offset + np.arange(6) * math.pi / 3
+        return [centre + radius * np.array([math.cos(a), math.sin(a), 0.0]) for a in angles]
 
     low, high = ring(lo, r, phase), ring(hi, 0.8 * r, phase + math.pi / 6)
-    bottom, top = base + [0, 0, z0], base + [0, 0, z1]
+    bottom, top = base + _dz(z0), base + _dz(z1)
     mid = (lo + hi) / 2
     for k in range(6):
         j = (k + 1) % 6
@@ -334,7 +335,10 @@ def _canopy(mesh: Mesh, base: np.ndarray, z0: float, z1: float, r: float, phase:
         mesh.tri(high[k], high[j], low[j], (high[k] + high[j] + low[j]) / 3 - mid)
 
 
-def light_lamp_disc(radius: float = LAMP_RADIUS_M, sides: int = 8) -> tuple[list[list[float]], list[int], list[list[float]]]:
+MeshArrays = tuple[list[list[float]], list[int], list[list[float]]]
+
+
+def light_lamp_disc(radius: float = LAMP_RADIUS_M, sides: int = 8) -> MeshArrays:
     """A flat polygonal lamp disc in its own frame, facing +x (toward the traffic it signals)."""
     mesh = Mesh()
     n = np.array([1.0, 0.0, 0.0])

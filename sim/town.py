@@ -404,7 +404,8 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
             # Stop bar across the incoming lanes, on the approach side of the lane end.
             near = c + u * (dist + 0.5)
             far = c + u * dist
-            markings["stop_line"].append(np.array([far + tr * 0.1, near + tr * 0.1, near + tr * (2 * w - 0.1), far + tr * (2 * w - 0.1)]))
+            inner, outer = tr * 0.1, tr * (2 * w - 0.1)
+            markings["stop_line"].append(np.array([far + inner, near + inner, near + outer, far + outer]))
             # Zebra across the whole arm, between the junction box and the stop bar.
             cw0, cw1 = half_road + 0.6, half_road + 0.6 + 3.0
             for lat in np.arange(-half_road + 0.4, half_road - 0.3, 1.0):

@@ -238,11 +238,11 @@ class World:
         out: list[Infraction] = []
         poly = rect_corners(ego.position, ego.heading, ego.LENGTH, ego.WIDTH)
         for npc in self.npcs:
-            if float(np.linalg.norm(npc.position - ego.position)) < (npc.LENGTH + ego.LENGTH) / 2 + 1.0:
-                if polygons_intersect(poly, rect_corners(npc.position, npc.heading, npc.LENGTH, npc.WIDTH)):
-                    npc.crashed = True
-                    out.append(self._record("collision_vehicle", npc.object_id))
-                    break
+            near = float(np.linalg.norm(npc.position - ego.position)) < (npc.LENGTH + ego.LENGTH) / 2 + 1.0
+            if near and polygons_intersect(poly, rect_corners(npc.position, npc.heading, npc.LENGTH, npc.WIDTH)):
+                npc.crashed = True
+                out.append(self._record("collision_vehicle", npc.object_id))
+                break
         for ped in self.crowd.peds:
             if float(np.linalg.norm(ped.position - ego.position)) < ego.LENGTH and circle_polygon_intersect(
                     ped.position, ped.RADIUS, poly):

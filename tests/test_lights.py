@@ -45,5 +45,6 @@ def test_phase_durations_follow_the_timing(town):
     full = runs[1:]  # the first run may be cut by the seeded offset
     assert {s for s, _ in full} == {LightState.GREEN, LightState.YELLOW, LightState.RED}
     for state, n in full:
-        expected = {LightState.GREEN: 10.0, LightState.YELLOW: 2.0, LightState.RED: timing.cycle_s - 12.0}[state]  # other axis + two all-reds
+        # red lasts the other axis's green and yellow plus two all-red gaps
+        expected = {LightState.GREEN: 10.0, LightState.YELLOW: 2.0, LightState.RED: timing.cycle_s - 12.0}[state]
         assert abs(n * dt - expected) <= dt + 1e-9

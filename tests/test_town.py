@@ -34,7 +34,7 @@ def test_every_lane_end_meets_the_start_of_each_next_lane_with_the_same_heading(
 
 def test_four_way_junction_has_left_right_and_straight_connectors(town):
     commands = {}
-    for (frm, to, _), info in town.lane_info.items():
+    for (frm, _to, _), info in town.lane_info.items():
         if info.kind == "connector" and info.node == (1, 1):
             commands.setdefault(frm, set()).add(info.command)
     assert len(commands) == 4
