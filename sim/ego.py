@@ -28,7 +28,8 @@ class EgoVehicle(Vehicle):
         """The world locates the ego on the town's lanes itself (spatial hash), so nothing here."""
 
     def apply(self, action: np.ndarray) -> None:
-        steer, throttle_brake = np.clip(np.asarray(action, dtype=np.float64).reshape(2), -1.0, 1.0)
+        a = np.asarray(action, dtype=np.float64).reshape(2)
+        steer, throttle_brake = min(1.0, max(-1.0, float(a[0]))), min(1.0, max(-1.0, float(a[1])))
         accel = throttle_brake * (self.MAX_ACCEL_MPS2 if throttle_brake >= 0 else self.MAX_BRAKE_MPS2)
         if self.speed > 0:
             accel -= self.DRAG_MPS2
@@ -37,4 +38,4 @@ class EgoVehicle(Vehicle):
 
     def step(self, dt: float) -> None:
         super().step(dt)
-        self.speed = float(np.clip(self.speed, 0.0, self.MAX_SPEED))
+        self.speed = min(self.MAX_SPEED, max(0.0, float(self.speed)))

@@ -57,8 +57,9 @@ def circle_polygon_intersect(center: Vec, radius: float, poly: Vec) -> bool:
     for i in range(n):
         p, q = poly[i], poly[(i + 1) % n]
         e = q - p
-        t = float(np.clip(np.dot(center - p, e) / max(np.dot(e, e), 1e-12), 0.0, 1.0))
-        best = min(best, float(np.linalg.norm(center - (p + t * e))))
+        t = min(1.0, max(0.0, float(np.dot(center - p, e)) / max(float(np.dot(e, e)), 1e-12)))
+        gap = center - (p + t * e)
+        best = min(best, math.hypot(gap[0], gap[1]))
         cross = e[0] * (center[1] - p[1]) - e[1] * (center[0] - p[0])
         if sign == 0.0:
             sign = cross

@@ -166,8 +166,8 @@ class TownVehicle(IDMVehicle):
         self._extend_route()
         if enable_lane_change:
             self.change_lane_policy()
-        steering = float(np.clip(self.steering_control(self.target_lane_index), -self.MAX_STEERING_ANGLE,
-                                 self.MAX_STEERING_ANGLE))
+        limit = self.MAX_STEERING_ANGLE
+        steering = min(limit, max(-limit, float(self.steering_control(self.target_lane_index))))
         lookahead = 12.0 + 3.0 * self.speed
         path, s0 = self.path(lookahead)
         half = self.LENGTH / 2
@@ -176,7 +176,7 @@ class TownVehicle(IDMVehicle):
         stop = self._stop_line_gap(path, s0, lights_state)
         if stop is not None:
             acc = min(acc, idm_acceleration(self.speed, self.target_speed, stop, self.speed, min_gap_m=0.5))
-        acc = float(np.clip(acc, -8.0, self.COMFORT_ACC_MAX))
+        acc = min(self.COMFORT_ACC_MAX, max(-8.0, float(acc)))
         Vehicle.act(self, {"steering": steering, "acceleration": acc})
 
     def _stop_line_gap(self, path: list[tuple[AbstractLane, float]], s0: float,

@@ -40,6 +40,7 @@ class WorldConfig:
     jaywalk_probability: float = 0.0  # per pedestrian per second of waiting
     enable_lane_change: bool = True
     dt_s: float = 0.05
+    npc_decision_every: int = 2  # NPCs decide at 10 Hz (staggered), integrate at 20 Hz, as highway-env does
     route_min_length_m: float = 300.0
     route_deviation_s: float = 2.0  # how long off the route before it counts
 
@@ -213,18 +214,20 @@ class World:
         self.lights.update(self.time_s)
         agents = self._agents()
         states = self.lights.states
+        every = max(1, self.config.npc_decision_every)
         for npc in self.npcs:
-            npc.decide(agents, states, self.config.enable_lane_change)
+            if (self.step_count + npc.object_id) % every == 0:
+                npc.decide(agents, states, self.config.enable_lane_change)
         self.ego.apply(action)
         before = self.ego.position.copy()
         for v in self.road.vehicles:
             v.step(dt)
-        self.distance_m += float(np.linalg.norm(self.ego.position - before))
+        self.distance_m += math.hypot(*(self.ego.position - before))
         vehicles = [self.ego] + self.npcs
         vpos = np.array([v.position for v in vehicles])
         vspd = np.array([v.speed for v in vehicles])
         vhead = np.array([v.heading for v in vehicles])
-        self.crowd.step(dt, self.lights, vpos, vspd, vhead)
+        self.crowd.step(dt, self.lights, vpos, vspd, vhead, self.step_count)
         self.new_infractions = self._check_ego()
         self.infractions += self.new_infractions
         return self.new_infractions
@@ -238,13 +241,13 @@ class World:
         out: list[Infraction] = []
         poly = rect_corners(ego.position, ego.heading, ego.LENGTH, ego.WIDTH)
         for npc in self.npcs:
-            near = float(np.linalg.norm(npc.position - ego.position)) < (npc.LENGTH + ego.LENGTH) / 2 + 1.0
+            near = math.hypot(*(npc.position - ego.position)) < (npc.LENGTH + ego.LENGTH) / 2 + 1.0
             if near and polygons_intersect(poly, rect_corners(npc.position, npc.heading, npc.LENGTH, npc.WIDTH)):
                 npc.crashed = True
                 out.append(self._record("collision_vehicle", npc.object_id))
                 break
         for ped in self.crowd.peds:
-            if float(np.linalg.norm(ped.position - ego.position)) < ego.LENGTH and circle_polygon_intersect(
+            if math.hypot(*(ped.position - ego.position)) < ego.LENGTH and circle_polygon_intersect(
                     ped.position, ped.RADIUS, poly):
                 out.append(self._record("collision_pedestrian", ped.object_id))
                 break
@@ -312,7 +315,7 @@ class World:
 
     @property
     def route_completion(self) -> float:
-        return float(np.clip(self.route_progress_m / max(self.route_total_m, 1e-6), 0.0, 1.0))
+        return min(1.0, max(0.0, self.route_progress_m / max(self.route_total_m, 1e-6)))
 
     @property
     def route_done(self) -> bool:
