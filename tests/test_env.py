@@ -152,3 +152,17 @@ def test_bad_options_get_one_clear_error():
     with pytest.raises(RuntimeError, match="reset"):
         DriveEnv(DriveConfig(camera=SMALL)).step(np.zeros(2))
     env.close()
+
+
+def test_human_render_mode_opens_a_window_headless(monkeypatch):
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    env = DriveEnv(DriveConfig(camera=SMALL), render_mode="human")
+    env.reset(seed=0)
+    env.step(np.array([0.0, 0.3], dtype=np.float32))
+    assert env._window is not None and env._window.get_size()[0] > 0
+    rgb = DriveEnv(DriveConfig(camera=SMALL), render_mode="rgb_array")
+    rgb.reset(seed=0)
+    frame = rgb.render()
+    assert frame.ndim == 3 and frame.shape[1] > SMALL.width
+    env.close()
+    rgb.close()
