@@ -50,12 +50,12 @@ def main() -> int:
     def car_ahead(e: DriveEnv) -> None:
         place(e, lane_index, 10.0)
         e.world.spawn_npc(lane_index, 24.0, SemanticClass.CAR, color=(0.75, 0.08, 0.08), target_speed=0.0)
-        e.world.spawn_npc((ap.edge[0], ap.edge[1], 1), 40.0, SemanticClass.TRUCK, color=(0.9, 0.9, 0.9),
+        e.world.spawn_npc((ap.edge[0], ap.edge[1], 1), 21.0, SemanticClass.TRUCK, color=(0.9, 0.9, 0.9),
                           target_speed=0.0)
 
     def pedestrian(e: DriveEnv) -> None:
         cw = town.crosswalks[ap.index]
-        place(e, lane_index, lane.length - 16.0)
+        place(e, lane_index, lane.length - 11.0)
         e.world.lights.force(ap.index, LightState.RED, until_s=99.0)
         from sim.pedestrians import PedestrianCrowd
 

@@ -162,6 +162,19 @@ class _Body:
     lamp_links: dict[int, tuple[float, float, float]] = field(default_factory=dict)  # link -> emissive colour
 
 
+TILE_M = 120.0  # static meshes are split into tiles of this size for view culling (few bodies: resets stay cheap)
+
+
+@dataclass
+class _Tile:
+    """One static body: a mesh group's triangles within one tile, and its map-frame footprint."""
+
+    uid: int
+    rgba: tuple[float, ...]
+    lo: np.ndarray
+    hi: np.ndarray
+
+
 # --------------------------------------------------------------------------- renderer
 class SceneRenderer:
     """Renders a town and its moving objects with its own pybullet DIRECT client."""
@@ -223,15 +236,56 @@ class SceneRenderer:
 
     # ----------------------------------------------------------------- static scene
     def _build_static(self, seed: int) -> None:
+        """One body per (mesh group, spatial tile), so that tiles out of view can be skipped."""
+        self._tiles: list[_Tile] = []
         for g in build_static_groups(self.town, seed):
-            v, idx, nrm = g.mesh.arrays()
-            vs = p.createVisualShape(p.GEOM_MESH, vertices=v, indices=idx, normals=nrm, rgbaColor=list(g.rgba),
-                                     specularColor=[0.0, 0.0, 0.0], **self._cid)
-            uid = p.createMultiBody(baseMass=0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=vs, **self._cid)
-            self._label(uid, [-1], g.semantic, 0)
-            if g.emissive_at_night is not None:
-                self._set_emissive(uid, -1, g.emissive_at_night, night_only=True)
+            v, _, nrm = g.mesh.arrays()
+            verts = np.asarray(v, float).reshape(-1, 3, 3)
+            norms = np.asarray(nrm, float).reshape(-1, 3, 3)
+            centre = verts.mean(axis=1)
+            keys = np.floor(centre[:, :2] / TILE_M).astype(np.int64)
+            for key in np.unique(keys, axis=0):
+                sel = np.all(keys == key, axis=1)
+                tv, tn = verts[sel].reshape(-1, 3), norms[sel].reshape(-1, 3)
+                vs = p.createVisualShape(p.GEOM_MESH, vertices=tv.tolist(), indices=list(range(len(tv))),
+                                         normals=tn.tolist(), rgbaColor=list(g.rgba), specularColor=[0.0, 0.0, 0.0],
+                                         **self._cid)
+                uid = p.createMultiBody(baseMass=0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=vs, **self._cid)
+                self._label(uid, [-1], g.semantic, 0)
+                if g.emissive_at_night is not None:
+                    self._set_emissive(uid, -1, g.emissive_at_night, night_only=True)
+                # Footprint in the map frame (world y flipped back).
+                lo, hi = tv[:, :2].min(axis=0), tv[:, :2].max(axis=0)
+                self._tiles.append(_Tile(uid, tuple(g.rgba), np.array([lo[0], -hi[1]]), np.array([hi[0], -lo[1]])))
             self.triangle_count += g.mesh.triangle_count
+        self._tile_lo = np.array([t.lo for t in self._tiles])
+        self._tile_hi = np.array([t.hi for t in self._tiles])
+        self._tile_shown = np.ones(len(self._tiles), bool)
+
+    def _cull(self, eye_xy: np.ndarray, heading: float, camera: CameraConfig) -> None:
+        """Hide static tiles outside the camera's horizontal view wedge (alpha 0: TinyRenderer skips them).
+
+        A tile is kept when the camera is inside its footprint, or when the angular span of its
+        footprint's corners overlaps the field of view and its nearest corner is within the far plane.
+        """
+        lo, hi = self._tile_lo, self._tile_hi
+        corners = np.stack([lo, np.stack([hi[:, 0], lo[:, 1]], 1), hi, np.stack([lo[:, 0], hi[:, 1]], 1)], axis=1)
+        rel = corners - eye_xy
+        ang = np.arctan2(rel[..., 1], rel[..., 0]) - heading
+        ang = (ang + np.pi) % (2 * np.pi) - np.pi
+        half = math.radians(camera.hfov_deg) / 2 + math.radians(6.0)
+        # Corners straddling the back (+-pi) span the wedge's complement only if they wrap; a tile that
+        # wraps round the camera contains it or is beside it, so keep it when the span exceeds pi.
+        span_lo, span_hi = ang.min(axis=1), ang.max(axis=1)
+        wraps = (span_hi - span_lo) > np.pi
+        overlap = (span_hi >= -half) & (span_lo <= half)
+        inside = np.all((eye_xy >= lo - 1.0) & (eye_xy <= hi + 1.0), axis=1)
+        near = np.min(np.hypot(rel[..., 0], rel[..., 1]), axis=1) <= camera.far_m
+        show = inside | (near & (overlap | wraps))
+        for k in np.nonzero(show != self._tile_shown)[0]:
+            t = self._tiles[k]
+            p.changeVisualShape(t.uid, -1, rgbaColor=[*t.rgba[:3], 1.0 if show[k] else 0.0], **self._cid)
+        self._tile_shown = show
 
     def _build_calibration_patch(self) -> None:
         """A grey quad out of every view: its lit colour tells how TinyRenderer shades flat ground."""
@@ -450,6 +504,7 @@ class SceneRenderer:
                 lateral_m: float) -> CameraFrame:
         preset = LIGHTING_PRESETS[lighting]
         eye, forward = self.camera_position(camera_pose, camera, lateral_m)
+        self._cull(np.array([eye[0], -eye[1]]), camera_pose[2], camera)
         view = p.computeViewMatrix(eye.tolist(), (eye + forward).tolist(), [0.0, 0.0, 1.0], **self._cid)
         proj = _projection(camera)
         _, _, rgba, buf, seg = p.getCameraImage(
@@ -468,7 +523,7 @@ class SceneRenderer:
         cls, oid = self._class_lut[key], self._id_lut[key]
         img = rgba[..., :3].astype(np.float32)
         # Flat ground: ray-cast the rows below the horizon to the slab and road planes.
-        r0, g_depth, surface = self._ground(eye, forward, camera)
+        r0, g_depth, surface = self._ground(eye, forward, camera, depth)
         if r0 < camera.height:
             use = g_depth < depth[r0:]
             depth[r0:][use] = g_depth[use]
@@ -480,7 +535,8 @@ class SceneRenderer:
         rgb = self._post_process(img, depth, empty, key, camera, preset)
         return CameraFrame(rgb, depth, semantic, camera.intrinsics())
 
-    def _ground(self, eye: np.ndarray, forward: np.ndarray, camera: CameraConfig) -> tuple[int, np.ndarray, np.ndarray]:
+    def _ground(self, eye: np.ndarray, forward: np.ndarray, camera: CameraConfig,
+                mesh_depth: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
         """First image row that sees the ground, then per pixel below it: z-depth and ``Surface``.
 
         Each pixel's ray meets the slab plane first; if the surface there is not raised, the ray
@@ -500,17 +556,28 @@ class SceneRenderer:
         t, dir_z = t[r0:, None], dir_z[r0:, None]
         s = ((np.arange(camera.width, dtype=np.float32) - k[0, 2]) / f)[None, :]
         gm = self.ground_map
-        result = []
-        for z_plane in (Z_SLAB, Z_GROUND):
-            z = (z_plane - eye[2]) / dir_z  # H'x1 z-depth of the plane on each row
-            wx = eye[0] + z * (forward[0] + t * down[0]) + (z * right[0]) * s
-            wy = eye[1] + z * (forward[1] + t * down[1]) + (z * right[1]) * s
-            result.append((np.broadcast_to(z, wx.shape), gm.lookup(wx, -wy)))  # world (x, y) -> map (x, -y)
-        (z_hi, s_hi), (z_lo, s_lo) = result
+        z_hi_row = (Z_SLAB - eye[2]) / dir_z  # H'x1 z-depth of the slab plane on each row
+        z_lo_row = (Z_GROUND - eye[2]) / dir_z
+        depth = np.full((len(t), camera.width), np.inf, np.float32)
+        surface = np.zeros((len(t), camera.width), np.uint8)
+        # Only pixels where no mesh is nearer than the slab plane can show the ground: look those up.
+        rr, cc = np.nonzero(np.broadcast_to(z_hi_row, depth.shape) < mesh_depth[r0:])
+        if len(rr) == 0:
+            return r0, depth, surface
+        tt, ss = t[rr, 0], s[0, cc]
+        ray_x = forward[0] + tt * down[0] + ss * right[0]
+        ray_y = forward[1] + tt * down[1] + ss * right[1]
+        z_hi, z_lo = z_hi_row[rr, 0], z_lo_row[rr, 0]
+        s_hi = gm.lookup(eye[0] + z_hi * ray_x, -(eye[1] + z_hi * ray_y))  # world (x, y) -> map (x, -y)
         raised = SURFACE_RAISED[s_hi]
-        depth = np.where(raised, z_hi, z_lo).astype(np.float32)
-        surface = np.where(raised, s_hi, s_lo)
-        depth[depth > camera.far_m] = np.inf
+        low = ~raised
+        s_lo = gm.lookup(eye[0] + z_lo[low] * ray_x[low], -(eye[1] + z_lo[low] * ray_y[low]))
+        surf = s_hi.copy()
+        surf[low] = s_lo
+        dep = np.where(raised, z_hi, z_lo).astype(np.float32)
+        dep[dep > camera.far_m] = np.inf
+        depth[rr, cc] = dep
+        surface[rr, cc] = surf
         return r0, depth, surface
 
     def _post_process(self, img: np.ndarray, depth: np.ndarray, sky: np.ndarray, key: np.ndarray,
@@ -531,12 +598,13 @@ class SceneRenderer:
         if not preset.emissive_windows:
             emit &= ~self._night_emit[key]
         if emit.any():
-            glow_src = np.where(emit[..., None], self._emissive[key] * 255.0, 0.0).astype(np.float32)
-            img = np.where(emit[..., None], glow_src, img)
+            glow_src = np.zeros_like(img)
+            glow_src[emit] = self._emissive[key[emit]] * 255.0
+            img[emit] = glow_src[emit]
             if preset.glow > 0:
                 sigma = max(0.8, camera.width / 220.0)
                 img += preset.glow * cv2.GaussianBlur(glow_src, (0, 0), sigma)
-        img = np.where(sky[..., None], _sky_image(camera, preset), img)
+        img[sky] = _sky_image(camera, preset)[sky]
         return np.clip(img, 0, 255).astype(np.uint8)
 
     def close(self) -> None:

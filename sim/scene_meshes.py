@@ -31,7 +31,7 @@ FLOOR_HEIGHT_M = 3.2
 WINDOW_BOTTOM_M = 0.9  # above each floor's base
 WINDOW_TOP_M = 2.3
 WINDOW_OFFSET_M = 0.08  # in front of the wall, to win the depth test
-WINDOW_LIT_FRACTION = 0.35  # share of window bands that glow at night
+WINDOW_LIT_FRACTION = 0.25  # share of window bands that glow at night
 
 POLE_HALF_M = 0.14
 ARM_HALF_M = 0.09
@@ -211,7 +211,7 @@ class MeshGroup:
 
 KERB_RGB = (0.80, 0.79, 0.76)
 GLASS_RGB = (0.14, 0.18, 0.25)
-LIT_WINDOW_RGB = (1.0, 0.82, 0.5)
+LIT_WINDOW_RGB = (0.78, 0.62, 0.36)  # warm, dimmer than lamps: lit offices, not floodlights
 TRUNK_RGB = (0.36, 0.26, 0.17)
 POLE_RGB = (0.22, 0.23, 0.24)
 
