@@ -235,7 +235,8 @@ class DriveEnv(gym.Env):
             "command": int(world.command()),
         }
         if cfg.render_camera and self.renderer is not None:
-            self.renderer.sync(world.object_snapshots(), world.lights.states)
+            x, y, heading = self._pose()
+            self.renderer.sync(world.object_snapshots(), world.lights.states, view=(x, y, heading, cam.hfov_deg, cam.far_m))
             if cfg.observe_stereo:
                 left, right = self.renderer.render_stereo(self._pose(), cam, self.weather)
                 obs["stereo"] = np.stack([left.rgb, right.rgb])

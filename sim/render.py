@@ -34,6 +34,7 @@ from sim.scene_meshes import (
     build_static_groups,
     light_lamp_disc,
     to_world,
+    world_point,
     yaw_of,
 )
 from sim.town import Town
@@ -434,12 +435,20 @@ class SceneRenderer:
             self._set_emissive(uid, link, rgb, night_only=True)
         return body
 
-    def sync(self, objects: Sequence[ObjectSnapshot], light_states: Sequence[LightState] = ()) -> None:
-        """Make the scene's moving objects and lamp colours match the world's snapshot."""
+    def sync(self, objects: Sequence[ObjectSnapshot], light_states: Sequence[LightState] = (),
+             view: tuple[float, float, float, float, float] | None = None) -> None:
+        """Make the scene's moving objects and lamp colours match the world's snapshot.
+
+        ``view`` = (x, y, heading, hfov_deg, range_m) of the camera that renders next: objects
+        outside that horizontal wedge are parked out of sight instead of posed, since a pose reset
+        of a multi-link body costs tens of microseconds and most of the town is behind the camera.
+        """
         if light_states:
             self.set_light_states(light_states)
+        in_view = _in_view(objects, view)
+        heights = self._object_heights(objects)
         seen = set()
-        for obj in objects:
+        for k, obj in enumerate(objects):
             seen.add(obj.object_id)
             dims = (round(obj.length_m, 2), round(obj.width_m, 2), round(obj.height_m, 2))
             body = self._active.get(obj.object_id)
@@ -456,19 +465,28 @@ class SceneRenderer:
                 for link in body.body_links:
                     p.changeVisualShape(body.uid, link, rgbaColor=[*color, 1.0], **self._cid)
                 body.color = color  # type: ignore[assignment]
-            pose = (obj.x, obj.y, obj.heading, body.uid)
+            pose = (obj.x, obj.y, obj.heading, body.uid) if in_view[k] else ("parked", body.uid)
             if self._last_pose.get(obj.object_id) == pose:
-                continue  # standing still: nothing to move (most pedestrians, queued cars)
+                continue  # standing still (or still out of view): nothing to move
             self._last_pose[obj.object_id] = pose
-            z = 0.0
-            if obj.kind == SemanticClass.PEDESTRIAN and not self.town.on_road(np.array([obj.x, obj.y]), 0.2):
-                z = Z_SLAB
-            pos = to_world(obj.x, obj.y, z)
+            if not in_view[k]:
+                p.resetBasePositionAndOrientation(body.uid, [0.0, 0.0, HIDDEN_Z], [0, 0, 0, 1], **self._cid)
+                continue
             orn = p.getQuaternionFromEuler([0.0, 0.0, yaw_of(obj.heading)])
-            p.resetBasePositionAndOrientation(body.uid, pos.tolist(), orn, **self._cid)
+            p.resetBasePositionAndOrientation(body.uid, world_point(obj.x, obj.y, heights[k]), orn, **self._cid)
         for oid in [k for k in self._active if k not in seen]:
             self._last_pose.pop(oid, None)
             self._release(oid)
+
+    def _object_heights(self, objects: Sequence[ObjectSnapshot]) -> np.ndarray:
+        """Base height of each object: pedestrians on a raised surface (sidewalk, park) stand on it."""
+        heights = np.zeros(len(objects))
+        peds = [k for k, o in enumerate(objects) if o.kind == SemanticClass.PEDESTRIAN]
+        if peds:
+            xs = np.array([objects[k].x for k in peds])
+            ys = np.array([objects[k].y for k in peds])
+            heights[peds] = np.where(SURFACE_RAISED[self.ground_map.lookup(xs, ys)], Z_SLAB, 0.0)
+        return heights
 
     def _release(self, object_id: int) -> None:
         body = self._active.pop(object_id)
@@ -619,6 +637,19 @@ class SceneRenderer:
 
 
 _GROUND_MAPS: dict[tuple[int, int], tuple[Town, GroundMap]] = {}
+
+
+def _in_view(objects: Sequence[ObjectSnapshot], view: tuple[float, float, float, float, float] | None) -> np.ndarray:
+    """Which objects may show in a camera's horizontal wedge (conservative: size and a margin count)."""
+    if view is None or not objects:
+        return np.ones(len(objects), bool)
+    x, y, heading, hfov_deg, range_m = view
+    pos = np.array([[o.x, o.y] for o in objects]) - np.array([x, y])
+    radius = np.array([0.5 * math.hypot(o.length_m, o.width_m) for o in objects]) + 1.0
+    dist = np.hypot(pos[:, 0], pos[:, 1])
+    ang = np.abs((np.arctan2(pos[:, 1], pos[:, 0]) - heading + np.pi) % (2 * np.pi) - np.pi)
+    reach = math.radians(hfov_deg) / 2 + np.arcsin(np.clip(radius / np.maximum(dist, 1e-6), 0.0, 1.0)) + math.radians(5)
+    return (dist <= radius + 3.0) | ((dist <= range_m + radius) & (ang <= reach))
 
 
 def _ground_map(town: Town) -> GroundMap:

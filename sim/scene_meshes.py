@@ -51,6 +51,11 @@ def to_world(x: float | np.ndarray, y: float | np.ndarray, z: float | np.ndarray
     return np.stack([x, -y, z], axis=-1)
 
 
+def world_point(x: float, y: float, z: float = 0.0) -> list[float]:
+    """One map-frame point as a pybullet position list; the scalar twin of ``to_world`` for hot loops."""
+    return [float(x), -float(y), float(z)]
+
+
 def yaw_of(heading: float) -> float:
     """Map-frame heading to pybullet yaw about +z (the y flip reverses the sense of rotation)."""
     return -heading
