@@ -262,21 +262,20 @@ class DriveEnv(gym.Env):
         world = self._require_world()
         if self.frame is None:
             return []
-        ids = self.frame.segmentation[..., 1]
-        ys, xs = np.nonzero(ids > 0)
-        if len(ys) == 0:
+        ids = self.frame.segmentation[..., 1].ravel()
+        flat = np.flatnonzero(ids > 0)
+        if len(flat) == 0:
             return []
-        vals = ids[ys, xs]
-        uniq, inv = np.unique(vals, return_inverse=True)
-        x0 = np.full(len(uniq), 1 << 30)
-        y0 = np.full(len(uniq), 1 << 30)
-        x1 = np.full(len(uniq), -1)
-        y1 = np.full(len(uniq), -1)
-        np.minimum.at(x0, inv, xs)
-        np.minimum.at(y0, inv, ys)
-        np.maximum.at(x1, inv, xs)
-        np.maximum.at(y1, inv, ys)
-        counts = np.bincount(inv)
+        vals = ids[flat]
+        order = np.argsort(vals, kind="stable")
+        flat, vals = flat[order], vals[order]
+        starts = np.flatnonzero(np.r_[True, vals[1:] != vals[:-1]])
+        width = self.frame.segmentation.shape[1]
+        rows, cols = flat // width, flat % width
+        uniq = vals[starts]
+        x0, x1 = np.minimum.reduceat(cols, starts), np.maximum.reduceat(cols, starts)
+        y0, y1 = np.minimum.reduceat(rows, starts), np.maximum.reduceat(rows, starts)
+        counts = np.diff(np.r_[starts, len(vals)])
         snaps = {s.object_id: s for s in world.object_snapshots()}
         ego = world.ego
         out = []

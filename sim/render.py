@@ -200,7 +200,8 @@ class SceneRenderer:
         self._build_lights()
         self._pool: dict[tuple[SemanticClass, tuple[float, float, float]], list[_Body]] = {}
         self._active: dict[int, _Body] = {}
-        self._last_pose: dict[int, tuple[float, float, float, int]] = {}  # skip resets of still objects
+        self._last_pose: dict[int, tuple] = {}  # skip resets of still objects
+        self._look: dict[int, tuple] = {}  # kind, size and colour each object's body was fitted to
         self._shapes: dict[tuple, int] = {}
 
     # ----------------------------------------------------------------- lookup tables
@@ -450,21 +451,13 @@ class SceneRenderer:
         seen = set()
         for k, obj in enumerate(objects):
             seen.add(obj.object_id)
-            dims = (round(obj.length_m, 2), round(obj.width_m, 2), round(obj.height_m, 2))
             body = self._active.get(obj.object_id)
-            if body is not None and (body.kind != obj.kind or body.dims != dims):
-                self._release(obj.object_id)
-                body = None
-            if body is None:
-                pool = self._pool.setdefault((obj.kind, dims), [])
-                body = pool.pop() if pool else self._new_body(obj.kind, dims)
-                self._active[obj.object_id] = body
-                self._label(body.uid, [-1, *range(MAX_LINKS)], obj.kind, obj.object_id)
-            color = tuple(round(float(c), 4) for c in obj.color)
-            if color != body.color:
-                for link in body.body_links:
-                    p.changeVisualShape(body.uid, link, rgbaColor=[*color, 1.0], **self._cid)
-                body.color = color  # type: ignore[assignment]
+            look = (obj.kind, obj.length_m, obj.width_m, obj.height_m, obj.color)
+            if body is not None and self._look.get(obj.object_id) == look:
+                pass  # same body, same paint as last step: only the pose may change
+            else:
+                body = self._fit_body(obj, body)
+                self._look[obj.object_id] = look
             pose = (obj.x, obj.y, obj.heading, body.uid) if in_view[k] else ("parked", body.uid)
             if self._last_pose.get(obj.object_id) == pose:
                 continue  # standing still (or still out of view): nothing to move
@@ -476,7 +469,26 @@ class SceneRenderer:
             p.resetBasePositionAndOrientation(body.uid, world_point(obj.x, obj.y, heights[k]), orn, **self._cid)
         for oid in [k for k in self._active if k not in seen]:
             self._last_pose.pop(oid, None)
+            self._look.pop(oid, None)
             self._release(oid)
+
+    def _fit_body(self, obj: ObjectSnapshot, body: _Body | None) -> _Body:
+        """The object's body with the right kind, size and paint (taken from the pool if needed)."""
+        dims = (round(obj.length_m, 2), round(obj.width_m, 2), round(obj.height_m, 2))
+        if body is not None and (body.kind != obj.kind or body.dims != dims):
+            self._release(obj.object_id)
+            body = None
+        if body is None:
+            pool = self._pool.setdefault((obj.kind, dims), [])
+            body = pool.pop() if pool else self._new_body(obj.kind, dims)
+            self._active[obj.object_id] = body
+            self._label(body.uid, [-1, *range(MAX_LINKS)], obj.kind, obj.object_id)
+        color = tuple(round(float(c), 4) for c in obj.color)
+        if color != body.color:
+            for link in body.body_links:
+                p.changeVisualShape(body.uid, link, rgbaColor=[*color, 1.0], **self._cid)
+            body.color = color  # type: ignore[assignment]
+        return body
 
     def _object_heights(self, objects: Sequence[ObjectSnapshot]) -> np.ndarray:
         """Base height of each object: pedestrians on a raised surface (sidewalk, park) stand on it."""
@@ -560,9 +572,11 @@ class SceneRenderer:
         Each pixel's ray meets the slab plane first; if the surface there is not raised, the ray
         continues to the road plane. Points beyond the far plane get infinite depth.
         """
-        right = np.cross(forward, [0.0, 0.0, 1.0])
-        right /= np.linalg.norm(right)
-        down = np.cross(forward, right)
+        # right = forward x up, down = forward x right (written out: np.cross is slow on 3-vectors)
+        fx, fy, fz = (float(c) for c in forward)
+        norm = math.hypot(fx, fy)
+        right = np.array([fy / norm, -fx / norm, 0.0])
+        down = np.array([fy * right[2] - fz * right[1], fz * right[0] - fx * right[2], fx * right[1] - fy * right[0]])
         f = camera.focal_px
         k = camera.intrinsics()  # same principal point as TinyRenderer's own pixels (see intrinsics())
         t = (np.arange(camera.height, dtype=np.float32) - k[1, 2]) / f
@@ -603,7 +617,7 @@ class SceneRenderer:
         """Sky gradient, fog, colour grade, night headlights and emissive lamps, all vectorised (img: float HxWx3)."""
         gain = np.asarray(preset.gain, np.float32)
         if preset.fog_distance_m > 0:
-            fog = (1.0 - np.exp(-depth / preset.fog_distance_m))[..., None]
+            fog = (depth / (depth + preset.fog_distance_m))[..., None]  # rational haze curve: cheaper than exp per pixel
             img += (np.asarray(preset.sky_horizon, np.float32) - img) * fog
         img *= gain
         if any(preset.lift):

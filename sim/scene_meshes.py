@@ -168,13 +168,14 @@ class GroundMap:
     texels_per_m: float
 
     def lookup(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Surface under map points (grass outside the map), nearest texel."""
+        """Surface under map points, nearest texel. The map's border texels are grass, so clamping
+        the index sends every point outside the map to grass without a separate test."""
+        h, w = self.texels.shape
         ix = ((x - self.origin[0]) * self.texels_per_m).astype(np.int32)
         iy = ((y - self.origin[1]) * self.texels_per_m).astype(np.int32)
-        h, w = self.texels.shape
-        inside = (ix >= 0) & (ix < w) & (iy >= 0) & (iy < h)
-        out = self.texels[np.clip(iy, 0, h - 1), np.clip(ix, 0, w - 1)]
-        return np.where(inside, out, np.uint8(Surface.GRASS))
+        np.clip(ix, 0, w - 1, out=ix)
+        np.clip(iy, 0, h - 1, out=iy)
+        return self.texels[iy, ix]
 
 
 def build_ground_map(town: Town, texels_per_m: float = 10.0) -> GroundMap:
@@ -200,6 +201,8 @@ def build_ground_map(town: Town, texels_per_m: float = 10.0) -> GroundMap:
     for kind, quads in town.markings.items():
         for quad in quads:
             fill(quad, kinds[kind])
+    tex[[0, -1], :] = Surface.GRASS  # a grass border: lookups clamp onto it (see GroundMap.lookup)
+    tex[:, [0, -1]] = Surface.GRASS
     return GroundMap(tex, origin, texels_per_m)
 
 

@@ -110,16 +110,19 @@ class TownVehicle(IDMVehicle):
         super().__init__(road, lane.position(s, 0.0), lane.heading_at(s), speed=target_speed * 0.5,
                          target_lane_index=lane_index, target_speed=target_speed,
                          route=[(lane_index[0], lane_index[1], None)])
+        self._locate()
         self._extend_route()
 
-    # highway-env looks up the closest lane among all lanes on every state update; the target
-    # edge's two lanes are enough here.
+    # highway-env looks up the closest lane among all lanes on every state update. Only ``decide``
+    # reads the lane, so it is located there, among the target edge's two lanes.
     def on_state_update(self) -> None:
-        if getattr(self, "town", None) is None or self.target_lane_index is None:
-            return
+        """Nothing per integration step; see ``_locate``."""
+
+    def _locate(self) -> None:
         frm, to, _ = self.target_lane_index
         lanes = self.town.network.graph[frm][to]
-        k = min(range(len(lanes)), key=lambda i: abs(lanes[i].local_coordinates(self.position)[1]))
+        lats = [abs(lane.local_coordinates(self.position)[1]) for lane in lanes]
+        k = lats.index(min(lats))
         self.lane_index = (frm, to, k)
         self.lane = lanes[k]
 
@@ -162,6 +165,7 @@ class TownVehicle(IDMVehicle):
         """Set this step's steering and acceleration (highway-env action dict)."""
         if self.crashed:
             return
+        self._locate()
         self.follow_road()
         self._extend_route()
         if enable_lane_change:

@@ -41,6 +41,8 @@ class WorldConfig:
     enable_lane_change: bool = True
     dt_s: float = 0.05
     npc_decision_every: int = 2  # NPCs decide at 10 Hz (staggered), integrate at 20 Hz, as highway-env does
+    npc_far_decision_every: int = 4  # beyond npc_near_radius_m of the ego they decide at 5 Hz (cf. CARLA's hybrid mode)
+    npc_near_radius_m: float = 60.0
     route_min_length_m: float = 300.0
     route_deviation_s: float = 2.0  # how long off the route before it counts
 
@@ -158,6 +160,8 @@ class World:
         self._watched_approach: tuple[int, float] | None = None  # approach, front s on its lane
         self.ego_lane: tuple[tuple[str, str, int], float, float] | None = town.locate(self.ego.position, self.ego.heading)
         self.distance_m = 0.0
+        self._snapshots: list[ObjectSnapshot] = []
+        self._snapshots_key: tuple = ()
 
     # ---------------------------------------------------------------- population
     @property
@@ -214,8 +218,11 @@ class World:
         self.lights.update(self.time_s)
         agents = self._agents()
         states = self.lights.states
-        every = max(1, self.config.npc_decision_every)
+        near_r2 = self.config.npc_near_radius_m ** 2
         for npc in self.npcs:
+            d = npc.position - self.ego.position
+            far = d[0] * d[0] + d[1] * d[1] > near_r2
+            every = max(1, self.config.npc_far_decision_every if far else self.config.npc_decision_every)
             if (self.step_count + npc.object_id) % every == 0:
                 npc.decide(agents, states, self.config.enable_lane_change)
         self.ego.apply(action)
@@ -342,7 +349,12 @@ class World:
         return None
 
     def object_snapshots(self) -> list[ObjectSnapshot]:
-        return [v.snapshot() for v in self.npcs] + [p.snapshot() for p in self.crowd.peds]
+        """Every moving object's pose and look, built once per step (the renderer and info share it)."""
+        key = (self.step_count, len(self.npcs), id(self.crowd), len(self.crowd.peds))
+        if self._snapshots_key != key:
+            self._snapshots = [v.snapshot() for v in self.npcs] + [p.snapshot() for p in self.crowd.peds]
+            self._snapshots_key = key
+        return self._snapshots
 
     def ego_route_polyline(self) -> np.ndarray:
         pts = []
