@@ -161,6 +161,8 @@ class _Body:
     color: tuple[float, float, float] = (-1.0, -1.0, -1.0)
     body_links: tuple[int, ...] = (-1,)  # links painted in the object's colour
     lamp_links: dict[int, tuple[float, float, float]] = field(default_factory=dict)  # link -> emissive colour
+    link_rgb: dict[int, tuple[float, float, float]] = field(default_factory=dict)  # each link's own paint
+    shown: bool = True  # False: alpha 0 on every link, so TinyRenderer skips the body
 
 
 TILE_M = 120.0  # static meshes are split into tiles of this size for view culling (few bodies: resets stay cheap)
@@ -197,7 +199,9 @@ class SceneRenderer:
         self._build_calibration_patch()
         self._light_bodies: list[int] = []
         self._light_states: list[LightState | None] = []
+        self._light_shown: list[bool] = []
         self._build_lights()
+        self._light_xy = np.array([ap.light_head for ap in town.approaches]).reshape(-1, 2)
         self._pool: dict[tuple[SemanticClass, tuple[float, float, float]], list[_Body]] = {}
         self._active: dict[int, _Body] = {}
         self._last_pose: dict[int, tuple] = {}  # skip resets of still objects
@@ -341,20 +345,40 @@ class SceneRenderer:
             self._label(uid, [0, 1, 2], SemanticClass.TRAFFIC_LAMP, LIGHT_ID_BASE + ap.index)
             self._light_bodies.append(uid)
             self._light_states.append(None)
+            self._light_shown.append(True)
             self.triangle_count += 12 + 3 * 6
 
     def set_light_states(self, states: Sequence[LightState]) -> None:
         """Recolour lamps, touching pybullet only for lights whose state changed."""
-        for k, (uid, state) in enumerate(zip(self._light_bodies, states, strict=False)):
+        for k, state in enumerate(states[:len(self._light_bodies)]):
             state = LightState(state)
             if self._light_states[k] == state:
                 continue
+            self._light_states[k] = state
             for link, lamp in enumerate(LAMP_ORDER):
                 on = lamp == state
-                rgb = LAMP_ON_RGB[lamp] if on else LAMP_OFF_RGB[lamp]
-                p.changeVisualShape(uid, link, rgbaColor=[*rgb, 1.0], **self._cid)
-                self._set_emissive(uid, link, LAMP_ON_RGB[lamp] if on else None, night_only=False)
-            self._light_states[k] = state
+                self._set_emissive(self._light_bodies[k], link, LAMP_ON_RGB[lamp] if on else None, night_only=False)
+            if self._light_shown[k]:
+                self._paint_light(k)
+
+    def _paint_light(self, k: int) -> None:
+        """Apply light k's housing and lamp colours, or alpha 0 on all of it when it is out of view."""
+        uid, state, alpha = self._light_bodies[k], self._light_states[k], 1.0 if self._light_shown[k] else 0.0
+        p.changeVisualShape(uid, -1, rgbaColor=[*HOUSING_RGB, alpha], **self._cid)
+        for link, lamp in enumerate(LAMP_ORDER):
+            rgb = LAMP_ON_RGB[lamp] if lamp == state else LAMP_OFF_RGB[lamp]
+            p.changeVisualShape(uid, link, rgbaColor=[*rgb, alpha], **self._cid)
+
+    def _cull_lights(self, eye_xy: np.ndarray, heading: float, camera: CameraConfig) -> None:
+        """Hide traffic lights outside the camera's view wedge, as ``_cull`` does for static tiles."""
+        rel = self._light_xy - eye_xy
+        dist = np.hypot(rel[:, 0], rel[:, 1])
+        ang = np.abs((np.arctan2(rel[:, 1], rel[:, 0]) - heading + np.pi) % (2 * np.pi) - np.pi)
+        reach = math.radians(camera.hfov_deg) / 2 + np.arcsin(np.clip(2.0 / np.maximum(dist, 1e-6), 0, 1)) + 0.1
+        show = (dist < 3.0) | ((dist < camera.far_m) & (ang <= reach))
+        for k in np.nonzero(show != self._light_shown)[0]:
+            self._light_shown[k] = bool(show[k])
+            self._paint_light(int(k))
 
     # ----------------------------------------------------------------- moving objects
     def _box_shape(self, half: Sequence[float], offset: Sequence[float], rgb: Sequence[float]) -> int:
@@ -432,6 +456,8 @@ class SceneRenderer:
                 links = [-1, 0, 1, 2, 3]
             body.lamp_links = {2: HEADLAMP_RGB, 3: (1.0, 0.1, 0.06)}
         self._label(uid, links, kind, 0)
+        for entry in p.getVisualShapeData(uid, **self._cid):
+            body.link_rgb.setdefault(int(entry[1]), tuple(float(c) for c in entry[7][:3]))
         for link, rgb in body.lamp_links.items():
             self._set_emissive(uid, link, rgb, night_only=True)
         return body
@@ -463,8 +489,9 @@ class SceneRenderer:
                 continue  # standing still (or still out of view): nothing to move
             self._last_pose[obj.object_id] = pose
             if not in_view[k]:
-                p.resetBasePositionAndOrientation(body.uid, [0.0, 0.0, HIDDEN_Z], [0, 0, 0, 1], **self._cid)
+                self._set_shown(body, False)
                 continue
+            self._set_shown(body, True)
             orn = p.getQuaternionFromEuler([0.0, 0.0, yaw_of(obj.heading)])
             p.resetBasePositionAndOrientation(body.uid, world_point(obj.x, obj.y, heights[k]), orn, **self._cid)
         for oid in [k for k in self._active if k not in seen]:
@@ -485,10 +512,19 @@ class SceneRenderer:
             self._label(body.uid, [-1, *range(MAX_LINKS)], obj.kind, obj.object_id)
         color = tuple(round(float(c), 4) for c in obj.color)
         if color != body.color:
-            for link in body.body_links:
-                p.changeVisualShape(body.uid, link, rgbaColor=[*color, 1.0], **self._cid)
             body.color = color  # type: ignore[assignment]
+            for link in body.body_links:
+                p.changeVisualShape(body.uid, link, rgbaColor=[*color, 1.0 if body.shown else 0.0], **self._cid)
         return body
+
+    def _set_shown(self, body: _Body, shown: bool) -> None:
+        """Show a body in its paint, or hide it with alpha 0 (cheaper for TinyRenderer than parking it far away)."""
+        if body.shown == shown:
+            return
+        body.shown = shown
+        for link, rgb in body.link_rgb.items():
+            paint = body.color if link in body.body_links else rgb
+            p.changeVisualShape(body.uid, link, rgbaColor=[*paint, 1.0 if shown else 0.0], **self._cid)
 
     def _object_heights(self, objects: Sequence[ObjectSnapshot]) -> np.ndarray:
         """Base height of each object: pedestrians on a raised surface (sidewalk, park) stand on it."""
@@ -503,6 +539,7 @@ class SceneRenderer:
     def _release(self, object_id: int) -> None:
         body = self._active.pop(object_id)
         p.resetBasePositionAndOrientation(body.uid, [0.0, 0.0, HIDDEN_Z], [0, 0, 0, 1], **self._cid)
+        self._set_shown(body, False)
         self._label(body.uid, [-1, *range(MAX_LINKS)], body.kind, 0)
         self._pool.setdefault((body.kind, body.dims), []).append(body)
 
@@ -535,6 +572,7 @@ class SceneRenderer:
         preset = LIGHTING_PRESETS[lighting]
         eye, forward = self.camera_position(camera_pose, camera, lateral_m)
         self._cull(np.array([eye[0], -eye[1]]), camera_pose[2], camera)
+        self._cull_lights(np.array([eye[0], -eye[1]]), camera_pose[2], camera)
         view = p.computeViewMatrix(eye.tolist(), (eye + forward).tolist(), [0.0, 0.0, 1.0], **self._cid)
         proj = _projection(camera)
         _, _, rgba, buf, seg = p.getCameraImage(
