@@ -200,6 +200,7 @@ class SceneRenderer:
         self._light_bodies: list[int] = []
         self._light_states: list[LightState | None] = []
         self._light_shown: list[bool] = []
+        self._last_cull: tuple[np.ndarray, float, tuple[float, float]] | None = None
         self._build_lights()
         self._light_xy = np.array([ap.light_head for ap in town.approaches]).reshape(-1, 2)
         self._pool: dict[tuple[SemanticClass, tuple[float, float, float]], list[_Body]] = {}
@@ -571,8 +572,15 @@ class SceneRenderer:
                 lateral_m: float) -> CameraFrame:
         preset = LIGHTING_PRESETS[lighting]
         eye, forward = self.camera_position(camera_pose, camera, lateral_m)
-        self._cull(np.array([eye[0], -eye[1]]), camera_pose[2], camera)
-        self._cull_lights(np.array([eye[0], -eye[1]]), camera_pose[2], camera)
+        eye_xy = np.array([eye[0], -eye[1]])
+        cull_key = (camera.hfov_deg, camera.far_m)
+        last = self._last_cull
+        if last is None or last[2] != cull_key or math.hypot(*(eye_xy - last[0])) > 0.5 or abs(
+                math.remainder(camera_pose[2] - last[1], 2 * math.pi)) > math.radians(1.0):
+            # The wedges carry margins of several degrees, so half a metre or a degree of motion changes nothing.
+            self._cull(eye_xy, camera_pose[2], camera)
+            self._cull_lights(eye_xy, camera_pose[2], camera)
+            self._last_cull = (eye_xy, camera_pose[2], cull_key)
         view = p.computeViewMatrix(eye.tolist(), (eye + forward).tolist(), [0.0, 0.0, 1.0], **self._cid)
         proj = _projection(camera)
         _, _, rgba, buf, seg = p.getCameraImage(
@@ -656,8 +664,10 @@ class SceneRenderer:
         gain = np.asarray(preset.gain, np.float32)
         if preset.fog_distance_m > 0:
             fog = (depth / (depth + preset.fog_distance_m))[..., None]  # rational haze curve: cheaper than exp per pixel
-            img += (np.asarray(preset.sky_horizon, np.float32) - img) * fog
-        img *= gain
+            img *= (1.0 - fog) * gain
+            img += fog * (np.asarray(preset.sky_horizon, np.float32) * gain)
+        else:
+            img *= gain
         if any(preset.lift):
             img += np.asarray(preset.lift, np.float32)
         if preset.headlights:
