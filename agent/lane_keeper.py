@@ -64,7 +64,7 @@ class PrivilegedLaneKeeper:
         wheel = math.atan2(2.0 * ego.LENGTH / 2 * math.sin(alpha), dist)
         steer = float(np.clip(wheel / ego.MAX_STEER_RAD, -1.0, 1.0))
         # Longitudinal: IDM towards the target speed, the path's leader and a red/yellow stop line.
-        agents = world._agents()
+        agents = world.agents()
         gap, lead_speed = path_gap(path, s0, ego.LENGTH / 2, agents, EGO_ID, ego.position, 15.0 + 3.0 * ego.speed)
         acc = idm_acceleration(ego.speed, self.target_speed, gap, ego.speed - lead_speed)
         light = world.next_light()

@@ -29,13 +29,12 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from sim.objects import LightState, SemanticClass
+from sim.objects import LIGHT_ID_BASE, LightState, SemanticClass
 from sim.render import LIGHTING_PRESETS, CameraConfig, CameraFrame, SceneRenderer
 from sim.topdown import TopDownMap
 from sim.town import Command
 from sim.world import TERMINAL_INFRACTIONS, World, WorldConfig, cached_town
 
-LIGHT_ID_BASE = 10000
 INFRACTION_REWARD = {"red_light": -5.0, "wrong_way": -2.0, "route_deviation": -2.0}
 
 

@@ -28,6 +28,9 @@ class SemanticClass(IntEnum):
     PEDESTRIAN = 14
 
 
+LIGHT_ID_BASE = 10000  # segmentation object id of approach k's traffic light: LIGHT_ID_BASE + k
+
+
 class LightState(IntEnum):
     GREEN = 0
     YELLOW = 1

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 import pybullet as p
 
-from sim.objects import LightState, ObjectSnapshot, SemanticClass
+from sim.objects import LIGHT_ID_BASE, LightState, ObjectSnapshot, SemanticClass
 from sim.scene_meshes import (
     HOUSING_HALF,
     LAMP_SPACING_M,
@@ -39,7 +39,6 @@ from sim.scene_meshes import (
 )
 from sim.town import Town
 
-LIGHT_ID_BASE = 10000  # segmentation object id of approach k's light: LIGHT_ID_BASE + k
 MAX_LINKS = 8  # links per body the segmentation lookup tables can tell apart
 HIDDEN_Z = -500.0  # where pooled, unused object bodies wait (below the ground, beyond the far plane)
 CALIBRATION_Z = -3000.0  # a grass patch far below the town, rendered once per preset to learn the grass colour

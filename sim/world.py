@@ -19,7 +19,7 @@ from sim.geometry import circle_polygon_intersect, polygons_intersect, rect_corn
 from sim.lights import LightTiming, TrafficLights
 from sim.objects import LightState, ObjectSnapshot, SemanticClass
 from sim.pedestrians import PedestrianCrowd
-from sim.routes import command_at, edge_length, random_route, route_length
+from sim.routes import command_at, edge_length, random_route, route_length, shortest_route
 from sim.town import Command, Edge, Town, TownConfig, generate_town
 from sim.traffic import CAR_COLORS, Agents, TownVehicle
 
@@ -138,8 +138,6 @@ class World:
         if goal is None:
             self.route = random_route(town, start[:2], self.rng, config.route_min_length_m)
         else:
-            from sim.routes import shortest_route
-
             self.route = shortest_route(town, start[:2], goal)
         self.route_total_m = route_length(town, self.route)
         self._route_starts = np.concatenate([[0.0], np.cumsum([edge_length(town, e) for e in self.route])])
@@ -192,7 +190,8 @@ class World:
         return None
 
     # ---------------------------------------------------------------- stepping
-    def _agents(self) -> Agents:
+    def agents(self) -> Agents:
+        """Everything that can block a path (ego, NPCs, pedestrians), as arrays for path searches."""
         vehicles = [self.ego] + self.npcs
         peds = self.crowd.peds
         n = len(vehicles) + len(peds)
@@ -216,7 +215,7 @@ class World:
         self.time_s = round(self.time_s + dt, 9)
         self.step_count += 1
         self.lights.update(self.time_s)
-        agents = self._agents()
+        agents = self.agents()
         states = self.lights.states
         near_r2 = self.config.npc_near_radius_m ** 2
         for npc in self.npcs:

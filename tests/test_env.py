@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import envs  # noqa: F401  (registers Drive-v0)
-from envs.drive_env import LIGHT_ID_BASE, DriveConfig, DriveEnv
-from sim.objects import LightState, SemanticClass
+from envs.drive_env import DriveConfig, DriveEnv
+from sim.objects import LIGHT_ID_BASE, LightState, SemanticClass
 from sim.render import CameraConfig
 
 SMALL = CameraConfig(width=200, height=66)
