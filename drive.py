@@ -1,8 +1,14 @@
-"""Run a driver in the simulator headless and keep what it saw.
+"""Run a driver in the simulator: a demo drive, recording, closed-loop evaluation, or scenarios.
 
-Default: the privileged lane keeper drives one route in the default town (seed 0) and writes
-``out/drive/video.mp4`` (camera beside a top-down map), a few camera frames as PNG and a
-``summary.json``. Later issues add drivers, recording and evaluation here.
+  python drive.py                                         # autopilot demo: video, frames, summary in out/drive
+  python drive.py --driver autopilot --record data/episodes --episodes 5 [--noise]
+  python drive.py --driver keyboard --record data/mine --episodes 3     # a window; arrows/WASD, P, R, Esc
+  python drive.py --driver autopilot --evaluate --episodes 20 --seed 100 --out out/eval
+  python drive.py --driver autopilot --scenario all
+
+Recording writes one HDF5 file per finished episode (see data/episodes.py); Ctrl-C keeps every
+finished episode and drops only the one in progress. Summarise or convert datasets with
+``python -m data summary DIR`` and ``python -m data import-udacity|export-udacity SRC DST``.
 """
 
 from __future__ import annotations
@@ -12,6 +18,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -20,53 +27,84 @@ from sim.render import LIGHTING_PRESETS
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--driver", default="lane_keeper", choices=["lane_keeper"], help="who drives")
-    p.add_argument("--seed", type=int, default=0, help="episode seed (traffic, start and route)")
+    p.add_argument("--driver", default="autopilot", help="who drives: autopilot, keyboard, gamepad")
+    p.add_argument("--seed", type=int, default=0, help="first episode seed (traffic, start and route)")
     p.add_argument("--town-seed", type=int, default=0, help="which town to generate")
     p.add_argument("--weather", default="noon", choices=sorted(LIGHTING_PRESETS), help="lighting preset")
+    p.add_argument("--traffic", type=float, default=1.0, help="traffic density multiplier (NPCs and pedestrians)")
     p.add_argument("--seconds", type=float, default=60.0, help="longest episode, simulated seconds")
     p.add_argument("--width", type=int, default=320)
     p.add_argument("--height", type=int, default=160)
-    p.add_argument("--out", type=Path, default=Path("out/drive"), help="output folder")
-    p.add_argument("--frames", type=int, default=4, help="how many camera frames to save as PNG")
+    p.add_argument("--out", type=Path, default=None, help="output folder (default out/drive, out/eval, out/scenarios)")
+    p.add_argument("--frames", type=int, default=4, help="demo: how many camera frames to save as PNG")
     p.add_argument("--no-video", action="store_true", help="skip the MP4")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--record", type=Path, metavar="DIR", help="record episodes into DIR (appends)")
+    mode.add_argument("--evaluate", action="store_true", help="closed-loop evaluation with CARLA-style metrics")
+    mode.add_argument("--scenario", metavar="NAME", help="run a scenario of the suite, or 'all'")
+    p.add_argument("--episodes", type=int, default=1, help="record/evaluate: how many episodes")
+    p.add_argument("--noise", action="store_true", help="autopilot: inject steering perturbations (recoveries)")
+    p.add_argument("--depth", action="store_true", help="record: also store depth")
+    p.add_argument("--segmentation", action="store_true", help="record: also store segmentation")
+    p.add_argument("--stereo", action="store_true", help="record: also store the right stereo image")
     return p.parse_args(argv)
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
+def make_config(args: argparse.Namespace) -> Any:
+    from dataclasses import replace
+
+    from envs.drive_env import DriveConfig
+    from sim.render import CameraConfig
+    from sim.world import WorldConfig
+
+    world = WorldConfig()
+    if args.traffic != 1.0:
+        world = replace(world, npc_count=round(world.npc_count * args.traffic),
+                        pedestrian_count=round(world.pedestrian_count * args.traffic))
+    return DriveConfig(world=world, camera=CameraConfig(width=args.width, height=args.height),
+                       town_seed=args.town_seed, weather=args.weather, max_time_s=args.seconds,
+                       observe_depth=args.depth, observe_segmentation=args.segmentation, observe_stereo=args.stereo)
+
+
+def make_named_driver(args: argparse.Namespace) -> Any:
+    from agent.drivers import make_driver
+
+    kwargs = {"noise": True, "noise_seed": args.seed} if args.noise else {}
+    if args.noise and args.driver != "autopilot":
+        raise ValueError("--noise is for the autopilot only.")
+    return make_driver(args.driver, **kwargs)
+
+
+# ---------------------------------------------------------------------- modes
+def demo(args: argparse.Namespace) -> int:
     import cv2
     import imageio.v2 as imageio
     from tqdm import tqdm
 
-    from agent.lane_keeper import PrivilegedLaneKeeper
-    from envs.drive_env import DriveConfig, DriveEnv
-    from sim.render import CameraConfig
+    from envs.drive_env import DriveEnv
+    from envs.evaluation import draw_hud
 
-    config = DriveConfig(camera=CameraConfig(width=args.width, height=args.height), town_seed=args.town_seed,
-                         weather=args.weather, max_time_s=args.seconds)
+    out = args.out or Path("out/drive")
+    config = make_config(args)
     env = DriveEnv(config, render_mode="rgb_array")
-    driver = PrivilegedLaneKeeper()
-    args.out.mkdir(parents=True, exist_ok=True)
+    driver = make_named_driver(args)
+    out.mkdir(parents=True, exist_ok=True)
     obs, info = env.reset(seed=args.seed)
-    driver.reset()
+    driver.reset(env)
     steps = int(args.seconds / config.world.dt_s)
     save_at = set(np.linspace(0, steps - 1, args.frames).astype(int).tolist()) if args.frames > 0 else set()
-    writer = None if args.no_video else imageio.get_writer(args.out / "video.mp4", fps=env.metadata["render_fps"],
+    writer = None if args.no_video else imageio.get_writer(out / "video.mp4", fps=env.metadata["render_fps"],
                                                             codec="libx264", quality=7, macro_block_size=8)
     t0 = time.perf_counter()
-    total_reward = 0.0
-    saved = []
-    k = 0
+    total_reward, saved, k = 0.0, [], 0
     try:
-        for k in tqdm(range(steps), desc="driving", unit="step"):
-            assert env.world is not None
-            obs, reward, terminated, truncated, info = env.step(driver.act(env.world))
+        for k in tqdm(range(steps), desc="driving", unit="step", mininterval=1.0):
+            obs, reward, terminated, truncated, info = env.step(driver.act(obs))
             total_reward += reward
             if writer is not None:
-                writer.append_data(env.render())
+                writer.append_data(draw_hud(env.composite(), info, driver.name))
             if k in save_at:
-                path = args.out / f"frame_{k:05d}.png"
+                path = out / f"frame_{k:05d}.png"
                 cv2.imwrite(str(path), cv2.cvtColor(obs["image"], cv2.COLOR_RGB2BGR))
                 saved.append(path.name)
             if terminated or truncated:
@@ -77,16 +115,119 @@ def main(argv: list[str] | None = None) -> int:
         env.close()
     wall = time.perf_counter() - t0
     summary = {
-        "driver": args.driver, "seed": args.seed, "town_seed": args.town_seed, "weather": args.weather,
+        "driver": driver.name, "seed": args.seed, "town_seed": args.town_seed, "weather": args.weather,
         "steps": k + 1, "sim_time_s": info["time_s"], "wall_time_s": round(wall, 2),
         "steps_per_s": round((k + 1) / wall, 1), "reward": round(total_reward, 3),
         "route_completion": round(info["route"]["completion"], 4), "distance_m": round(info["distance_m"], 1),
-        "infractions": info["infraction_counts"], "frames": saved,
-        "video": None if args.no_video else "video.mp4",
+        "infractions": info["infraction_counts"], "frames": saved, "video": None if args.no_video else "video.mp4",
     }
-    (args.out / "summary.json").write_text(json.dumps(summary, indent=2))
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps(summary, indent=2))
     return 0
+
+
+def record(args: argparse.Namespace) -> int:
+    """Record episodes; each finished one is renamed into place, so Ctrl-C loses only the current one."""
+    from tqdm import tqdm
+
+    from data.episodes import EpisodeWriter, next_episode_path
+    from envs.drive_env import DriveEnv
+
+    config = make_config(args)
+    human = args.driver in ("keyboard", "gamepad")
+    env = DriveEnv(config)
+    driver = make_named_driver(args)
+    kept: list[Path] = []
+    writer: EpisodeWriter | None = None
+    t0 = time.perf_counter()
+    frames = 0
+    try:
+        for k in tqdm(range(args.episodes), desc="recording", unit="episode", disable=human):
+            seed = args.seed + k
+            obs, info = env.reset(seed=seed)
+            driver.reset(env)
+            assert env.world is not None
+            attrs = {"seed": seed, "town_seed": args.town_seed, "weather": args.weather, "driver": driver.name,
+                     "privileged": driver.privileged, "noise": bool(args.noise), "dt_s": config.world.dt_s,
+                     "camera": {"width": args.width, "height": args.height, "hfov_deg": config.camera.hfov_deg,
+                                "mount_height_m": config.camera.mount_height_m, "pitch_deg": config.camera.pitch_deg},
+                     "route_total_m": env.world.route_total_m}
+            writer = EpisodeWriter(next_episode_path(args.record), attrs)
+            done = False
+            while not done:
+                action = np.asarray(driver.act(obs), np.float32)
+                if getattr(driver, "quit_requested", False):
+                    raise KeyboardInterrupt
+                if getattr(driver, "paused", False):
+                    continue
+                label = getattr(driver, "clean_action", action)  # noise-free expert label when there is one
+                writer.append(obs, label, info)
+                obs, _, terminated, truncated, info = env.step(action)
+                frames += 1
+                if hasattr(driver, "update_hud"):
+                    driver.update_hud(info, recording=True)
+                done = terminated or truncated or getattr(driver, "reset_requested", False)
+            kept.append(writer.close({"route_completion": info["route"]["completion"],
+                                      "infractions": info["infraction_counts"], "steps_done": writer.steps}))
+            writer = None
+    except KeyboardInterrupt:
+        print(f"\nInterrupted: kept {len(kept)} finished episode(s) in {args.record}; dropped the one in progress.",
+              file=sys.stderr)
+    finally:
+        if writer is not None:
+            writer.discard()
+        env.close()
+        if hasattr(driver, "close"):
+            driver.close()
+    wall = time.perf_counter() - t0
+    print(f"recorded {len(kept)} episode(s), {frames} frames in {wall:.1f} s ({frames / max(wall, 1e-9):.1f} frames/s) "
+          f"into {args.record}")
+    for path in kept:
+        print(f"  {path}")
+    return 0 if len(kept) == args.episodes else 130
+
+
+def evaluate(args: argparse.Namespace) -> int:
+    from envs.evaluation import evaluate as run
+
+    out = args.out or Path("out/eval")
+    config = make_config(args)
+    metrics = run(make_named_driver(args), config, args.episodes, args.seed, out, video=not args.no_video)
+    print((out / "table.md").read_text())
+    m = metrics["mean"]
+    print(f"driving score {m['driving_score']:.2f}, route completion {m['route_completion']:.2f}%, "
+          f"autonomy {m['autonomy']:.2f}%, infractions {m['infractions'] or 'none'}; reports in {out}")
+    return 0
+
+
+def scenarios(args: argparse.Namespace) -> int:
+    from envs.scenarios import SCENARIOS, format_results, run_scenario
+
+    names = list(SCENARIOS) if args.scenario == "all" else [args.scenario]
+    unknown = [n for n in names if n not in SCENARIOS]
+    if unknown:
+        raise ValueError(f"Unknown scenario {unknown[0]!r}; choose one of {', '.join(SCENARIOS)} or 'all'.")
+    out = args.out or Path("out/scenarios")
+    results = [run_scenario(name, make_named_driver(args), make_config(args), out, video=not args.no_video)
+               for name in names]
+    print(format_results(args.driver, results))
+    (out / "results.json").write_text(json.dumps([r.__dict__ for r in results], indent=2, default=str))
+    return 0 if all(r.passed for r in results) else 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    try:
+        if args.record:
+            return record(args)
+        if args.evaluate:
+            return evaluate(args)
+        if args.scenario:
+            return scenarios(args)
+        return demo(args)
+    except (ValueError, RuntimeError, FileNotFoundError) as exc:
+        print(f"drive.py: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

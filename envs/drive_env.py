@@ -53,6 +53,8 @@ class DriveConfig:
     max_time_s: float = 180.0
     max_distance_m: float = 3000.0
     terminate_on_route_deviation: bool = True
+    terminate_on_infraction: bool = True  # False: collisions and leaving the road are penalised but the episode
+    #                                       goes on (closed-loop evaluation with a safety driver)
     max_visible_range_m: float = 80.0
 
 
@@ -153,7 +155,7 @@ class DriveEnv(gym.Env):
         for inf in new:
             if inf.kind in TERMINAL_INFRACTIONS:
                 reward -= 10.0
-                terminated = True
+                terminated = terminated or self.config.terminate_on_infraction
             else:
                 reward += INFRACTION_REWARD.get(inf.kind, 0.0)
                 if inf.kind == "route_deviation" and self.config.terminate_on_route_deviation:

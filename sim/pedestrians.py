@@ -35,6 +35,7 @@ class Pedestrian:
     jaywalk: bool = False
     moving: bool = False
     blocked: bool = False  # a car stands in its way on the crossing
+    yields: bool = True  # waits for cars in its way (scenarios can make one that does not)
 
     LENGTH = 0.35
     WIDTH = 0.55
@@ -119,7 +120,7 @@ class PedestrianCrowd:
                 if go and not self._vehicle_blocks(cw, vehicles, speeds, headings, ped.position, 7.0):
                     ped.state, ped.target = "crossing", there.copy()
             elif ped.state == "crossing":
-                if (tick + ped.object_id) % 2 == 0:  # look out for cars at 10 Hz
+                if ped.yields and (tick + ped.object_id) % 2 == 0:  # look out for cars at 10 Hz
                     ahead = ped.position + 1.2 * np.array([math.cos(ped.heading), math.sin(ped.heading)])
                     d = vehicles - ahead
                     ped.blocked = bool(len(vehicles)) and bool(np.any(d[:, 0] ** 2 + d[:, 1] ** 2 < 2.8 ** 2))

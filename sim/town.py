@@ -205,6 +205,13 @@ class Town:
         """The signalled approach an incoming road edge leads to, if any."""
         return self._approach_by_edge.get(edge)
 
+    def approach_at(self, node: tuple[int, int], arm: Arm) -> Approach | None:
+        """The approach arriving at a junction by one of its arms (None where the arm does not exist)."""
+        for ap in self.approaches:
+            if ap.node == node and ap.arm == arm:
+                return ap
+        return None
+
     def road_lanes(self) -> list[LaneIndex]:
         """Lanes on plain road segments (spawn places)."""
         return [k for k, v in self.lane_info.items() if v.kind == "road"]

@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from highway_env.road.lane import AbstractLane
+from highway_env.road.lane import AbstractLane, CircularLane
 from highway_env.road.road import Road
 from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.kinematics import Vehicle
@@ -22,7 +22,7 @@ from highway_env.vehicle.kinematics import Vehicle
 from sim.geometry import wrap_to_pi
 from sim.objects import LightState, ObjectSnapshot, SemanticClass
 from sim.routes import random_next_edge
-from sim.town import Town
+from sim.town import OPPOSITE, Approach, Command, Town
 
 CAR_COLORS = [
     (0.75, 0.08, 0.08), (0.08, 0.20, 0.60), (0.92, 0.92, 0.90), (0.10, 0.10, 0.11), (0.55, 0.56, 0.58),
@@ -40,6 +40,27 @@ class Agents:
     half_lengths: np.ndarray
     is_pedestrian: np.ndarray
     ids: np.ndarray
+
+
+PEDESTRIAN_LOOKAHEAD_S = 1.5  # a walking pedestrian blocks a path it will step into within this time
+STANDING_PEDESTRIAN_LATERAL_M = 1.45  # car half width 0.95 + pedestrian radius 0.3 + 0.2 m
+
+
+CURVE_LATERAL_ACCEL_MPS2 = 2.0  # comfortable lateral acceleration in turns
+CURVE_BRAKE_MPS2 = 2.5  # how hard one slows down ahead of a turn
+
+
+def curve_speed_limit(path: list[tuple[AbstractLane, float]], my_s: float) -> float:
+    """The highest speed from which every turn ahead on the path can be taken comfortably:
+    v_turn = sqrt(a_lat * radius) in the turn, and at most sqrt(v_turn^2 + 2 b d) at distance d before it."""
+    limit = math.inf
+    for lane, offset in path:
+        if not isinstance(lane, CircularLane):
+            continue
+        v_turn = math.sqrt(CURVE_LATERAL_ACCEL_MPS2 * lane.radius)
+        distance = max(0.0, offset - my_s)
+        limit = min(limit, math.sqrt(v_turn * v_turn + 2.0 * CURVE_BRAKE_MPS2 * distance))
+    return limit
 
 
 def idm_acceleration(speed: float, target_speed: float, gap_m: float | None, closing_mps: float,
@@ -68,9 +89,27 @@ def path_gap(path: list[tuple[AbstractLane, float]], my_s: float, my_half: float
     best: float | None = None
     best_speed = 0.0
     for k in near:
-        pos = agents.positions[k]
         ped = bool(agents.is_pedestrian[k])
-        tol = pedestrian_lateral_m if ped else vehicle_lateral_m
+        points = [agents.positions[k]]
+        if ped and agents.speeds[k] > 0.1:  # a walking pedestrian counts where it will be soon, too
+            h = float(agents.headings[k])
+            step = PEDESTRIAN_LOOKAHEAD_S * float(agents.speeds[k])
+            points.append(agents.positions[k] + step * np.array([math.cos(h), math.sin(h)]))
+        # A standing pedestrian (waiting at a kerb) blocks only what would brush it; a walking one
+        # blocks the whole lane it is in or stepping into.
+        tol = (pedestrian_lateral_m if agents.speeds[k] > 0.1 else STANDING_PEDESTRIAN_LATERAL_M) if ped else vehicle_lateral_m
+        gap_k, speed_k = _gap_on_path(path, points, ped, k, agents, my_s, my_half, tol)
+        if gap_k is not None and (best is None or gap_k < best):
+            best, best_speed = gap_k, speed_k
+    return best, best_speed
+
+
+def _gap_on_path(path: list[tuple[AbstractLane, float]], points: list[np.ndarray], ped: bool, k: int, agents: Agents,
+                 my_s: float, my_half: float, tol: float) -> tuple[float | None, float]:
+    """Bumper gap to agent ``k`` (at any of ``points``) along the path, and its speed along the path."""
+    best: float | None = None
+    best_speed = 0.0
+    for pos in points:
         for lane, offset in path:
             s, lat = lane.local_coordinates(pos)
             if abs(lat) > tol or s < -agents.half_lengths[k] or s > lane.length + agents.half_lengths[k]:
@@ -87,6 +126,30 @@ def path_gap(path: list[tuple[AbstractLane, float]], my_s: float, my_half: float
                     wrap_to_pi(float(agents.headings[k]) - lane.heading_at(s)))
             break
     return best, best_speed
+
+
+def oncoming_conflict(town: Town, approach: Approach, agents: Agents, skip_id: int, horizon_s: float = 4.5) -> bool:
+    """Whether traffic from the opposite approach is in the junction or would reach it within
+    ``horizon_s``: an unprotected left turn from ``approach`` must wait for it."""
+    opposite = town.approach_at(approach.node, OPPOSITE[approach.arm])
+    if opposite is None:
+        return False
+    centre = town.node_position(approach.node)
+    travel = np.array([math.cos(opposite.travel_heading), math.sin(opposite.travel_heading)])
+    side = np.array([-travel[1], travel[0]])  # its right: its own lanes lie there
+    rel = agents.positions - centre
+    before = -(rel @ travel)  # metres still to go to the junction centre
+    lateral = rel @ side
+    heading_ok = np.abs((agents.headings - opposite.travel_heading + np.pi) % (2 * np.pi) - np.pi) < 0.7
+    candidates = (~agents.is_pedestrian) & (agents.ids != skip_id) & heading_ok & (before > -2.0) & (before < 70.0)
+    candidates &= (lateral > -0.5) & (lateral < 8.0)
+    setback = town.config.stop_line_setback_m
+    for k in np.nonzero(candidates)[0]:
+        if before[k] < setback + 1.0:
+            return True  # already in the junction
+        if (before[k] - setback) / max(float(agents.speeds[k]), 0.5) < horizon_s and agents.speeds[k] > 0.5:
+            return True
+    return False
 
 
 class TownVehicle(IDMVehicle):
@@ -176,15 +239,16 @@ class TownVehicle(IDMVehicle):
         path, s0 = self.path(lookahead)
         half = self.LENGTH / 2
         gap, lead_speed = path_gap(path, s0, half, agents, self.object_id, self.position, lookahead)
-        acc = idm_acceleration(self.speed, self.target_speed, gap, self.speed - lead_speed)
-        stop = self._stop_line_gap(path, s0, lights_state)
+        cruise = min(self.target_speed, curve_speed_limit(path, s0))
+        acc = idm_acceleration(self.speed, cruise, gap, self.speed - lead_speed)
+        stop = self._stop_line_gap(path, s0, lights_state, agents)
         if stop is not None:
             acc = min(acc, idm_acceleration(self.speed, self.target_speed, stop, self.speed, min_gap_m=0.5))
         acc = min(self.COMFORT_ACC_MAX, max(-8.0, float(acc)))
         Vehicle.act(self, {"steering": steering, "acceleration": acc})
 
     def _stop_line_gap(self, path: list[tuple[AbstractLane, float]], s0: float,
-                       lights_state: list[LightState]) -> float | None:
+                       lights_state: list[LightState], agents: Agents) -> float | None:
         """Gap to a stop line ahead whose light says stop (yellow only if a comfortable stop is possible)."""
         frm, to, _ = self.target_lane_index
         edges = [(frm, to)] + [(r[0], r[1]) for r in self.route if (r[0], r[1]) != (frm, to)]
@@ -202,6 +266,10 @@ class TownVehicle(IDMVehicle):
                 return max(gap, 0.0)
             if state == LightState.YELLOW and self.speed ** 2 / (2 * max(gap, 0.1)) < 3.5:
                 return max(gap, 0.0)
+            turn = edges.index(edge) + 1
+            if (turn < len(edges) and self.town.lane_info[(*edges[turn], 0)].command == Command.LEFT
+                    and oncoming_conflict(self.town, approach, agents, self.object_id)):
+                return max(gap, 0.0)  # unprotected left: wait for the oncoming traffic
             return None
         return None
 

@@ -155,6 +155,7 @@ class World:
         self.infractions: list[Infraction] = []
         self.new_infractions: list[Infraction] = []
         self._wrong_way = False
+        self._contacts: set[tuple[str, int]] = set()  # ongoing collisions / off-road, counted once each
         self._watched_approach: tuple[int, float] | None = None  # approach, front s on its lane
         self.ego_lane: tuple[tuple[str, str, int], float, float] | None = town.locate(self.ego.position, self.ego.heading)
         self.distance_m = 0.0
@@ -243,29 +244,61 @@ class World:
         return Infraction(kind, self.time_s, float(self.ego.position[0]), float(self.ego.position[1]), other)
 
     def _check_ego(self) -> list[Infraction]:
+        """This step's new infractions. A contact (collision, off road) counts once when it starts,
+        not on every step it lasts, so an episode that goes on after one counts it once."""
         ego = self.ego
         out: list[Infraction] = []
+        contacts: set[tuple[str, int]] = set()
         poly = rect_corners(ego.position, ego.heading, ego.LENGTH, ego.WIDTH)
         for npc in self.npcs:
             near = math.hypot(*(npc.position - ego.position)) < (npc.LENGTH + ego.LENGTH) / 2 + 1.0
             if near and polygons_intersect(poly, rect_corners(npc.position, npc.heading, npc.LENGTH, npc.WIDTH)):
                 npc.crashed = True
-                out.append(self._record("collision_vehicle", npc.object_id))
-                break
+                contacts.add(("collision_vehicle", npc.object_id))
         for ped in self.crowd.peds:
             if math.hypot(*(ped.position - ego.position)) < ego.LENGTH and circle_polygon_intersect(
                     ped.position, ped.RADIUS, poly):
-                out.append(self._record("collision_pedestrian", ped.object_id))
-                break
+                contacts.add(("collision_pedestrian", ped.object_id))
         if self.static.hits(poly):
-            out.append(self._record("collision_static"))
+            contacts.add(("collision_static", 0))
         self.ego_lane = self.town.locate(ego.position, ego.heading)
         if self.ego_lane is None:
-            out.append(self._record("off_road"))
-        else:
+            contacts.add(("off_road", 0))
+        for kind, other in sorted(contacts - self._contacts):
+            out.append(self._record(kind, other))
+        self._contacts = contacts
+        if self.ego_lane is not None:
             out += self._check_direction_and_route()
         out += self._check_red_light()
         return out
+
+    def put_back_on_route(self) -> None:
+        """What a safety driver does after an intervention: the car back on the centre of its route
+        lane, at a standstill, facing along the lane."""
+        frm, to = self.route[self.route_index]
+        lane_id = self.ego_lane[0][2] if self.ego_lane is not None and self.ego_lane[0][:2] == (frm, to) else 0
+        lane = self.town.network.graph[frm][to][lane_id]
+        s = float(np.clip(lane.local_coordinates(self.ego.position)[0], 0.0, lane.length))
+        # Back off along the lane (up to 30 m) until the car stands clear of every other car.
+        for back in np.arange(0.0, 30.5, 1.0):
+            pos = lane.position(max(s - back, 0.0), 0.0)
+            poly = rect_corners(pos, lane.heading_at(max(s - back, 0.0)), self.ego.LENGTH + 1.0, self.ego.WIDTH + 0.6)
+            if not any(polygons_intersect(poly, rect_corners(v.position, v.heading, v.LENGTH, v.WIDTH))
+                       for v in self.npcs if math.hypot(*(v.position - pos)) < 10.0):
+                s = max(s - back, 0.0)
+                break
+        self.ego.position = lane.position(s, 0.0)
+        self.ego.heading = lane.heading_at(s)
+        self.ego.speed = 0.0
+        for npc in self.npcs:
+            if math.hypot(*(npc.position - self.ego.position)) < 6.0:
+                npc.crashed = False
+        self._off_route_s = 0.0
+        self.deviated = False
+        self._wrong_way = False
+        self._watched_approach = None
+        self.ego_lane = self.town.locate(self.ego.position, self.ego.heading)
+        self._contacts = set()
 
     def _check_direction_and_route(self) -> list[Infraction]:
         out: list[Infraction] = []

@@ -1,0 +1,188 @@
+"""The autopilot: the privileged expert that generates training data and sets the bar in evaluation.
+
+It reads the world's ground truth (``env.world``), so it is privileged. Lateral: pure pursuit on the
+route's lane centre line (lookahead grows with speed). Longitudinal: a PID speed controller towards a
+target speed, capped by an IDM planner that keeps a time headway to whatever is ahead on its own path
+(vehicles in its lane, pedestrians in or stepping into it; vehicles in other lanes are ignored),
+stops before the stop line on red and on yellow when a comfortable stop is possible, and waits for
+oncoming traffic before an unprotected left turn. CARLA's BasicAgent handles lanes, lights and
+leaders; this one also handles stop lines and pedestrians.
+
+Noise injection (off by default): now and then a steering perturbation is added for a moment and the
+car recovers from it. ``clean_action`` keeps the expert's own action for the step, which is what a
+recording should store as the label (as in the PilotNet and conditional imitation papers).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from highway_env.road.lane import AbstractLane
+
+from agent.drivers import register
+from sim.objects import LightState
+from sim.town import Command
+from sim.traffic import curve_speed_limit, idm_acceleration, oncoming_conflict, path_gap
+from sim.world import EGO_ID, World
+
+if TYPE_CHECKING:
+    from envs.drive_env import DriveEnv
+
+
+LEAD_GAP_M = 2.5  # bumper gap kept to a stopped vehicle or pedestrian ahead
+STOP_GAP_M = 0.3  # ... and to the stop point before a stop line
+HOLD_MARGIN_M = 0.8  # within this of the stopping point at walking pace, brake to a standstill
+
+
+@dataclass
+class PID:
+    """A textbook PID on one error signal, with a clamped integral (anti-windup)."""
+
+    kp: float
+    ki: float
+    kd: float
+    integral_limit: float = 2.0
+    _integral: float = 0.0
+    _last: float | None = None
+
+    def reset(self) -> None:
+        self._integral, self._last = 0.0, None
+
+    def __call__(self, error: float, dt: float) -> float:
+        self._integral = max(-self.integral_limit, min(self.integral_limit, self._integral + error * dt))
+        derivative = 0.0 if self._last is None else (error - self._last) / dt
+        self._last = error
+        return self.kp * error + self.ki * self._integral + self.kd * derivative
+
+
+@register("autopilot")
+class Autopilot:
+    """Privileged expert driver (see module docstring)."""
+
+    name = "autopilot"
+    privileged = True
+
+    def __init__(self, target_speed_mps: float = 8.0, noise: bool = False, noise_seed: int = 0,
+                 noise_every_s: tuple[float, float] = (4.0, 9.0), noise_steer: float = 0.35,
+                 noise_duration_s: float = 0.6, comfortable_brake_mps2: float = 3.5) -> None:
+        self.target_speed = target_speed_mps
+        self.noise = noise
+        self.noise_seed = noise_seed
+        self.noise_every_s = noise_every_s
+        self.noise_steer = noise_steer
+        self.noise_duration_s = noise_duration_s
+        self.comfortable_brake = comfortable_brake_mps2
+        self.speed_pid = PID(kp=0.6, ki=0.15, kd=0.0)
+        self.env: DriveEnv | None = None
+        self.clean_action = np.zeros(2, np.float32)
+        self._episodes = 0
+        self._rng = np.random.default_rng(noise_seed)
+        self._next_noise_s = 0.0
+        self._noise_until_s = -1.0
+        self._noise_sign = 1.0
+
+    def reset(self, env: DriveEnv) -> None:
+        self.env = env
+        self.speed_pid.reset()
+        self._rng = np.random.default_rng((self.noise_seed, self._episodes))
+        self._episodes += 1
+        self._next_noise_s = float(self._rng.uniform(*self.noise_every_s))
+        self._noise_until_s = -1.0
+
+    @property
+    def world(self) -> World:
+        if self.env is None or self.env.world is None:
+            raise RuntimeError("Call reset(env) with a reset environment before act().")
+        return self.env.world
+
+    # ------------------------------------------------------------------ decisions
+    def route_path(self, world: World) -> tuple[list[tuple[AbstractLane, float]], float]:
+        """Lanes ahead on the route (keeping the current lane id) and the ego's coordinate on the first."""
+        lane_id = world.ego_lane[0][2] if world.ego_lane is not None else 0
+        graph = world.town.network.graph
+        path = []
+        total = 0.0
+        for frm, to in world.route[world.route_index:world.route_index + 4]:
+            lanes = graph[frm][to]
+            path.append((lanes[min(lane_id, len(lanes) - 1)], total))
+            total += lanes[0].length
+        s0 = float(path[0][0].local_coordinates(world.ego.position)[0])
+        return path, s0
+
+    def steer(self, world: World, path: list[tuple[AbstractLane, float]], s0: float) -> float:
+        """Pure pursuit from the rear axle towards the lane centre a speed-dependent distance ahead.
+
+        In highway-env's bicycle model (centre of gravity mid-car, tan(delta) = 2 tan(beta)) the rear
+        axle drives on an arc of curvature tan(delta) / LENGTH, so delta = atan(2 LENGTH sin(alpha) / ld)."""
+        ego = world.ego
+        direction = np.array([math.cos(ego.heading), math.sin(ego.heading)])
+        rear = ego.position - direction * ego.LENGTH / 2
+        lookahead = 2.5 + 0.45 * ego.speed
+        target_s = s0 - ego.LENGTH / 2 + lookahead
+        lane, offset = path[-1]
+        target = lane.position(lane.length, 0.0)
+        for lane, offset in path:
+            if target_s <= offset + lane.length:
+                target = lane.position(max(target_s - offset, 0.0), 0.0)
+                break
+        dx, dy = target - rear
+        alpha = (math.atan2(dy, dx) - ego.heading + math.pi) % (2 * math.pi) - math.pi
+        wheel = math.atan2(2.0 * ego.LENGTH * math.sin(alpha), max(math.hypot(dx, dy), 1e-3))
+        return max(-1.0, min(1.0, wheel / ego.MAX_STEER_RAD))
+
+    def stop_gap(self, world: World) -> float | None:
+        """Distance to where the car must stop for a light or an unprotected left turn, if it must."""
+        light = world.next_light()
+        if light is None:
+            return None
+        speed = world.ego.speed
+        gap = max(light.distance_m - 0.8, 0.0)
+        if light.state == LightState.RED:
+            return gap
+        if light.state == LightState.YELLOW and speed ** 2 / (2 * max(light.distance_m, 0.1)) < self.comfortable_brake:
+            return gap
+        if world.command() == Command.LEFT and light.distance_m > -0.5:
+            approach = world.town.approaches[light.approach]
+            if oncoming_conflict(world.town, approach, world.agents(), EGO_ID):
+                return gap
+        return None
+
+    def act(self, observation: dict[str, Any]) -> np.ndarray:
+        world = self.world
+        ego = world.ego
+        dt = world.config.dt_s
+        path, s0 = self.route_path(world)
+        steer = self.steer(world, path, s0)
+        # Longitudinal: PID to the target speed, capped by the IDM planner's acceleration.
+        cruise = min(self.target_speed, curve_speed_limit(path, s0))
+        accel = self.speed_pid(cruise - ego.speed, dt) * ego.MAX_ACCEL_MPS2
+        gap, lead_speed = path_gap(path, s0, ego.LENGTH / 2, world.agents(), EGO_ID, ego.position, 15.0 + 3.0 * ego.speed)
+        hold = False  # IDM creeps towards a standstill; near the stopping point, brake and hold instead
+        if gap is not None:
+            accel = min(accel, idm_acceleration(ego.speed, self.target_speed, gap, ego.speed - lead_speed,
+                                                min_gap_m=LEAD_GAP_M))
+            hold |= gap < LEAD_GAP_M + HOLD_MARGIN_M and lead_speed < 0.5
+        stop = self.stop_gap(world)
+        if stop is not None:
+            accel = min(accel, idm_acceleration(ego.speed, self.target_speed, stop, ego.speed, min_gap_m=STOP_GAP_M))
+            hold |= stop < STOP_GAP_M + HOLD_MARGIN_M
+        if world.route_done or (hold and ego.speed < 1.0):
+            accel = -ego.MAX_BRAKE_MPS2
+        throttle = accel / ego.MAX_ACCEL_MPS2 if accel >= 0 else accel / ego.MAX_BRAKE_MPS2
+        self.clean_action = np.array([steer, max(-1.0, min(1.0, throttle))], np.float32)
+        return self._with_noise(self.clean_action.copy(), world.time_s)
+
+    def _with_noise(self, action: np.ndarray, now_s: float) -> np.ndarray:
+        """Add a short steering perturbation now and then (only when ``noise`` is on)."""
+        if not self.noise:
+            return action
+        if now_s >= self._next_noise_s and now_s > self._noise_until_s:
+            self._noise_until_s = now_s + self.noise_duration_s
+            self._noise_sign = 1.0 if self._rng.random() < 0.5 else -1.0
+            self._next_noise_s = now_s + self.noise_duration_s + float(self._rng.uniform(*self.noise_every_s))
+        if now_s < self._noise_until_s:
+            action[0] = float(np.clip(action[0] + self._noise_sign * self.noise_steer, -1.0, 1.0))
+        return action

@@ -1,0 +1,191 @@
+"""Recorded episodes: one HDF5 file per episode, written atomically.
+
+Layout of an episode file (``T`` steps; ``frames[t]`` is what the driver saw when it chose ``actions[t]``):
+
+  frames          uint8   (T, H, W, 3)  camera RGB, chunked one frame per chunk, gzip-compressed
+  depth           float16 (T, H, W)     metric depth (optional)
+  segmentation    int32   (T, H, W, 2)  semantic class, object id (optional)
+  stereo_right    uint8   (T, H, W, 3)  right camera of the stereo pair (optional; ``frames`` is the left)
+  actions         float32 (T, 2)        [steer, throttle_brake]
+  speed           float32 (T,)          m/s
+  command         int8    (T,)          0 follow, 1 left, 2 right, 3 straight
+  truth/<name>    float32 (T,)          per-step ground truth (see ``TRUTH_FIELDS``)
+  attrs           seed, town_seed, weather, driver, camera (JSON), project_version, dt_s, steps, ...
+
+A writer fills ``<name>.partial`` next to the final path and renames it when the episode ends, so a
+half-written episode never carries an episode's name, and an interrupted recording keeps every
+episode that finished.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+TRUTH_FIELDS = ("ego_x", "ego_y", "ego_heading", "lane_offset_m", "route_progress_m", "next_light_state",
+                "next_light_distance_m", "time_s")
+EPISODE_GLOB = "episode_*.h5"
+FORMAT_VERSION = 1
+
+
+class EpisodeError(ValueError):
+    """A file that is not a readable episode; the message names the file and what to do."""
+
+
+def project_version() -> str:
+    try:
+        return metadata.version("towndrive")
+    except metadata.PackageNotFoundError:
+        return "0+unknown"
+
+
+def truth_from_info(info: dict[str, Any]) -> dict[str, float]:
+    """The per-step ground truth an episode keeps, from a ``DriveEnv`` info dict."""
+    light = info.get("next_light")
+    states = {"green": 0, "yellow": 1, "red": 2}
+    return {
+        "ego_x": info["ego"]["x"], "ego_y": info["ego"]["y"], "ego_heading": info["ego"]["heading"],
+        "lane_offset_m": info["lane_offset_m"], "route_progress_m": info["route"]["progress_m"],
+        "next_light_state": float(states[light["state"]]) if light else -1.0,
+        "next_light_distance_m": float(light["distance_m"]) if light else float("nan"),
+        "time_s": info["time_s"],
+    }
+
+
+class EpisodeWriter:
+    """Streams one episode to ``<path>.partial``; ``close()`` renames it into place, ``discard()`` deletes it."""
+
+    def __init__(self, path: Path, metadata_attrs: dict[str, Any]) -> None:
+        self.path = Path(path)
+        self.tmp = self.path.with_name(self.path.name + ".partial")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = h5py.File(self.tmp, "w")
+        self._file.attrs["format_version"] = FORMAT_VERSION
+        self._file.attrs["project_version"] = project_version()
+        for key, value in metadata_attrs.items():
+            self._file.attrs[key] = json.dumps(value) if isinstance(value, dict | list) else value
+        self.steps = 0
+
+    def _dataset(self, name: str, sample: np.ndarray, compress: bool) -> h5py.Dataset:
+        if name in self._file:
+            return self._file[name]
+        shape = (0, *sample.shape)
+        kwargs: dict[str, Any] = {"maxshape": (None, *sample.shape), "chunks": (1, *sample.shape) if compress else True}
+        if compress:
+            kwargs.update(compression="gzip", compression_opts=1, shuffle=True)
+        return self._file.create_dataset(name, shape=shape, dtype=sample.dtype, **kwargs)
+
+    def append(self, observation: dict[str, Any], action: np.ndarray, info: dict[str, Any]) -> None:
+        """Add one step: the observation the driver saw, the action it took, and the step's ground truth."""
+        rows: dict[str, tuple[np.ndarray, bool]] = {
+            "frames": (np.asarray(observation["image"], np.uint8), True),
+            "actions": (np.asarray(action, np.float32).reshape(2), False),
+            "speed": (np.asarray(observation["speed"], np.float32).reshape(()), False),
+            "command": (np.asarray(observation["command"], np.int8).reshape(()), False),
+        }
+        if "depth" in observation:
+            rows["depth"] = (np.asarray(observation["depth"], np.float16), True)
+        if "segmentation" in observation:
+            rows["segmentation"] = (np.asarray(observation["segmentation"], np.int32), True)
+        if "stereo" in observation:
+            rows["stereo_right"] = (np.asarray(observation["stereo"][1], np.uint8), True)
+        for key, value in truth_from_info(info).items():
+            rows[f"truth/{key}"] = (np.asarray(value, np.float32).reshape(()), False)
+        for name, (value, compress) in rows.items():
+            ds = self._dataset(name, value, compress)
+            ds.resize(self.steps + 1, axis=0)
+            ds[self.steps] = value
+        self.steps += 1
+
+    def close(self, extra_attrs: dict[str, Any] | None = None) -> Path:
+        """Finish the episode: write the summary attributes and rename the file into place."""
+        for key, value in (extra_attrs or {}).items():
+            self._file.attrs[key] = json.dumps(value) if isinstance(value, dict | list) else value
+        self._file.attrs["steps"] = self.steps
+        self._file.close()
+        os.replace(self.tmp, self.path)
+        return self.path
+
+    def discard(self) -> None:
+        """Drop a half-written episode (interrupted, or failed)."""
+        if self._file.id.valid:
+            self._file.close()
+        self.tmp.unlink(missing_ok=True)
+
+
+@dataclass
+class Episode:
+    """An episode read back into memory (frames are loaded lazily only if asked)."""
+
+    path: Path
+    attrs: dict[str, Any]
+    actions: np.ndarray
+    speed: np.ndarray
+    command: np.ndarray
+    truth: dict[str, np.ndarray]
+    frames: np.ndarray | None = None
+    extras: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def steps(self) -> int:
+        return len(self.actions)
+
+
+def read_episode(path: Path, load_frames: bool = True) -> Episode:
+    """Read an episode file; a missing or corrupt file raises ``EpisodeError`` naming it."""
+    path = Path(path)
+    if not path.exists():
+        raise EpisodeError(f"{path}: no such episode file; check the path (episodes are named {EPISODE_GLOB}).")
+    try:
+        with h5py.File(path, "r") as f:
+            attrs = {k: _attr(v) for k, v in f.attrs.items()}
+            missing = [k for k in ("frames", "actions", "speed", "command") if k not in f]
+            if missing:
+                raise EpisodeError(f"{path}: not an episode file (missing {', '.join(missing)}); re-record it.")
+            ep = Episode(path, attrs, f["actions"][()], f["speed"][()], f["command"][()],
+                         {k: f["truth"][k][()] for k in f.get("truth", {})})
+            if load_frames:
+                ep.frames = f["frames"][()]
+                for name in ("depth", "segmentation", "stereo_right"):
+                    if name in f:
+                        ep.extras[name] = f[name][()]
+            return ep
+    except EpisodeError:
+        raise
+    except (OSError, KeyError, ValueError) as exc:
+        raise EpisodeError(f"{path}: cannot read this episode ({exc}); the file is corrupt or not HDF5, "
+                           "re-record or delete it.") from exc
+
+
+def _attr(value: Any) -> Any:
+    if isinstance(value, bytes):
+        value = value.decode()
+    if isinstance(value, str) and value[:1] in "{[":
+        try:
+            return json.loads(value)
+        except json.JSONDecodeError:
+            return value
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def list_episodes(folder: Path) -> list[Path]:
+    """Finished episodes in a folder, in name order (``.partial`` files are not episodes)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise EpisodeError(f"{folder}: no such dataset folder; record one with drive.py --record {folder}.")
+    return sorted(folder.glob(EPISODE_GLOB))
+
+
+def next_episode_path(folder: Path) -> Path:
+    """The first free ``episode_NNNNN.h5`` name in a folder (recording appends to a dataset)."""
+    existing = [int(p.stem.split("_")[1]) for p in Path(folder).glob(EPISODE_GLOB) if p.stem.split("_")[1].isdigit()]
+    return Path(folder) / f"episode_{(max(existing) + 1) if existing else 0:05d}.h5"
