@@ -24,7 +24,7 @@ from highway_env.road.lane import AbstractLane
 
 from agent.drivers import register
 from sim.objects import LightState
-from sim.town import Command
+from sim.town import Command, lanes_for
 from sim.traffic import curve_speed_limit, idm_acceleration, oncoming_conflict, path_gap
 from sim.world import EGO_ID, World
 
@@ -99,9 +99,31 @@ class Autopilot:
         return self.env.world
 
     # ------------------------------------------------------------------ decisions
+    def choose_lane(self, world: World) -> int:
+        """The lane to drive in: the current one, unless the next junction move must start from the
+        other lane (left turns from lane 0, right turns from lane 1); change when that lane is clear."""
+        current = world.ego_lane[0][2] if world.ego_lane is not None else 0
+        town = world.town
+        edge = world.route[world.route_index]
+        if town.lane_info[(*edge, 0)].kind != "road" or world.route_index + 1 >= len(world.route):
+            return current
+        allowed = lanes_for(town.lane_info[(*world.route[world.route_index + 1], 0)].command)
+        if current in allowed:
+            return current
+        target = town.network.graph[edge[0]][edge[1]][allowed[0]]
+        s0 = float(target.local_coordinates(world.ego.position)[0])
+        if target.length - s0 < 8.0:
+            return current  # too late to change lanes: take the move from here
+        for v in world.npcs:
+            if math.hypot(*(v.position - world.ego.position)) < 20.0:
+                s, lat = target.local_coordinates(v.position)
+                if abs(lat) < 2.0 and -12.0 < s - s0 < 12.0:
+                    return current  # the other lane is not clear yet
+        return allowed[0]
+
     def route_path(self, world: World) -> tuple[list[tuple[AbstractLane, float]], float]:
-        """Lanes ahead on the route (keeping the current lane id) and the ego's coordinate on the first."""
-        lane_id = world.ego_lane[0][2] if world.ego_lane is not None else 0
+        """Lanes ahead on the route (in the chosen lane) and the ego's coordinate on the first."""
+        lane_id = self.choose_lane(world)
         graph = world.town.network.graph
         path = []
         total = 0.0

@@ -309,6 +309,7 @@ class DriveEnv(gym.Env):
                     "speed_mps": float(ego.speed)},
             "lane_index": None if lane is None else list(lane[0]),
             "lane_offset_m": world.lane_offset_m(),
+            "lane_band_offset_m": world.lane_band_offset_m(),
             "command": Command(world.command()).name.lower(),
             "next_light": None if nl is None else {"approach": nl.approach, "state": LightState(nl.state).name.lower(),
                                                    "distance_m": float(nl.distance_m)},

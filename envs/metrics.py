@@ -10,9 +10,11 @@ Per episode:
   autonomy             (1 - interventions x 6 s / elapsed s) x 100, at least 0
   mean_abs_lane_offset_m, mean_speed_mps
 
-The intervention rule: a safety driver takes over when the car is more than 1 m off its lane centre or
-makes an episode-ending infraction (collision, leaving the road) or deviates from the route; each
-take-over counts once and puts the car back on its route lane at a standstill, and the episode goes on.
+The intervention rule: a safety driver takes over when the car is more than 1 m off its lane centre
+(measured outside the band between the centres of its direction's lanes, so that a lane change is not
+a departure), makes an episode-ending infraction (collision, leaving the road) or deviates from the
+route. Each take-over counts once and puts the car back on its route lane at a standstill, clear of
+other cars, and the episode goes on.
 """
 
 from __future__ import annotations
@@ -65,8 +67,8 @@ class EpisodeTrace:
 
 def needs_intervention(info: dict[str, Any]) -> bool:
     """The safety driver's rule (see module docstring)."""
-    offset = info["lane_offset_m"]
-    if not math.isfinite(offset) or abs(offset) > INTERVENTION_OFFSET_M:
+    offset = info["lane_band_offset_m"]
+    if not math.isfinite(offset) or offset > INTERVENTION_OFFSET_M:
         return True
     return any(inf["kind"] in INTERVENTION_INFRACTIONS for inf in info["infractions"])
 

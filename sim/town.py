@@ -55,6 +55,17 @@ class Command(IntEnum):
     STRAIGHT = 3
 
 
+def lanes_for(command: Command) -> tuple[int, ...]:
+    """Lanes a junction move may start from: left turns from the inner lane (0), right turns from the
+    outer lane (1), straight from either. The network has both lanes on every connector, but turning
+    across the other lane's straight traffic (or into an opposing left turn) is not allowed."""
+    if command == Command.LEFT:
+        return (0,)
+    if command == Command.RIGHT:
+        return (1,)
+    return (0, 1)
+
+
 @dataclass(frozen=True)
 class TownConfig:
     """Size and look of a town. Defaults make a 3x3-block town of about 300 m x 300 m."""

@@ -22,7 +22,7 @@ from highway_env.vehicle.kinematics import Vehicle
 from sim.geometry import wrap_to_pi
 from sim.objects import LightState, ObjectSnapshot, SemanticClass
 from sim.routes import random_next_edge
-from sim.town import OPPOSITE, Approach, Command, Town
+from sim.town import OPPOSITE, Approach, Command, Town, lanes_for
 
 CAR_COLORS = [
     (0.75, 0.08, 0.08), (0.08, 0.20, 0.60), (0.92, 0.92, 0.90), (0.10, 0.10, 0.11), (0.55, 0.56, 0.58),
@@ -214,15 +214,53 @@ class TownVehicle(IDMVehicle):
             total += nxt.length
         return path, s0
 
+    def _next_move(self) -> tuple[int, Command] | None:
+        """Index in the route and command of the junction move after the current road, if any."""
+        frm, to, _ = self.target_lane_index
+        for k, (rf, rt, _) in enumerate(self.route):
+            if (rf, rt) != (frm, to) and rf == to:
+                return k, self.town.lane_info[(rf, rt, 0)].command
+        return None
+
     def change_lane_policy(self) -> None:
-        """MOBIL only on plain roads, well before the stop line (keeps turn lanes sane)."""
-        info = self.town.lane_info[self.target_lane_index]
-        lane = self.town.lane(self.target_lane_index)
-        if info.kind != "road" or lane.length - lane.local_coordinates(self.position)[0] < 30.0:
-            if self.lane_index[:2] == self.target_lane_index[:2] and self.lane_index != self.target_lane_index:
-                self.target_lane_index = self.lane_index
+        """Get into a lane the next junction move may start from; MOBIL only where any lane will do.
+
+        Far from the stop line the vehicle changes lane when the target lane is clear; within 30 m it
+        picks a move its lane allows instead. No lane changes inside junctions."""
+        frm, to, k = self.target_lane_index
+        if self.town.lane_info[self.target_lane_index].kind != "road":
             return
-        super().change_lane_policy()
+        lane = self.town.lane(self.target_lane_index)
+        remaining = lane.length - lane.local_coordinates(self.position)[0]
+        move = self._next_move()
+        allowed = lanes_for(move[1]) if move is not None else (0, 1)
+        if k in allowed:
+            if len(allowed) == 2 and remaining >= 30.0 and self.enable_lane_change:
+                super().change_lane_policy()
+            return
+        if remaining >= 30.0:
+            if self._lane_clear((frm, to, allowed[0])):
+                self.target_lane_index = (frm, to, allowed[0])
+            return
+        assert move is not None
+        index = move[0]
+        options = sorted(self.town.network.graph[to].keys())
+        fits = [o for o in options if k in lanes_for(self.town.lane_info[(to, o, 0)].command)]
+        self.route[index] = (to, fits[int(self.rng.integers(len(fits)))], None)
+        del self.route[index + 1:]
+        self._extend_route()
+
+    def _lane_clear(self, lane_index: tuple[str, str, int]) -> bool:
+        """No vehicle within 9 m along a lane of where this one would be."""
+        lane = self.town.lane(lane_index)
+        s0 = lane.local_coordinates(self.position)[0]
+        for v in self.road.vehicles:
+            if v is self or math.hypot(*(v.position - self.position)) > 15.0:
+                continue
+            s, lat = lane.local_coordinates(v.position)
+            if abs(lat) < 2.0 and abs(s - s0) < 9.0:
+                return False
+        return True
 
     def decide(self, agents: Agents, lights_state: list[LightState], enable_lane_change: bool) -> None:
         """Set this step's steering and acceleration (highway-env action dict)."""
@@ -231,8 +269,8 @@ class TownVehicle(IDMVehicle):
         self._locate()
         self.follow_road()
         self._extend_route()
-        if enable_lane_change:
-            self.change_lane_policy()
+        self.enable_lane_change = enable_lane_change
+        self.change_lane_policy()
         limit = self.MAX_STEERING_ANGLE
         steering = min(limit, max(-limit, float(self.steering_control(self.target_lane_index))))
         lookahead = 12.0 + 3.0 * self.speed

@@ -234,7 +234,8 @@ class World:
         vpos = np.array([v.position for v in vehicles])
         vspd = np.array([v.speed for v in vehicles])
         vhead = np.array([v.heading for v in vehicles])
-        self.crowd.step(dt, self.lights, vpos, vspd, vhead, self.step_count)
+        sizes = np.array([(v.LENGTH, v.WIDTH) for v in vehicles])
+        self.crowd.step(dt, self.lights, vpos, vspd, vhead, self.step_count, sizes)
         self.new_infractions = self._check_ego()
         self.infractions += self.new_infractions
         return self.new_infractions
@@ -283,8 +284,11 @@ class World:
         for back in np.arange(0.0, 30.5, 1.0):
             pos = lane.position(max(s - back, 0.0), 0.0)
             poly = rect_corners(pos, lane.heading_at(max(s - back, 0.0)), self.ego.LENGTH + 1.0, self.ego.WIDTH + 0.6)
-            if not any(polygons_intersect(poly, rect_corners(v.position, v.heading, v.LENGTH, v.WIDTH))
-                       for v in self.npcs if math.hypot(*(v.position - pos)) < 10.0):
+            cars = any(polygons_intersect(poly, rect_corners(v.position, v.heading, v.LENGTH, v.WIDTH))
+                       for v in self.npcs if math.hypot(*(v.position - pos)) < 10.0)
+            people = any(circle_polygon_intersect(p.position, p.RADIUS + 0.5, poly)
+                         for p in self.crowd.peds if math.hypot(*(p.position - pos)) < 6.0)
+            if not (cars or people):
                 s = max(s - back, 0.0)
                 break
         self.ego.position = lane.position(s, 0.0)
@@ -311,9 +315,14 @@ class World:
         if wrong and not self._wrong_way:
             out.append(self._record("wrong_way"))
         self._wrong_way = wrong
-        # Route progress: stay on the current edge or move on to one of the next two.
+        # Route progress: stay on the current edge or move on to one of the next two. Where lanes
+        # overlap (connectors leave a stop line together) a route lane the car is on wins.
         edge, s = self.ego_lane[0][:2], self.ego_lane[1]
         window = self.route[self.route_index:self.route_index + 3]
+        if edge not in window:
+            on_route = self._route_lane_here(window)
+            if on_route is not None:
+                edge, s = on_route
         if edge in window:
             self.route_index += window.index(edge)
             self.route_s = max(s, self.route_s) if window.index(edge) == 0 else s
@@ -324,6 +333,17 @@ class World:
                 self.deviated = True
                 out.append(self._record("route_deviation"))
         return out
+
+    def _route_lane_here(self, window: list[Edge]) -> tuple[Edge, float] | None:
+        """A lane of the route window the car is on (within its width, heading along it), if any."""
+        half = self.town.lane_width / 2
+        for frm, to in window:
+            for lane in self.town.network.graph[frm][to]:
+                s, lat = lane.local_coordinates(self.ego.position)
+                if (-0.5 <= s <= lane.length + 0.5 and abs(lat) <= half
+                        and abs(wrap_to_pi(lane.heading_at(s) - self.ego.heading)) < 0.6):
+                    return (frm, to), float(s)
+        return None
 
     def _check_red_light(self) -> list[Infraction]:
         """Red-light run: the ego's front bumper passes the end of an approach lane on red."""
@@ -362,6 +382,14 @@ class World:
 
     def command(self) -> Command:
         return command_at(self.town, self.route, self.route_index, self.route_s)
+
+    def lane_band_offset_m(self) -> float:
+        """How far the car is outside the band between its direction's lane centres (0 inside it, e.g.
+        while changing lanes; nan off road). The safety driver's "off its lane" measure."""
+        if self.ego_lane is None:
+            return float("nan")
+        lat0 = self.ego_lane[2] + self.ego_lane[0][2] * self.town.lane_width  # lateral from lane 0's centre
+        return float(max(0.0, -lat0, lat0 - self.town.lane_width))
 
     def lane_offset_m(self) -> float:
         """Signed lateral offset from the current lane's centre (positive: right of it); nan off road."""
