@@ -211,6 +211,7 @@ def scenarios(args: argparse.Namespace) -> int:
     results = [run_scenario(name, make_named_driver(args), make_config(args), out, video=not args.no_video)
                for name in names]
     print(format_results(args.driver, results))
+    out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps([r.__dict__ for r in results], indent=2, default=str))
     return 0 if all(r.passed for r in results) else 1
 
