@@ -32,7 +32,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--town-seed", type=int, default=0, help="which town to generate")
     p.add_argument("--weather", default="noon", choices=sorted(LIGHTING_PRESETS), help="lighting preset")
     p.add_argument("--traffic", type=float, default=1.0, help="traffic density multiplier (NPCs and pedestrians)")
-    p.add_argument("--seconds", type=float, default=60.0, help="longest episode, simulated seconds")
+    p.add_argument("--seconds", type=float, default=None,
+                   help="longest episode, simulated seconds (default 60 for a demo drive or a recording, 180 to evaluate)")
     p.add_argument("--width", type=int, default=320)
     p.add_argument("--height", type=int, default=160)
     p.add_argument("--out", type=Path, default=None, help="output folder (default out/drive, out/eval, out/scenarios)")
@@ -61,8 +62,9 @@ def make_config(args: argparse.Namespace) -> Any:
     if args.traffic != 1.0:
         world = replace(world, npc_count=round(world.npc_count * args.traffic),
                         pedestrian_count=round(world.pedestrian_count * args.traffic))
+    seconds = args.seconds if args.seconds is not None else (180.0 if args.evaluate else 60.0)
     return DriveConfig(world=world, camera=CameraConfig(width=args.width, height=args.height),
-                       town_seed=args.town_seed, weather=args.weather, max_time_s=args.seconds,
+                       town_seed=args.town_seed, weather=args.weather, max_time_s=seconds,
                        observe_depth=args.depth, observe_segmentation=args.segmentation, observe_stereo=args.stereo)
 
 
@@ -91,7 +93,7 @@ def demo(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     obs, info = env.reset(seed=args.seed)
     driver.reset(env)
-    steps = int(args.seconds / config.world.dt_s)
+    steps = int(config.max_time_s / config.world.dt_s)
     save_at = set(np.linspace(0, steps - 1, args.frames).astype(int).tolist()) if args.frames > 0 else set()
     writer = None if args.no_video else imageio.get_writer(out / "video.mp4", fps=env.metadata["render_fps"],
                                                             codec="libx264", quality=7, macro_block_size=8)
@@ -142,7 +144,7 @@ def record(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     frames = 0
     try:
-        for k in tqdm(range(args.episodes), desc="recording", unit="episode", disable=human):
+        for k in tqdm(range(args.episodes), desc="recording", unit="episode", disable=human, mininterval=2.0):
             seed = args.seed + k
             obs, info = env.reset(seed=seed)
             driver.reset(env)

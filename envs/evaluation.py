@@ -125,7 +125,7 @@ def evaluate(driver: Driver, config: DriveConfig, episodes: int, seed: int, out:
     steps_hint = int(config.max_time_s / config.world.dt_s) * episodes
     writer = None
     try:
-        with tqdm(total=steps_hint, desc=f"evaluating {driver.name}", unit="step") as bar:
+        with tqdm(total=steps_hint, desc=f"evaluating {driver.name}", unit="step", mininterval=2.0) as bar:
             for k in range(episodes):
                 if video and k == 0:
                     writer = imageio.get_writer(out / "video.mp4", fps=env.metadata["render_fps"], codec="libx264",
