@@ -25,7 +25,7 @@ from highway_env.road.lane import AbstractLane
 from agent.drivers import register
 from sim.objects import LightState
 from sim.town import Command, lanes_for
-from sim.traffic import curve_speed_limit, idm_acceleration, oncoming_conflict, path_gap
+from sim.traffic import crosswalk_gap, curve_speed_limit, idm_acceleration, oncoming_conflict, path_gap
 from sim.world import EGO_ID, World
 
 if TYPE_CHECKING:
@@ -35,6 +35,7 @@ if TYPE_CHECKING:
 LEAD_GAP_M = 2.5  # bumper gap kept to a stopped vehicle or pedestrian ahead
 STOP_GAP_M = 0.3  # ... and to the stop point before a stop line
 HOLD_MARGIN_M = 0.8  # within this of the stopping point at walking pace, brake to a standstill
+STEER_RATE_PER_S = 1.5  # largest change of the steer command per second
 
 
 @dataclass
@@ -78,6 +79,8 @@ class Autopilot:
         self.speed_pid = PID(kp=0.6, ki=0.15, kd=0.0)
         self.env: DriveEnv | None = None
         self.clean_action = np.zeros(2, np.float32)
+        self._path_lanes: list[tuple[str, str, int]] = []
+        self._last_steer = 0.0
         self._episodes = 0
         self._rng = np.random.default_rng(noise_seed)
         self._next_noise_s = 0.0
@@ -87,6 +90,7 @@ class Autopilot:
     def reset(self, env: DriveEnv) -> None:
         self.env = env
         self.speed_pid.reset()
+        self._last_steer = 0.0
         self._rng = np.random.default_rng((self.noise_seed, self._episodes))
         self._episodes += 1
         self._next_noise_s = float(self._rng.uniform(*self.noise_every_s))
@@ -126,10 +130,13 @@ class Autopilot:
         lane_id = self.choose_lane(world)
         graph = world.town.network.graph
         path = []
+        self._path_lanes = []
         total = 0.0
         for frm, to in world.route[world.route_index:world.route_index + 4]:
             lanes = graph[frm][to]
-            path.append((lanes[min(lane_id, len(lanes) - 1)], total))
+            k = min(lane_id, len(lanes) - 1)
+            path.append((lanes[k], total))
+            self._path_lanes.append((frm, to, k))
             total += lanes[0].length
         s0 = float(path[0][0].local_coordinates(world.ego.position)[0])
         return path, s0
@@ -142,7 +149,7 @@ class Autopilot:
         ego = world.ego
         direction = np.array([math.cos(ego.heading), math.sin(ego.heading)])
         rear = ego.position - direction * ego.LENGTH / 2
-        lookahead = 2.5 + 0.45 * ego.speed
+        lookahead = 3.5 + 0.4 * ego.speed
         target_s = s0 - ego.LENGTH / 2 + lookahead
         lane, offset = path[-1]
         target = lane.position(lane.length, 0.0)
@@ -178,10 +185,19 @@ class Autopilot:
         dt = world.config.dt_s
         path, s0 = self.route_path(world)
         steer = self.steer(world, path, s0)
+        # Gentle hands: at most STEER_RATE_PER_S of the full range per second (smooth labels for cloning).
+        step = STEER_RATE_PER_S * dt
+        steer = min(self._last_steer + step, max(self._last_steer - step, steer))
+        self._last_steer = steer
         # Longitudinal: PID to the target speed, capped by the IDM planner's acceleration.
         cruise = min(self.target_speed, curve_speed_limit(path, s0))
         accel = self.speed_pid(cruise - ego.speed, dt) * ego.MAX_ACCEL_MPS2
-        gap, lead_speed = path_gap(path, s0, ego.LENGTH / 2, world.agents(), EGO_ID, ego.position, 15.0 + 3.0 * ego.speed)
+        agents = world.agents()
+        lookahead = 15.0 + 3.0 * ego.speed
+        gap, lead_speed = path_gap(path, s0, ego.LENGTH / 2, agents, EGO_ID, ego.position, lookahead)
+        zebra = crosswalk_gap(world.town, path, self._path_lanes, s0, ego.LENGTH / 2, agents, lookahead)
+        if zebra is not None and (gap is None or zebra < gap):
+            gap, lead_speed = zebra, 0.0
         hold = False  # IDM creeps towards a standstill; near the stopping point, brake and hold instead
         if gap is not None:
             accel = min(accel, idm_acceleration(ego.speed, self.target_speed, gap, ego.speed - lead_speed,

@@ -103,7 +103,7 @@ class PedestrianCrowd:
         return bool(np.any(approaching & (dist < 25.0) & (time_to < 4.0) & (speeds > 0.5)))
 
     def step(self, dt: float, lights: TrafficLights, vehicles: np.ndarray, speeds: np.ndarray,
-             headings: np.ndarray, tick: int = 0, sizes: np.ndarray | None = None) -> None:
+             headings: np.ndarray, tick: int = 0) -> None:
         """Move everyone one tick. Waiting pedestrians look up at the signal every fourth tick (5 Hz)."""
         for ped in self.peds:
             cw = self.town.crosswalks[ped.crosswalk]
@@ -121,7 +121,7 @@ class PedestrianCrowd:
                     ped.state, ped.target = "crossing", there.copy()
             elif ped.state == "crossing":
                 if ped.yields and (tick + ped.object_id) % 2 == 0:  # look out for cars at 10 Hz
-                    ped.blocked = self._car_in_the_way(ped, vehicles, speeds, headings, sizes)
+                    ped.blocked = self._car_in_the_way(ped, vehicles, speeds)
                 if ped.blocked:
                     continue  # a car is in the way: wait on the crossing
                 if self._advance(ped, dt):
@@ -135,22 +135,13 @@ class PedestrianCrowd:
                 ped.state, ped.target = "waiting", None
 
     @staticmethod
-    def _car_in_the_way(ped: Pedestrian, vehicles: np.ndarray, speeds: np.ndarray, headings: np.ndarray,
-                        sizes: np.ndarray | None) -> bool:
-        """A car body where the next steps go, or a moving car close ahead. A car that stands still
-        out of the way is waiting for the pedestrian, so it does not hold the pedestrian back."""
+    def _car_in_the_way(ped: Pedestrian, vehicles: np.ndarray, speeds: np.ndarray) -> bool:
+        """A moving car close to where the next steps go. A car that stands still is waiting for the
+        pedestrian (cars keep their distance from anyone out on a crossing), so it holds no one back."""
         if len(vehicles) == 0:
             return False
-        ahead = ped.position + 1.2 * np.array([math.cos(ped.heading), math.sin(ped.heading)])
-        d = vehicles - ahead
-        if np.any((d[:, 0] ** 2 + d[:, 1] ** 2 < 2.8 ** 2) & (speeds > 0.5)):
-            return True
-        if sizes is None:
-            return False
-        c, s = np.cos(headings), np.sin(headings)
-        along = -(d[:, 0] * c + d[:, 1] * s)
-        across = -(-d[:, 0] * s + d[:, 1] * c)
-        return bool(np.any((np.abs(along) < sizes[:, 0] / 2 + 0.5) & (np.abs(across) < sizes[:, 1] / 2 + 0.5)))
+        d = vehicles - (ped.position + 1.2 * np.array([math.cos(ped.heading), math.sin(ped.heading)]))
+        return bool(np.any((d[:, 0] ** 2 + d[:, 1] ** 2 < 2.8 ** 2) & (speeds > 0.5)))
 
     @staticmethod
     def _advance(ped: Pedestrian, dt: float) -> bool:

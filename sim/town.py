@@ -161,6 +161,7 @@ class Town:
     poles: list[np.ndarray] = field(default_factory=list)  # light pole feet (collision circles)
     _grid: dict[tuple[int, int], list[LaneIndex]] = field(default_factory=dict, repr=False)
     _approach_by_edge: dict[Edge, Approach] = field(default_factory=dict, repr=False)
+    _lane_crosswalks: dict[LaneIndex, list[tuple[int, float, float]]] | None = field(default=None, repr=False)
 
     GRID_CELL_M = 8.0
     POLE_RADIUS_M = 0.15
@@ -222,6 +223,12 @@ class Town:
             if ap.node == node and ap.arm == arm:
                 return ap
         return None
+
+    def crosswalks_on(self, index: LaneIndex) -> list[tuple[int, float, float]]:
+        """Crosswalks a lane runs across: (crosswalk index, s where it enters, s where it leaves)."""
+        if self._lane_crosswalks is None:
+            self._lane_crosswalks = _lane_crosswalks(self)
+        return self._lane_crosswalks.get(index, [])
 
     def road_lanes(self) -> list[LaneIndex]:
         """Lanes on plain road segments (spawn places)."""
@@ -574,6 +581,36 @@ def _cuts_bend(points: np.ndarray, bend: np.ndarray, radius: float) -> bool:
         if rel[0] * inward[0] < 0 and rel[1] * inward[1] < 0 and float(np.linalg.norm(rel)) > radius:
             return True
     return False
+
+
+def crosswalk_frame(cw: Crosswalk) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Centre, unit vector along the arm, half depth (along the arm) and half width (across) of a crossing."""
+    centre = cw.polygon.mean(axis=0)
+    along = cw.polygon[1] - cw.polygon[0]
+    depth = float(np.linalg.norm(along))
+    return centre, along / depth, depth / 2, float(np.linalg.norm(cw.polygon[2] - cw.polygon[1])) / 2
+
+
+def _lane_crosswalks(town: Town) -> dict[LaneIndex, list[tuple[int, float, float]]]:
+    """For every lane, the crosswalks it crosses and where (sampled every 0.25 m)."""
+    frames = [crosswalk_frame(cw) for cw in town.crosswalks]
+    centres = np.array([f[0] for f in frames])
+    out: dict[LaneIndex, list[tuple[int, float, float]]] = {}
+    for frm, tos in town.network.graph.items():
+        for to, lanes in tos.items():
+            for k, lane in enumerate(lanes):
+                ss = np.arange(0.0, lane.length + 0.25, 0.25)
+                pts = np.array([lane.position(s, 0.0) for s in ss])
+                mid = pts.mean(axis=0)
+                reach = lane.length / 2 + 12.0
+                for c in np.nonzero(np.hypot(*(centres - mid).T) < reach)[0]:
+                    centre, u, half_depth, half_width = frames[c]
+                    d = pts - centre
+                    inside = (np.abs(d @ u) <= half_depth) & (np.abs(d @ np.array([-u[1], u[0]])) <= half_width)
+                    if inside.any():
+                        hit = ss[inside]
+                        out.setdefault((frm, to, k), []).append((int(c), float(hit.min()), float(hit.max())))
+    return out
 
 
 def _index_lanes(town: Town) -> None:

@@ -22,7 +22,7 @@ from highway_env.vehicle.kinematics import Vehicle
 from sim.geometry import wrap_to_pi
 from sim.objects import LightState, ObjectSnapshot, SemanticClass
 from sim.routes import random_next_edge
-from sim.town import OPPOSITE, Approach, Command, Town, lanes_for
+from sim.town import OPPOSITE, Approach, Command, Town, crosswalk_frame, lanes_for
 
 CAR_COLORS = [
     (0.75, 0.08, 0.08), (0.08, 0.20, 0.60), (0.92, 0.92, 0.90), (0.10, 0.10, 0.11), (0.55, 0.56, 0.58),
@@ -40,10 +40,12 @@ class Agents:
     half_lengths: np.ndarray
     is_pedestrian: np.ndarray
     ids: np.ndarray
+    on_crossing: np.ndarray  # pedestrians out on the road (crossing), even while they stand still
 
 
 PEDESTRIAN_LOOKAHEAD_S = 1.5  # a walking pedestrian blocks a path it will step into within this time
-STANDING_PEDESTRIAN_LATERAL_M = 1.45  # car half width 0.95 + pedestrian radius 0.3 + 0.2 m
+CROSSING_CLEAR_M = 10.0  # a vehicle crossing the path nearer than this still blocks it
+STANDING_PEDESTRIAN_LATERAL_M = 1.45  # on the sidewalk: car half width 0.95 + pedestrian radius 0.3 + 0.2 m
 
 
 CURVE_LATERAL_ACCEL_MPS2 = 2.0  # comfortable lateral acceleration in turns
@@ -79,8 +81,9 @@ def path_gap(path: list[tuple[AbstractLane, float]], my_s: float, my_half: float
              pedestrian_lateral_m: float = 2.6) -> tuple[float | None, float]:
     """Bumper gap to the nearest agent on a path of lanes, and that agent's speed along it.
 
-    ``path`` lists lanes with the path coordinate at which each starts. Vehicles count only when
-    they head roughly along the path (crossing traffic is not a leader); pedestrians always count.
+    ``path`` lists lanes with the path coordinate at which each starts. Moving vehicles count only
+    when they head roughly along the path (crossing traffic is not a leader); a vehicle standing on
+    the path counts whatever its heading; pedestrians always count.
     """
     if len(agents.positions) == 0:
         return None, 0.0
@@ -97,7 +100,8 @@ def path_gap(path: list[tuple[AbstractLane, float]], my_s: float, my_half: float
             points.append(agents.positions[k] + step * np.array([math.cos(h), math.sin(h)]))
         # A standing pedestrian (waiting at a kerb) blocks only what would brush it; a walking one
         # blocks the whole lane it is in or stepping into.
-        tol = (pedestrian_lateral_m if agents.speeds[k] > 0.1 else STANDING_PEDESTRIAN_LATERAL_M) if ped else vehicle_lateral_m
+        walking = agents.speeds[k] > 0.1 or bool(agents.on_crossing[k])
+        tol = (pedestrian_lateral_m if walking else STANDING_PEDESTRIAN_LATERAL_M) if ped else vehicle_lateral_m
         gap_k, speed_k = _gap_on_path(path, points, ped, k, agents, my_s, my_half, tol)
         if gap_k is not None and (best is None or gap_k < best):
             best, best_speed = gap_k, speed_k
@@ -114,18 +118,43 @@ def _gap_on_path(path: list[tuple[AbstractLane, float]], points: list[np.ndarray
             s, lat = lane.local_coordinates(pos)
             if abs(lat) > tol or s < -agents.half_lengths[k] or s > lane.length + agents.half_lengths[k]:
                 continue
-            if not ped and abs(wrap_to_pi(float(agents.headings[k]) - lane.heading_at(s))) > 1.0:
-                continue
             along = offset + s
             if along <= my_s:
                 break
             gap = along - my_s - my_half - float(agents.half_lengths[k])
+            # Crossing traffic on the move further ahead is not a leader (it will be gone); one standing
+            # across the path, or still crossing it close ahead, is in the way.
+            crossing = abs(wrap_to_pi(float(agents.headings[k]) - lane.heading_at(s))) > 1.0
+            if not ped and crossing and agents.speeds[k] > 1.0 and gap > CROSSING_CLEAR_M:
+                continue
             if best is None or gap < best:
                 best = gap
                 best_speed = 0.0 if ped else float(agents.speeds[k]) * math.cos(
                     wrap_to_pi(float(agents.headings[k]) - lane.heading_at(s)))
             break
     return best, best_speed
+
+
+def crosswalk_gap(town: Town, path: list[tuple[AbstractLane, float]], path_lanes: list[tuple[str, str, int]],
+                  my_s: float, my_half: float, agents: Agents, lookahead_m: float) -> float | None:
+    """Gap from the front bumper to the first crosswalk ahead on the path that someone is crossing
+    (or stepping onto): yield there, before the zebra, not next to the pedestrian."""
+    peds = np.nonzero(agents.is_pedestrian & agents.on_crossing)[0]
+    if len(peds) == 0:
+        return None
+    for (_, offset), index in zip(path, path_lanes, strict=False):
+        for cw, s_in, s_out in town.crosswalks_on(index):
+            enter, leave = offset + s_in, offset + s_out
+            if leave < my_s - my_half or enter - my_s > lookahead_m:
+                continue
+            if enter < my_s + my_half:
+                continue  # already on it: clear it rather than stop on it
+            centre, u, half_depth, half_width = crosswalk_frame(town.crosswalks[cw])
+            d = agents.positions[peds] - centre
+            on = (np.abs(d @ u) <= half_depth + 1.0) & (np.abs(d @ np.array([-u[1], u[0]])) <= half_width + 1.0)
+            if on.any():
+                return enter - my_s - my_half
+    return None
 
 
 def oncoming_conflict(town: Town, approach: Approach, agents: Agents, skip_id: int, horizon_s: float = 4.5) -> bool:
@@ -197,10 +226,14 @@ class TownVehicle(IDMVehicle):
 
     def path(self, lookahead_m: float) -> tuple[list[tuple[AbstractLane, float]], float]:
         """Lanes ahead along the route (same lane id) and the vehicle's coordinate on the first."""
+        lanes, s0 = self.path_with_indices(lookahead_m)
+        return [(lane, offset) for lane, offset, _ in lanes], s0
+
+    def path_with_indices(self, lookahead_m: float) -> tuple[list[tuple[AbstractLane, float, tuple[str, str, int]]], float]:
         frm, to, k = self.target_lane_index
         lane = self.town.lane(self.target_lane_index)
         s0 = float(lane.local_coordinates(self.position)[0])
-        path = [(lane, 0.0)]
+        path = [(lane, 0.0, (frm, to, k))]
         total = lane.length
         started = False
         for rf, rt, _ in self.route:
@@ -210,7 +243,7 @@ class TownVehicle(IDMVehicle):
             if not started or total - s0 > lookahead_m:
                 continue
             nxt = self.town.network.graph[rf][rt][k]
-            path.append((nxt, total))
+            path.append((nxt, total, (rf, rt, k)))
             total += nxt.length
         return path, s0
 
@@ -274,9 +307,13 @@ class TownVehicle(IDMVehicle):
         limit = self.MAX_STEERING_ANGLE
         steering = min(limit, max(-limit, float(self.steering_control(self.target_lane_index))))
         lookahead = 12.0 + 3.0 * self.speed
-        path, s0 = self.path(lookahead)
+        indexed, s0 = self.path_with_indices(lookahead)
+        path = [(lane, offset) for lane, offset, _ in indexed]
         half = self.LENGTH / 2
         gap, lead_speed = path_gap(path, s0, half, agents, self.object_id, self.position, lookahead)
+        zebra = crosswalk_gap(self.town, path, [i for _, _, i in indexed], s0, half, agents, lookahead)
+        if zebra is not None and (gap is None or zebra < gap):
+            gap, lead_speed = zebra, 0.0
         cruise = min(self.target_speed, curve_speed_limit(path, s0))
         acc = idm_acceleration(self.speed, cruise, gap, self.speed - lead_speed)
         stop = self._stop_line_gap(path, s0, lights_state, agents)

@@ -201,14 +201,15 @@ class World:
         spd = np.zeros(n)
         half = np.zeros(n)
         is_ped = np.zeros(n, dtype=bool)
+        crossing = np.zeros(n, dtype=bool)
         ids = np.zeros(n, dtype=np.int64)
         for k, v in enumerate(vehicles):
             pos[k], head[k], spd[k], half[k] = v.position, v.heading, v.speed, v.LENGTH / 2
             ids[k] = EGO_ID if v is self.ego else v.object_id
         for k, p in enumerate(peds, start=len(vehicles)):
             pos[k], head[k], spd[k], half[k] = p.position, p.heading, p.speed_mps if p.moving else 0.0, p.RADIUS
-            is_ped[k], ids[k] = True, p.object_id
-        return Agents(pos, head, spd, half, is_ped, ids)
+            is_ped[k], ids[k], crossing[k] = True, p.object_id, p.state == "crossing"
+        return Agents(pos, head, spd, half, is_ped, ids, crossing)
 
     def step(self, action: np.ndarray) -> list[Infraction]:
         """Advance one tick of ``config.dt_s`` with the ego's ``[steer, throttle_brake]``."""
@@ -234,8 +235,7 @@ class World:
         vpos = np.array([v.position for v in vehicles])
         vspd = np.array([v.speed for v in vehicles])
         vhead = np.array([v.heading for v in vehicles])
-        sizes = np.array([(v.LENGTH, v.WIDTH) for v in vehicles])
-        self.crowd.step(dt, self.lights, vpos, vspd, vhead, self.step_count, sizes)
+        self.crowd.step(dt, self.lights, vpos, vspd, vhead, self.step_count)
         self.new_infractions = self._check_ego()
         self.infractions += self.new_infractions
         return self.new_infractions
@@ -280,16 +280,26 @@ class World:
         lane_id = self.ego_lane[0][2] if self.ego_lane is not None and self.ego_lane[0][:2] == (frm, to) else 0
         lane = self.town.network.graph[frm][to][lane_id]
         s = float(np.clip(lane.local_coordinates(self.ego.position)[0], 0.0, lane.length))
-        # Back off along the lane (up to 30 m) until the car stands clear of every other car.
-        for back in np.arange(0.0, 30.5, 1.0):
-            pos = lane.position(max(s - back, 0.0), 0.0)
-            poly = rect_corners(pos, lane.heading_at(max(s - back, 0.0)), self.ego.LENGTH + 1.0, self.ego.WIDTH + 0.6)
+        # Back off along the route (this edge, then the one before) until the car stands clear of
+        # every other car and person; a car stalled in a junction is not the safety driver's to move.
+        candidates = [(self.route_index, lane, s - back) for back in np.arange(0.0, s + 0.01, 1.0)]
+        if self.route_index > 0:
+            pfrm, pto = self.route[self.route_index - 1]
+            plane = self.town.network.graph[pfrm][pto][lane_id]
+            candidates += [(self.route_index - 1, plane, plane.length - back) for back in np.arange(0.0, 40.0, 1.0)]
+        for index, cand, cs in candidates:
+            if cs < 0:
+                continue
+            pos = cand.position(cs, 0.0)
+            poly = rect_corners(pos, cand.heading_at(cs), self.ego.LENGTH + 1.0, self.ego.WIDTH + 0.6)
             cars = any(polygons_intersect(poly, rect_corners(v.position, v.heading, v.LENGTH, v.WIDTH))
                        for v in self.npcs if math.hypot(*(v.position - pos)) < 10.0)
             people = any(circle_polygon_intersect(p.position, p.RADIUS + 0.5, poly)
                          for p in self.crowd.peds if math.hypot(*(p.position - pos)) < 6.0)
             if not (cars or people):
-                s = max(s - back, 0.0)
+                lane, s = cand, float(cs)
+                if index != self.route_index:
+                    self.route_index, self.route_s = index, float(cs)
                 break
         self.ego.position = lane.position(s, 0.0)
         self.ego.heading = lane.heading_at(s)
