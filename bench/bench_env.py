@@ -20,7 +20,7 @@ import pybullet as p
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.lane_keeper import PrivilegedLaneKeeper
+from agent.autopilot import Autopilot
 from envs.drive_env import DriveConfig, DriveEnv
 from sim.render import CameraConfig, _projection
 
@@ -47,13 +47,14 @@ def bare_camera_image_ms(env: DriveEnv, repeats: int) -> float:
 
 def run(config: DriveConfig, steps: int, seed: int) -> dict[str, float]:
     env = DriveEnv(config)
-    driver = PrivilegedLaneKeeper()
+    driver = Autopilot()
     env.reset(seed=seed)
+    driver.reset(env)
     step_times, bare = [], []
     done = 0
     while done < steps:
         assert env.world is not None
-        action = driver.act(env.world)
+        action = driver.act({})
         t = time.perf_counter()
         _, _, term, trunc, _ = env.step(action)
         step_times.append(time.perf_counter() - t)
@@ -62,6 +63,7 @@ def run(config: DriveConfig, steps: int, seed: int) -> dict[str, float]:
             bare.append(bare_camera_image_ms(env, 3))
         if term or trunc:
             env.reset(seed=seed + done)
+            driver.reset(env)
     env.close()
     step_ms = 1000 * statistics.median(step_times)
     out = {"steps_per_s": 1000.0 / step_ms, "step_ms_p50": step_ms,
