@@ -80,11 +80,10 @@ def make_named_driver(args: argparse.Namespace) -> Any:
 # ---------------------------------------------------------------------- modes
 def demo(args: argparse.Namespace) -> int:
     import cv2
-    import imageio.v2 as imageio
     from tqdm import tqdm
 
     from envs.drive_env import DriveEnv
-    from envs.evaluation import draw_hud
+    from envs.evaluation import draw_hud, video_writer
 
     out = args.out or Path("out/drive")
     config = make_config(args)
@@ -95,8 +94,7 @@ def demo(args: argparse.Namespace) -> int:
     driver.reset(env)
     steps = int(config.max_time_s / config.world.dt_s)
     save_at = set(np.linspace(0, steps - 1, args.frames).astype(int).tolist()) if args.frames > 0 else set()
-    writer = None if args.no_video else imageio.get_writer(out / "video.mp4", fps=env.metadata["render_fps"],
-                                                            codec="libx264", quality=7, macro_block_size=8)
+    writer = None if args.no_video else video_writer(out / "video.mp4", env.metadata["render_fps"])
     t0 = time.perf_counter()
     total_reward, saved, k = 0.0, [], 0
     try:

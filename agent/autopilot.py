@@ -25,7 +25,7 @@ from highway_env.road.lane import AbstractLane
 from agent.drivers import register
 from sim.objects import LightState
 from sim.town import Command, lanes_for
-from sim.traffic import crosswalk_gap, curve_speed_limit, idm_acceleration, oncoming_conflict, path_gap
+from sim.traffic import Agents, crosswalk_gap, curve_speed_limit, idm_acceleration, oncoming_conflict, path_gap
 from sim.world import EGO_ID, World
 
 if TYPE_CHECKING:
@@ -162,7 +162,7 @@ class Autopilot:
         wheel = math.atan2(2.0 * ego.LENGTH * math.sin(alpha), max(math.hypot(dx, dy), 1e-3))
         return max(-1.0, min(1.0, wheel / ego.MAX_STEER_RAD))
 
-    def stop_gap(self, world: World) -> float | None:
+    def stop_gap(self, world: World, agents: Agents) -> float | None:
         """Distance to where the car must stop for a light or an unprotected left turn, if it must."""
         light = world.next_light()
         if light is None:
@@ -175,7 +175,7 @@ class Autopilot:
             return gap
         if world.command() == Command.LEFT and light.distance_m > -0.5:
             approach = world.town.approaches[light.approach]
-            if oncoming_conflict(world.town, approach, world.agents(), EGO_ID):
+            if oncoming_conflict(world.town, approach, agents, EGO_ID):
                 return gap
         return None
 
@@ -203,7 +203,7 @@ class Autopilot:
             accel = min(accel, idm_acceleration(ego.speed, self.target_speed, gap, ego.speed - lead_speed,
                                                 min_gap_m=LEAD_GAP_M))
             hold |= gap < LEAD_GAP_M + HOLD_MARGIN_M and lead_speed < 0.5
-        stop = self.stop_gap(world)
+        stop = self.stop_gap(world, agents)
         if stop is not None:
             accel = min(accel, idm_acceleration(ego.speed, self.target_speed, stop, ego.speed, min_gap_m=STOP_GAP_M))
             hold |= stop < STOP_GAP_M + HOLD_MARGIN_M

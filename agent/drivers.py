@@ -44,11 +44,6 @@ def register(name: str) -> Callable[[Callable[..., Driver]], Callable[..., Drive
     return wrap
 
 
-def driver_names() -> list[str]:
-    _load_builtin()
-    return sorted(_REGISTRY)
-
-
 def make_driver(name: str, **kwargs: Any) -> Driver:
     """Build a registered driver; an unknown name is one clear error listing the known ones."""
     _load_builtin()

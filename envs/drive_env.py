@@ -55,7 +55,6 @@ class DriveConfig:
     terminate_on_route_deviation: bool = True
     terminate_on_infraction: bool = True  # False: collisions and leaving the road are penalised but the episode
     #                                       goes on (closed-loop evaluation with a safety driver)
-    max_visible_range_m: float = 80.0
 
 
 class DriveEnv(gym.Env):

@@ -10,17 +10,26 @@ from __future__ import annotations
 import json
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
 from tqdm import tqdm
 
-from agent.drivers import Driver
 from envs.drive_env import DriveConfig, DriveEnv
 from envs.metrics import EpisodeTrace, aggregate, episode_metrics, markdown_table, needs_intervention
 
+if TYPE_CHECKING:
+    from agent.drivers import Driver
+
 LIGHT_BGR = {"green": (60, 200, 60), "yellow": (40, 210, 240), "red": (50, 50, 230)}
+
+
+def video_writer(path: Path, fps: int) -> Any:
+    """An MP4 writer (H.264) for RGB frames; callers close it."""
+    import imageio.v2 as imageio
+
+    return imageio.get_writer(path, fps=fps, codec="libx264", quality=7, macro_block_size=8)
 
 
 def draw_hud(image: np.ndarray, info: dict[str, Any], driver: str, extra: str = "") -> np.ndarray:
@@ -116,8 +125,6 @@ def plot_traces(env: DriveEnv, traces: list[EpisodeTrace], out: Path) -> list[st
 
 def evaluate(driver: Driver, config: DriveConfig, episodes: int, seed: int, out: Path, video: bool = True) -> dict:
     """Run the suite, write every report file into ``out``, and return the metrics dict."""
-    import imageio.v2 as imageio
-
     config = replace(config, terminate_on_infraction=False, terminate_on_route_deviation=False)
     env = DriveEnv(config, render_mode="rgb_array")
     out.mkdir(parents=True, exist_ok=True)
@@ -128,8 +135,7 @@ def evaluate(driver: Driver, config: DriveConfig, episodes: int, seed: int, out:
         with tqdm(total=steps_hint, desc=f"evaluating {driver.name}", unit="step", mininterval=2.0) as bar:
             for k in range(episodes):
                 if video and k == 0:
-                    writer = imageio.get_writer(out / "video.mp4", fps=env.metadata["render_fps"], codec="libx264",
-                                                quality=7, macro_block_size=8)
+                    writer = video_writer(out / "video.mp4", env.metadata["render_fps"])
                 trace = run_episode(env, driver, seed + k, writer, bar)
                 if writer is not None:
                     writer.close()

@@ -50,6 +50,12 @@ class Log:
     infractions: list[str] = field(default_factory=list)
     edges: list[Edge] = field(default_factory=list)
 
+    def before(self, time_s: float) -> Log:
+        """The steps before a time (the infractions stay: they are counted over the whole run)."""
+        n = sum(t < time_s for t in self.t)
+        return Log(self.t[:n], self.speed[:n], self.light_distance[:n], self.progress[:n], self.lead_gap[:n],
+                   self.infractions, self.edges[:n])
+
 
 @dataclass
 class Scenario:
@@ -114,13 +120,10 @@ def _drive_away_hook(world: World, ctx: dict[str, Any]) -> None:
 
 
 def _check_resume(log: Log, ctx: dict[str, Any]) -> tuple[bool, str]:
-    ok, detail = _check_stop_behind(Log(log.t, log.speed, [], [], log.lead_gap, log.infractions), ctx)
-    t = np.array(log.t)
-    before = np.array(log.speed)[t < ctx["go_at_s"]]
-    after = np.array(log.progress)[t >= ctx["go_at_s"]]
-    if not (before.size and before.min() < 0.1):
+    before = log.before(ctx["go_at_s"])
+    if not (before.speed and min(before.speed) < 0.1):
         return False, "did not stop behind the car before it left"
-    moved = float(after[-1] - after[0]) if after.size else 0.0
+    moved = log.progress[-1] - log.progress[len(before.t)] if len(log.t) > len(before.t) else 0.0
     return (moved >= 20.0 and not log.infractions, f"moved {moved:.0f} m after the car left (want >= 20 m); "
             f"infractions: {log.infractions or 'none'}")
 
@@ -151,11 +154,7 @@ def _green_after_hook(world: World, ctx: dict[str, Any]) -> None:
 
 
 def _check_red_then_green(log: Log, ctx: dict[str, Any]) -> tuple[bool, str]:
-    t = np.array(log.t)
-    ok, detail = _check_stop_line(Log(list(t[t < ctx["green_at_s"]]),
-                                      list(np.array(log.speed)[t < ctx["green_at_s"]]),
-                                      list(np.array(log.light_distance)[t < ctx["green_at_s"]]), [], [],
-                                      log.infractions), ctx)
+    ok, detail = _check_stop_line(log.before(ctx["green_at_s"]), ctx)
     if not ok:
         return False, detail
     crossed = log.edges[-1] != ctx["ap"].edge
@@ -278,11 +277,10 @@ def run_scenario(name: str, driver: Any, config: DriveConfig, out: Path | None =
     env = DriveEnv(config, render_mode="rgb_array")
     writer = None
     if video and out is not None:
-        import imageio.v2 as imageio
+        from envs.evaluation import video_writer
 
         out.mkdir(parents=True, exist_ok=True)
-        writer = imageio.get_writer(out / f"{name}.mp4", fps=env.metadata["render_fps"], codec="libx264", quality=6,
-                                    macro_block_size=8)
+        writer = video_writer(out / f"{name}.mp4", env.metadata["render_fps"])
     log = Log()
     try:
         obs, info = env.reset(seed=0, options={"world": world})

@@ -22,7 +22,6 @@ class EgoVehicle(Vehicle):
 
     def __init__(self, road: Road, position: np.ndarray, heading: float, speed: float = 0.0) -> None:
         super().__init__(road, position, heading, speed)
-        self.last_action = np.zeros(2, dtype=np.float32)
 
     def on_state_update(self) -> None:
         """The world locates the ego on the town's lanes itself (spatial hash), so nothing here."""
@@ -33,7 +32,6 @@ class EgoVehicle(Vehicle):
         accel = throttle_brake * (self.MAX_ACCEL_MPS2 if throttle_brake >= 0 else self.MAX_BRAKE_MPS2)
         if self.speed > 0:
             accel -= self.DRAG_MPS2
-        self.last_action = np.array([steer, throttle_brake], dtype=np.float32)
         self.action = {"steering": float(steer * self.MAX_STEER_RAD), "acceleration": float(accel)}
 
     def step(self, dt: float) -> None:

@@ -13,11 +13,6 @@ import numpy as np
 Vec = np.ndarray
 
 
-def unit(heading: float) -> Vec:
-    """Unit vector pointing along a heading."""
-    return np.array([math.cos(heading), math.sin(heading)])
-
-
 def right_of(direction: Vec) -> Vec:
     """The driver's right of a direction vector (see module docstring)."""
     return np.array([-direction[1], direction[0]])

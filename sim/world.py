@@ -433,9 +433,3 @@ class World:
             for s in np.linspace(0, lane.length, max(2, int(lane.length / 4))):
                 pts.append(lane.position(s, 0.0))
         return np.array(pts)
-
-
-def make_world(config: WorldConfig | None = None, town_seed: int = 0, seed: int = 0, **kwargs: object) -> World:
-    """Convenience: a world on a cached town."""
-    config = config or WorldConfig()
-    return World(cached_town(config.town, town_seed), config, seed, **kwargs)  # type: ignore[arg-type]
