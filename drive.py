@@ -5,6 +5,7 @@
   python drive.py --driver keyboard --record data/mine --episodes 3     # a window; arrows/WASD, P, R, Esc
   python drive.py --driver autopilot --evaluate --episodes 20 --seed 100 --out out/eval
   python drive.py --driver autopilot --scenario all
+  python drive.py --driver pilotnet --evaluate --episodes 10 --seed 500 --town-seed 100 --towns 5 --traffic 0
 
 Recording writes one HDF5 file per finished episode (see data/episodes.py); Ctrl-C keeps every
 finished episode and drops only the one in progress. Summarise or convert datasets with
@@ -27,10 +28,17 @@ from sim.render import LIGHTING_PRESETS
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--driver", default="autopilot", help="who drives: autopilot, keyboard, gamepad")
+    p.add_argument("--driver", default="autopilot", help="who drives: autopilot, keyboard, gamepad, pilotnet")
+    p.add_argument("--model", type=Path, default=None, help="pilotnet: model file (default data/models/pilotnet.pt)")
+    p.add_argument("--backend", default="onnx", choices=["onnx", "torch"], help="pilotnet: inference backend")
+    p.add_argument("--target-speed", type=float, default=None, help="pilotnet: cruise speed in m/s (default 7)")
     p.add_argument("--seed", type=int, default=0, help="first episode seed (traffic, start and route)")
     p.add_argument("--town-seed", type=int, default=0, help="which town to generate")
     p.add_argument("--weather", default="noon", choices=sorted(LIGHTING_PRESETS), help="lighting preset")
+    p.add_argument("--towns", type=int, default=1,
+                   help="record/evaluate: cycle episodes through this many towns, from --town-seed up")
+    p.add_argument("--weathers", type=_weather_list, default=None, metavar="A,B,..",
+                   help="record/evaluate: cycle episodes through these presets ('all' for every one)")
     p.add_argument("--traffic", type=float, default=1.0, help="traffic density multiplier (NPCs and pedestrians)")
     p.add_argument("--seconds", type=float, default=None,
                    help="longest episode, simulated seconds (default 60 for a demo drive or a recording, 180 to evaluate)")
@@ -48,7 +56,24 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--depth", action="store_true", help="record: also store depth")
     p.add_argument("--segmentation", action="store_true", help="record: also store segmentation")
     p.add_argument("--stereo", action="store_true", help="record: also store the right stereo image")
+    p.add_argument("--side-cameras", action="store_true",
+                   help="record: also store left and right side cameras (0.6 m off centre) for PilotNet training")
     return p.parse_args(argv)
+
+
+def _weather_list(text: str) -> list[str]:
+    names = sorted(LIGHTING_PRESETS) if text == "all" else [w.strip() for w in text.split(",") if w.strip()]
+    unknown = [w for w in names if w not in LIGHTING_PRESETS]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(f"unknown weather {unknown[0] if unknown else text!r}; "
+                                         f"choose from {', '.join(sorted(LIGHTING_PRESETS))} or 'all'")
+    return names
+
+
+def episode_options(args: argparse.Namespace, k: int) -> dict[str, Any]:
+    """Town and weather of the k-th recorded or evaluated episode (``--towns``, ``--weathers``)."""
+    weathers = args.weathers or [args.weather]
+    return {"town_seed": args.town_seed + k % max(1, args.towns), "weather": weathers[k % len(weathers)]}
 
 
 def make_config(args: argparse.Namespace) -> Any:
@@ -65,15 +90,24 @@ def make_config(args: argparse.Namespace) -> Any:
     seconds = args.seconds if args.seconds is not None else (180.0 if args.evaluate else 60.0)
     return DriveConfig(world=world, camera=CameraConfig(width=args.width, height=args.height),
                        town_seed=args.town_seed, weather=args.weather, max_time_s=seconds,
-                       observe_depth=args.depth, observe_segmentation=args.segmentation, observe_stereo=args.stereo)
+                       observe_depth=args.depth, observe_segmentation=args.segmentation, observe_stereo=args.stereo,
+                       observe_side_cameras=getattr(args, "side_cameras", False))
 
 
 def make_named_driver(args: argparse.Namespace) -> Any:
     from agent.drivers import make_driver
 
-    kwargs = {"noise": True, "noise_seed": args.seed} if args.noise else {}
+    kwargs: dict[str, Any] = {"noise": True, "noise_seed": args.seed} if args.noise else {}
     if args.noise and args.driver != "autopilot":
         raise ValueError("--noise is for the autopilot only.")
+    if args.driver == "pilotnet":
+        kwargs["backend"] = args.backend
+        if args.model is not None:
+            kwargs["model"] = args.model
+        if args.target_speed is not None:
+            kwargs["target_speed_mps"] = args.target_speed
+    elif args.model is not None or args.target_speed is not None:
+        raise ValueError(f"--model and --target-speed are for the pilotnet driver, not {args.driver}.")
     return make_driver(args.driver, **kwargs)
 
 
@@ -144,10 +178,12 @@ def record(args: argparse.Namespace) -> int:
     try:
         for k in tqdm(range(args.episodes), desc="recording", unit="episode", disable=human, mininterval=2.0):
             seed = args.seed + k
-            obs, info = env.reset(seed=seed)
+            options = episode_options(args, k)
+            obs, info = env.reset(seed=seed, options=options)
             driver.reset(env)
             assert env.world is not None
-            attrs = {"seed": seed, "town_seed": args.town_seed, "weather": args.weather, "driver": driver.name,
+            attrs = {"seed": seed, **options, "driver": driver.name,
+                     "side_camera_offset_m": config.side_camera_offset_m if config.observe_side_cameras else 0.0,
                      "privileged": driver.privileged, "noise": bool(args.noise), "dt_s": config.world.dt_s,
                      "camera": {"width": args.width, "height": args.height, "hfov_deg": config.camera.hfov_deg,
                                 "mount_height_m": config.camera.mount_height_m, "pitch_deg": config.camera.pitch_deg},
@@ -192,7 +228,8 @@ def evaluate(args: argparse.Namespace) -> int:
 
     out = args.out or Path("out/eval")
     config = make_config(args)
-    metrics = run(make_named_driver(args), config, args.episodes, args.seed, out, video=not args.no_video)
+    metrics = run(make_named_driver(args), config, args.episodes, args.seed, out, video=not args.no_video,
+                  options=lambda k: episode_options(args, k))
     print((out / "table.md").read_text())
     m = metrics["mean"]
     print(f"driving score {m['driving_score']:.2f}, route completion {m['route_completion']:.2f}%, "

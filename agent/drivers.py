@@ -56,3 +56,4 @@ def _load_builtin() -> None:
     """Import the modules whose drivers register themselves (lazily: pygame loads only when asked for)."""
     import agent.autopilot  # noqa: F401
     import agent.human  # noqa: F401
+    import agent.pilotnet_driver  # noqa: F401

@@ -6,6 +6,7 @@ ONNX Runtime's outputs equal torch's within a tolerance on the given example inp
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -37,7 +38,9 @@ def export_onnx(model: torch.nn.Module, example_inputs: Sequence[torch.Tensor], 
     path.parent.mkdir(parents=True, exist_ok=True)
     model = model.eval()
     dynamic = {name: {0: "batch"} for name in (*input_names, *output_names)}
-    with torch.no_grad():
+    with torch.no_grad(), warnings.catch_warnings():
+        # The TorchScript exporter is deprecated in favour of dynamo's, which needs onnxscript; it still works.
+        warnings.simplefilter("ignore", DeprecationWarning)
         torch.onnx.export(model, tuple(example_inputs), str(path), input_names=list(input_names),
                           output_names=list(output_names), dynamic_axes=dynamic, opset_version=opset,
                           dynamo=False)

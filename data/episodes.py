@@ -6,6 +6,8 @@ Layout of an episode file (``T`` steps; ``frames[t]`` is what the driver saw whe
   depth           float16 (T, H, W)     metric depth (optional)
   segmentation    int32   (T, H, W, 2)  semantic class, object id (optional)
   stereo_right    uint8   (T, H, W, 3)  right camera of the stereo pair (optional; ``frames`` is the left)
+  side_left       uint8   (T, H, W, 3)  side cameras, ``attrs['side_camera_offset_m']`` left and right of
+  side_right                            the centre camera (optional)
   actions         float32 (T, 2)        [steer, throttle_brake]
   speed           float32 (T,)          m/s
   command         int8    (T,)          0 follow, 1 left, 2 right, 3 straight
@@ -96,6 +98,9 @@ class EpisodeWriter:
             rows["segmentation"] = (np.asarray(observation["segmentation"], np.int32), True)
         if "stereo" in observation:
             rows["stereo_right"] = (np.asarray(observation["stereo"][1], np.uint8), True)
+        if "side" in observation:
+            rows["side_left"] = (np.asarray(observation["side"][0], np.uint8), True)
+            rows["side_right"] = (np.asarray(observation["side"][1], np.uint8), True)
         for key, value in truth_from_info(info).items():
             rows[f"truth/{key}"] = (np.asarray(value, np.float32).reshape(()), False)
         for name, (value, compress) in rows.items():
@@ -153,7 +158,7 @@ def read_episode(path: Path, load_frames: bool = True) -> Episode:
                          {k: f["truth"][k][()] for k in f.get("truth", {})})
             if load_frames:
                 ep.frames = f["frames"][()]
-                for name in ("depth", "segmentation", "stereo_right"):
+                for name in ("depth", "segmentation", "stereo_right", "side_left", "side_right"):
                     if name in f:
                         ep.extras[name] = f[name][()]
             return ep

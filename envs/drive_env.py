@@ -5,7 +5,9 @@ Observation (a Dict):
   ``speed``    ego speed in m/s, float32 shape (1,)
   ``command``  route command, int: 0 follow lane, 1 left, 2 right, 3 straight
   and, when asked for in ``DriveConfig``: ``depth`` (metres, float32 H x W), ``segmentation``
-  (int32 H x W x 2: semantic class, object id) and ``stereo`` (uint8 2 x H x W x 3: left, right).
+  (int32 H x W x 2: semantic class, object id), ``stereo`` (uint8 2 x H x W x 3: left, right) and
+  ``side`` (uint8 2 x H x W x 3: cameras ``side_camera_offset_m`` to the left and right of the centre one,
+  as NVIDIA's data-collection car had, for behavioural-cloning data with a steering correction).
 
 Action: Box([-1, -1], [1, 1]) = ``[steer, throttle_brake]``.
 
@@ -50,6 +52,8 @@ class DriveConfig:
     observe_depth: bool = False
     observe_segmentation: bool = False
     observe_stereo: bool = False
+    observe_side_cameras: bool = False
+    side_camera_offset_m: float = 0.6
     max_time_s: float = 180.0
     max_distance_m: float = 3000.0
     terminate_on_route_deviation: bool = True
@@ -85,6 +89,8 @@ class DriveEnv(gym.Env):
             obs["segmentation"] = spaces.Box(-1, 2**31 - 1, (cam.height, cam.width, 2), np.int32)
         if config.observe_stereo:
             obs["stereo"] = spaces.Box(0, 255, (2, cam.height, cam.width, 3), np.uint8)
+        if config.observe_side_cameras:
+            obs["side"] = spaces.Box(0, 255, (2, cam.height, cam.width, 3), np.uint8)
         self.observation_space = spaces.Dict(obs)
         self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.world: World | None = None
@@ -240,6 +246,9 @@ class DriveEnv(gym.Env):
             if cfg.observe_stereo:
                 left, right = self.renderer.render_stereo(self._pose(), cam, self.weather)
                 obs["stereo"] = np.stack([left.rgb, right.rgb])
+            if cfg.observe_side_cameras:
+                obs["side"] = np.stack([self.renderer.render(self._pose(), cam, self.weather, lateral_m=d).rgb
+                                        for d in (-cfg.side_camera_offset_m, cfg.side_camera_offset_m)])
             self.frame = self.renderer.render(self._pose(), cam, self.weather)
             obs["image"] = self.frame.rgb
             if cfg.observe_depth:
@@ -255,6 +264,8 @@ class DriveEnv(gym.Env):
                 obs["segmentation"] = np.zeros((cam.height, cam.width, 2), np.int32)
             if cfg.observe_stereo:
                 obs["stereo"] = np.zeros((2, cam.height, cam.width, 3), np.uint8)
+            if cfg.observe_side_cameras:
+                obs["side"] = np.zeros((2, cam.height, cam.width, 3), np.uint8)
         return {k: obs[k] for k in self.observation_space.spaces}
 
     def _visible_objects(self) -> list[dict[str, Any]]:

@@ -8,6 +8,7 @@ map, with a HUD). The metrics and the intervention rule are documented in ``envs
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -53,13 +54,14 @@ def draw_hud(image: np.ndarray, info: dict[str, Any], driver: str, extra: str = 
     return img
 
 
-def run_episode(env: DriveEnv, driver: Driver, seed: int, video: Any = None, progress: Any = None) -> EpisodeTrace:
+def run_episode(env: DriveEnv, driver: Driver, seed: int, video: Any = None, progress: Any = None,
+                options: dict[str, Any] | None = None) -> EpisodeTrace:
     """One evaluation episode; the safety driver intervenes by ``envs.metrics.needs_intervention``."""
-    obs, info = env.reset(seed=seed)
+    obs, info = env.reset(seed=seed, options=options)
     driver.reset(env)
     world = env.world
     assert world is not None
-    trace = EpisodeTrace(seed, world.route_total_m, world.config.dt_s)
+    trace = EpisodeTrace(seed, world.route_total_m, world.config.dt_s, town_seed=world.town.seed, weather=env.weather)
     done = False
     while not done:
         action = np.asarray(driver.act(obs), np.float32)
@@ -123,8 +125,11 @@ def plot_traces(env: DriveEnv, traces: list[EpisodeTrace], out: Path) -> list[st
     return written
 
 
-def evaluate(driver: Driver, config: DriveConfig, episodes: int, seed: int, out: Path, video: bool = True) -> dict:
-    """Run the suite, write every report file into ``out``, and return the metrics dict."""
+def evaluate(driver: Driver, config: DriveConfig, episodes: int, seed: int, out: Path, video: bool = True,
+             options: Callable[[int], dict[str, Any]] | None = None) -> dict:
+    """Run the suite, write every report file into ``out``, and return the metrics dict.
+
+    ``options(k)`` gives the k-th episode's reset options (e.g. its town and weather)."""
     config = replace(config, terminate_on_infraction=False, terminate_on_route_deviation=False)
     env = DriveEnv(config, render_mode="rgb_array")
     out.mkdir(parents=True, exist_ok=True)
@@ -136,7 +141,7 @@ def evaluate(driver: Driver, config: DriveConfig, episodes: int, seed: int, out:
             for k in range(episodes):
                 if video and k == 0:
                     writer = video_writer(out / "video.mp4", env.metadata["render_fps"])
-                trace = run_episode(env, driver, seed + k, writer, bar)
+                trace = run_episode(env, driver, seed + k, writer, bar, options(k) if options else None)
                 if writer is not None:
                     writer.close()
                     writer = None

@@ -49,6 +49,8 @@ class EpisodeTrace:
     interventions: list[float] = field(default_factory=list)  # times, seconds
     route_progress_m: float = 0.0
     distance_m: float = 0.0
+    town_seed: int = 0
+    weather: str = "noon"
 
     def add_step(self, info: dict[str, Any], action: np.ndarray) -> None:
         self.x.append(info["ego"]["x"])
@@ -86,6 +88,8 @@ def episode_metrics(trace: EpisodeTrace) -> dict[str, Any]:
     elapsed = max(trace.elapsed_s, 1e-6)
     return {
         "seed": trace.seed,
+        "town_seed": trace.town_seed,
+        "weather": trace.weather,
         "route_completion": round(completion, 3),
         "infraction_penalty": round(penalty, 6),
         "driving_score": round(completion * penalty, 3),
@@ -119,12 +123,13 @@ def aggregate(per_episode: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def markdown_table(driver: str, per_episode: list[dict[str, Any]], mean: dict[str, Any]) -> str:
-    head = ("| episode (seed) | route completion % | penalty | driving score | autonomy % | interventions "
+    head = ("| episode (seed, town, weather) | route completion % | penalty | driving score | autonomy % | interventions "
             "| mean abs offset m | mean speed m/s | infractions |")
     lines = [f"# Closed-loop evaluation: {driver}", "", head, "|" + "---|" * 9]
     for e in per_episode:
         inf = ", ".join(f"{k} {v}" for k, v in sorted(e["infractions"].items())) or "none"
-        lines.append(f"| {e['seed']} | {e['route_completion']:.1f} | {e['infraction_penalty']:.3f} | "
+        where = f"{e['seed']}, {e.get('town_seed', '')}, {e.get('weather', '')}"
+        lines.append(f"| {where} | {e['route_completion']:.1f} | {e['infraction_penalty']:.3f} | "
                      f"{e['driving_score']:.1f} | {e['autonomy']:.1f} | {e['interventions']} | "
                      f"{e['mean_abs_lane_offset_m']:.3f} | {e['mean_speed_mps']:.2f} | {inf} |")
     inf = ", ".join(f"{k} {v}" for k, v in sorted(mean["infractions"].items())) or "none"

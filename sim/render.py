@@ -556,9 +556,10 @@ class SceneRenderer:
         return eye, forward
 
     def render(self, camera_pose: tuple[float, float, float], camera: CameraConfig | None = None,
-               lighting: str = "noon") -> CameraFrame:
-        """One frame from the camera on a vehicle at ``camera_pose`` = (x, y, heading) on the map."""
-        return self._render(camera_pose, camera or CameraConfig(), lighting, 0.0)
+               lighting: str = "noon", lateral_m: float = 0.0) -> CameraFrame:
+        """One frame from the camera on a vehicle at ``camera_pose`` = (x, y, heading) on the map,
+        mounted ``lateral_m`` to the right of the centre line (negative: left)."""
+        return self._render(camera_pose, camera or CameraConfig(), lighting, lateral_m)
 
     def render_stereo(self, camera_pose: tuple[float, float, float], camera: CameraConfig | None = None,
                       lighting: str = "noon") -> tuple[CameraFrame, CameraFrame]:

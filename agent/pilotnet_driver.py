@@ -1,0 +1,96 @@
+"""The ``pilotnet`` driver: PilotNet steers from the camera frame; a PID holds a constant target speed.
+
+It sees only what a real car has: the camera frame, its own speed and the route command (the
+conditional model picks its branch with it). The speed is the seed's assumption: constant, configurable,
+with an optional slow-down while the network asks for a sharp turn. Inference runs through ONNX Runtime
+(``backend="onnx"``, the default) or torch; both load the same shipped model.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from agent.autopilot import PID
+from agent.drivers import register
+from agent.pilotnet import Crop, preprocess, to_tensor
+from sim.ego import EgoVehicle
+
+if TYPE_CHECKING:
+    from envs.drive_env import DriveEnv
+
+DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "data" / "models" / "pilotnet.pt"
+
+
+class PilotNetModel:
+    """A trained PilotNet behind one call, ``steer(rgb, command)``, on ONNX Runtime or torch."""
+
+    def __init__(self, path: str | Path = DEFAULT_MODEL, backend: str = "onnx", threads: int = 1) -> None:
+        from agent.pilotnet_training import load_model
+
+        path = Path(path)
+        model, meta = load_model(path.with_suffix(".pt"))  # metadata (conditional, crop) lives in the .pt
+        self.conditional = bool(meta["conditional"])
+        self.crop = Crop(**meta.get("crop", {}))
+        self.backend = backend
+        if backend == "onnx":
+            from agent.onnx_export import onnx_session
+
+            self.session = onnx_session(path.with_suffix(".onnx"), threads=threads)
+        elif backend == "torch":
+            import torch
+
+            torch.set_num_threads(threads)
+            self.model = model
+        else:
+            raise ValueError(f"Unknown PilotNet backend {backend!r}; use 'onnx' or 'torch'.")
+
+    def steer(self, rgb: np.ndarray, command: int) -> float:
+        x = to_tensor(preprocess(rgb, self.crop))
+        cmd = np.array([int(command)], np.int64)
+        if self.backend == "onnx":
+            feeds = {"image": x.numpy()}
+            if self.conditional:
+                feeds["command"] = cmd
+            return float(self.session.run(["steer"], feeds)[0][0, 0])
+        import torch
+
+        with torch.no_grad():
+            y = self.model(x, torch.from_numpy(cmd)) if self.conditional else self.model(x)
+        return float(y[0, 0])
+
+
+@register("pilotnet")
+class PilotNetDriver:
+    """PilotNet steering plus a PID speed loop (see module docstring)."""
+
+    name = "pilotnet"
+    privileged = False
+
+    def __init__(self, model: str | Path = DEFAULT_MODEL, backend: str = "onnx", target_speed_mps: float = 7.0,
+                 turn_slowdown: float = 0.5, threads: int = 1) -> None:
+        self.net = PilotNetModel(model, backend, threads)
+        self.target_speed = target_speed_mps
+        self.turn_slowdown = turn_slowdown
+        self.speed_pid = PID(0.6, 0.1, 0.0)
+        self.dt = 0.05
+        self.last_steer = 0.0
+
+    def reset(self, env: DriveEnv) -> None:
+        self.dt = env.config.world.dt_s
+        self.speed_pid.reset()
+        self.last_steer = 0.0
+
+    def target_speed_for(self, steer: float) -> float:
+        """The cruise speed, lowered while the network steers hard (``turn_slowdown`` 0: always constant)."""
+        return self.target_speed / (1.0 + self.turn_slowdown * 3.0 * abs(steer))
+
+    def act(self, observation: dict[str, Any]) -> np.ndarray:
+        steer = float(np.clip(self.net.steer(observation["image"], int(observation["command"])), -1.0, 1.0))
+        self.last_steer = steer
+        speed = float(observation["speed"][0])
+        accel = self.speed_pid(self.target_speed_for(steer) - speed, self.dt) * EgoVehicle.MAX_ACCEL_MPS2
+        throttle = accel / EgoVehicle.MAX_ACCEL_MPS2 if accel >= 0 else accel / EgoVehicle.MAX_BRAKE_MPS2
+        return np.array([steer, float(np.clip(throttle, -1.0, 1.0))], np.float32)

@@ -1,0 +1,256 @@
+"""Train PilotNet (behavioural cloning) on recorded episodes, export it to ONNX, and optionally run DAgger.
+
+  python train.py pilotnet --data data/episodes/autopilot --out out/pilotnet --epochs 12 --seed 0
+  python train.py pilotnet --data ... --resume                 # continue from out/pilotnet/last.pt
+  python train.py pilotnet --data ... --dagger 2               # then DAgger rounds (see agent.pilotnet_dagger)
+
+A run folder holds ``last.pt`` (every epoch, for resuming), ``best.pt`` (lowest validation loss),
+``log.csv`` and ``loss.png``. At the end the best checkpoint is written to ``--model`` (default
+``data/models/pilotnet.pt``) with its ONNX twin, checked against torch within 1e-4.
+Training is deterministic for a seed: one thread of sampling and augmentation drawn from the seed, and
+torch's generator seeded per epoch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import pickle
+import shutil
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from agent.pilotnet import DEFAULT_CROP, INPUT_HEIGHT, INPUT_WIDTH, Crop, build, parameter_count, to_tensor
+from agent.pilotnet_data import Augment, Augmenter, FrameSet, balance_weights, load_frames, split_by_episode
+from data.episodes import EpisodeError
+from sim.render import CameraConfig
+
+DEFAULT_MODEL = Path("data/models/pilotnet.pt")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data", type=Path, nargs="+", default=[Path("data/episodes/autopilot")],
+                   help="episode folders (drive.py --record output, or python -m data import-udacity output)")
+    p.add_argument("--out", type=Path, default=Path("out/pilotnet"), help="run folder: checkpoints, log.csv, loss.png")
+    p.add_argument("--model", type=Path, default=DEFAULT_MODEL, help="where the best model (.pt and .onnx) goes")
+    p.add_argument("--epochs", type=int, default=12)
+    p.add_argument("--samples-per-epoch", type=int, default=0, help="balanced draws per epoch (0: the train set size)")
+    p.add_argument("--batch", type=int, default=64)
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--validation", type=float, default=0.15, help="fraction of episodes held out for validation")
+    p.add_argument("--unconditional", action="store_true", help="plain PilotNet without the route command")
+    p.add_argument("--no-augment", action="store_true")
+    p.add_argument("--no-flip", action="store_true", help="augment without horizontal flips")
+    p.add_argument("--no-side-cameras", action="store_true", help="ignore side cameras even where recorded")
+    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    p.add_argument("--resume", action="store_true", help="continue from --out/last.pt")
+    p.add_argument("--dagger", type=int, default=0, metavar="ROUNDS", help="DAgger rounds after training")
+    p.add_argument("--dagger-episodes", type=int, default=8, help="learner episodes per DAgger round")
+    p.add_argument("--dagger-epochs", type=int, default=4, help="training epochs per DAgger round")
+
+
+# --------------------------------------------------------------------------- checkpoints
+def save_checkpoint(path: Path, model: torch.nn.Module, extra: dict[str, Any]) -> None:
+    tmp = path.with_name(path.name + ".partial")
+    torch.save({"state_dict": model.state_dict(), **extra}, tmp)
+    tmp.replace(path)
+
+
+def load_model(path: str | Path) -> tuple[torch.nn.Module, dict[str, Any]]:
+    """A PilotNet checkpoint (ours): the model in eval mode and its metadata. Errors name the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"PilotNet model {path} not found; train one with: python train.py pilotnet")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+        model = build(bool(ckpt["conditional"]))
+        model.load_state_dict(ckpt["state_dict"])
+    except (KeyError, RuntimeError, EOFError, OSError, ValueError, TypeError, pickle.UnpicklingError) as exc:
+        # a wrong shape, a truncated file, or not ours at all
+        raise ValueError(f"{path} is not a PilotNet checkpoint of this version ({exc}); retrain it with train.py.") from exc
+    return model.eval(), {k: v for k, v in ckpt.items() if k not in ("state_dict", "optimizer")}
+
+
+def export(model: torch.nn.Module, meta: dict[str, Any], pt_path: Path) -> float:
+    """Write ``pt_path`` (weights + metadata) and its ``.onnx``; return ONNX Runtime's largest difference."""
+    from agent.onnx_export import export_onnx
+
+    pt_path.parent.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(pt_path, model, meta)
+    gen = torch.Generator().manual_seed(0)
+    image = torch.rand(4, 3, INPUT_HEIGHT, INPUT_WIDTH, generator=gen) * 255.0
+    if getattr(model, "conditional", False):
+        command = torch.tensor([0, 1, 2, 3], dtype=torch.int64)
+        return export_onnx(model, [image, command], pt_path.with_suffix(".onnx"), ["image", "command"], ["steer"])
+    return export_onnx(model, [image], pt_path.with_suffix(".onnx"), ["image"], ["steer"])
+
+
+# --------------------------------------------------------------------------- training
+def predict(model: torch.nn.Module, images: np.ndarray, command: np.ndarray, batch: int = 256) -> np.ndarray:
+    out = []
+    with torch.no_grad():
+        for i in range(0, len(images), batch):
+            x = to_tensor(images[i:i + batch])
+            y = model(x, torch.from_numpy(command[i:i + batch])) if model.conditional else model(x)
+            out.append(y[:, 0].numpy())
+    return np.concatenate(out) if out else np.zeros(0, np.float32)
+
+
+def _batches(rng: np.random.Generator, train: FrameSet, weights: np.ndarray, samples: int, batch: int,
+             augmenter: Augmenter | None):
+    """Balanced draws with replacement, augmented; yields (images, commands, steer) tensors."""
+    picks = rng.choice(len(train), size=samples, p=weights)
+    for i in range(0, samples, batch):
+        idx = picks[i:i + batch]
+        imgs = np.empty((len(idx), INPUT_HEIGHT, INPUT_WIDTH, 3), np.uint8)
+        steer = np.empty(len(idx), np.float32)
+        cmd = np.empty(len(idx), np.int64)
+        for j, k in enumerate(idx):
+            if augmenter is None:
+                imgs[j], steer[j], cmd[j] = train.images[k], train.steer[k], train.command[k]
+            else:
+                imgs[j], steer[j], cmd[j] = augmenter(rng, train.images[k], float(train.steer[k]),
+                                                      float(train.speed[k]), int(train.command[k]))
+        yield to_tensor(imgs), torch.from_numpy(cmd), torch.from_numpy(steer)
+
+
+def fit(model: torch.nn.Module, train: FrameSet, val: FrameSet, args: argparse.Namespace, out: Path,
+        first_epoch: int = 0, optimizer_state: dict | None = None, best_val: float = math.inf,
+        epochs: int | None = None, meta: dict[str, Any] | None = None) -> float:
+    """Train for ``epochs`` epochs from ``first_epoch``; checkpoint every epoch; return the best val loss."""
+    epochs = args.epochs if epochs is None else epochs
+    opt = torch.optim.Adam(model.parameters(), lr=args.lr)
+    if optimizer_state:
+        opt.load_state_dict(optimizer_state)
+    total = first_epoch + epochs
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda e: 0.5 * (1 + math.cos(math.pi * min(e, total) / max(total, 1))))
+    for _ in range(first_epoch):
+        sched.step()
+    weights = balance_weights(train.steer)
+    samples = args.samples_per_epoch or len(train)
+    augmenter = None if args.no_augment else Augmenter(
+        CameraConfig(), Augment(flip_p=0.0 if args.no_flip else 0.5))
+    log_path = out / "log.csv"
+    new_log = not log_path.exists() or first_epoch == 0
+    with log_path.open("w" if new_log else "a", newline="") as fh:
+        log = csv.writer(fh)
+        if new_log:
+            log.writerow(["epoch", "train_loss", "val_loss", "val_mae", "lr", "frames_per_s", "seconds"])
+        for epoch in range(first_epoch, first_epoch + epochs):
+            rng = np.random.default_rng((args.seed, epoch))
+            torch.manual_seed(args.seed * 1000 + epoch)
+            model.train()
+            t0, losses = time.perf_counter(), []
+            bar = tqdm(_batches(rng, train, weights, samples, args.batch, augmenter), total=math.ceil(samples / args.batch),
+                       desc=f"epoch {epoch + 1}/{total}", unit="batch", mininterval=2.0, file=sys.stderr)
+            for x, cmd, y in bar:
+                pred = model(x, cmd) if model.conditional else model(x)
+                loss = torch.nn.functional.mse_loss(pred[:, 0], y)
+                opt.zero_grad()
+                loss.backward()
+                opt.step()
+                losses.append(loss.item())
+                bar.set_postfix(loss=f"{np.mean(losses[-50:]):.4f}")
+            sched.step()
+            seconds = time.perf_counter() - t0
+            model.eval()
+            val_pred = predict(model, val.images, val.command)
+            val_loss = float(np.mean((val_pred - val.steer) ** 2)) if len(val) else float("nan")
+            val_mae = float(np.mean(np.abs(val_pred - val.steer))) if len(val) else float("nan")
+            row = [epoch + 1, np.mean(losses), val_loss, val_mae, opt.param_groups[0]["lr"], samples / seconds, seconds]
+            log.writerow([f"{v:.6g}" if isinstance(v, float) else v for v in row])
+            fh.flush()
+            state = {**(meta or {}), "epoch": epoch + 1, "val_loss": val_loss, "val_mae": val_mae}
+            if val_loss < best_val or not math.isfinite(best_val):
+                best_val = val_loss
+                save_checkpoint(out / "best.pt", model, state)
+            save_checkpoint(out / "last.pt", model, {**state, "optimizer": opt.state_dict(), "best_val": best_val})
+            print(f"epoch {epoch + 1}: train {np.mean(losses):.4f} val {val_loss:.4f} (MAE {val_mae:.3f}) "
+                  f"{samples / seconds:.0f} frames/s", file=sys.stderr)
+    plot_log(log_path, out / "loss.png")
+    return best_val
+
+
+def plot_log(log_path: Path, png: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with log_path.open() as fh:
+        rows = list(csv.DictReader(fh))
+    if not rows:
+        return
+    epochs = [int(r["epoch"]) for r in rows]
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    ax.plot(epochs, [float(r["train_loss"]) for r in rows], "o-", label="train (augmented, balanced)")
+    ax.plot(epochs, [float(r["val_loss"]) for r in rows], "s-", label="validation (held-out episodes)")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("MSE of steer")
+    ax.set_yscale("log")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    ax.set_title("PilotNet training")
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        frames = load_frames(args.data, side_cameras=not args.no_side_cameras)
+    except EpisodeError as exc:
+        print(f"train.py pilotnet: {exc}", file=sys.stderr)
+        return 2
+    train, val = split_by_episode(frames, args.validation, args.seed)
+    print(f"{len(frames)} frames from {len(frames.episode_paths)} episodes: {len(train)} train, {len(val)} validation "
+          f"(split by episode)", file=sys.stderr)
+    conditional = not args.unconditional
+    meta = {"conditional": conditional, "crop": asdict(DEFAULT_CROP), "input": [INPUT_HEIGHT, INPUT_WIDTH, "YUV"],
+            "seed": args.seed, "data": [str(d) for d in args.data], "command": " ".join(["python", "train.py", *sys.argv[2:]])
+            if sys.argv[0].endswith("train.py") else "", "train_frames": len(train), "val_frames": len(val)}
+    model = build(conditional)
+    first_epoch, opt_state, best = 0, None, math.inf
+    if args.resume:
+        last = out / "last.pt"
+        if not last.is_file():
+            print(f"train.py pilotnet: nothing to resume: {last} does not exist.", file=sys.stderr)
+            return 2
+        ckpt = torch.load(last, map_location="cpu", weights_only=False)
+        model.load_state_dict(ckpt["state_dict"])
+        first_epoch, opt_state, best = int(ckpt["epoch"]), ckpt.get("optimizer"), float(ckpt.get("best_val", math.inf))
+        print(f"resuming after epoch {first_epoch} (best validation loss {best:.4f})", file=sys.stderr)
+    print(f"{'conditional ' if conditional else ''}PilotNet, {parameter_count(model):,} parameters", file=sys.stderr)
+    remaining = max(0, args.epochs - first_epoch)
+    if remaining:
+        fit(model, train, val, args, out, first_epoch, opt_state, best, remaining, meta)
+    best_model, best_meta = load_model(out / "best.pt")
+    if args.dagger:
+        from agent.pilotnet_dagger import dagger
+
+        best_model, best_meta = dagger(best_model, best_meta, frames, args, out)
+    diff = export(best_model, best_meta, args.model)
+    shutil.copy(out / "log.csv", args.model.with_suffix(".log.csv"))
+    summary = {"model": str(args.model), "onnx": str(args.model.with_suffix(".onnx")), "onnx_max_abs_diff": diff,
+               "val_loss": best_meta.get("val_loss"), "val_mae": best_meta.get("val_mae"), "epoch": best_meta.get("epoch")}
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+__all__ = ["add_arguments", "run", "load_model", "export", "predict", "fit", "Crop"]

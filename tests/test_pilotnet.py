@@ -1,0 +1,146 @@
+"""PilotNet: the paper's architecture, the shared preprocessing, label geometry, data handling, training,
+export and the driver."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from agent.pilotnet import ConditionalPilotNet, PilotNet, build, parameter_count, preprocess, to_tensor
+from agent.pilotnet_data import (
+    MIRRORED_COMMAND,
+    Augment,
+    Augmenter,
+    FrameSet,
+    ViewpointWarp,
+    balance_weights,
+    corrected_steer,
+    split_by_episode,
+)
+from sim.render import CameraConfig
+
+
+def test_pilotnet_has_the_papers_layers_and_parameter_count():
+    model = PilotNet()
+    # conv 24, 36, 48 (5x5, stride 2), 64, 64 (3x3); fc 100, 50, 10, 1; no 1164-unit layer
+    convs = [m for m in model.modules() if isinstance(m, torch.nn.Conv2d)]
+    assert [(c.out_channels, c.kernel_size, c.stride) for c in convs] == [
+        (24, (5, 5), (2, 2)), (36, (5, 5), (2, 2)), (48, (5, 5), (2, 2)), (64, (3, 3), (1, 1)), (64, (3, 3), (1, 1))]
+    fcs = [m for m in model.modules() if isinstance(m, torch.nn.Linear)]
+    assert [(f.in_features, f.out_features) for f in fcs] == [(1152, 100), (100, 50), (50, 10), (10, 1)]
+    assert parameter_count(model) == 252_219
+    assert model(torch.zeros(2, 3, 66, 200)).shape == (2, 1)
+
+
+def test_conditional_variant_selects_a_branch_per_command():
+    torch.manual_seed(0)
+    model = ConditionalPilotNet().eval()
+    x = torch.rand(1, 3, 66, 200).repeat(4, 1, 1, 1) * 255
+    out = model(x, torch.arange(4))[:, 0]
+    assert len(set(out.tolist())) == 4  # same image, four commands, four different branches
+    assert parameter_count(model) < 300_000
+
+
+def test_normalisation_is_fixed_inside_the_network():
+    model = PilotNet()
+    assert not any(p.requires_grad for p in model.features[0].parameters())
+    assert float(model.features[0](torch.tensor([0.0, 255.0]))[0]) == pytest.approx(-1.0)
+
+
+def test_preprocess_crops_resizes_and_converts_to_yuv():
+    rgb = np.zeros((160, 320, 3), np.uint8)
+    rgb[:64] = (0, 0, 255)  # "sky": blue above the crop line
+    rgb[64:] = (255, 0, 0)  # red road
+    yuv = preprocess(rgb)
+    assert yuv.shape == (66, 200, 3) and yuv.dtype == np.uint8
+    # everything kept is the red part: Y of pure red is about 76, V (Cr) high
+    assert abs(int(yuv[..., 0].mean()) - 76) <= 2 and yuv[..., 2].min() > 200
+    assert to_tensor(yuv).shape == (1, 3, 66, 200)
+    with pytest.raises(ValueError, match="uint8 RGB"):
+        preprocess(rgb.astype(np.float32))
+
+
+def test_corrected_steer_brings_the_car_back_in_two_seconds():
+    # shifted right (positive) -> steer left (more negative); turned right -> steer left too
+    assert corrected_steer(0.0, 0.5, 0.0, 8.0) < 0 < corrected_steer(0.0, -0.5, 0.0, 8.0)
+    assert corrected_steer(0.0, 0.0, 0.05, 8.0) < 0
+    assert corrected_steer(0.2, 0.0, 0.0, 8.0) == pytest.approx(0.2, abs=1e-6)
+    # arc geometry: the offset closes over 16 m: curvature 2 x 0.5 / 16^2, wheel angle atan(k x 4.6)
+    expected = -np.arctan(2 * 0.5 / 16.0**2 * 4.6) / 0.6
+    assert corrected_steer(0.0, 0.5, 0.0, 8.0) == pytest.approx(expected, rel=1e-5)
+
+
+def test_viewpoint_warp_reproduces_a_side_camera(town):
+    """The flat-world re-projection of the centre frame matches a camera really rendered 0.6 m to the side."""
+    from sim.render import SceneRenderer
+
+    renderer = SceneRenderer(town, seed=town.seed)
+    try:
+        x, y, heading = _pose_on_a_lane(town)
+        cam = CameraConfig()
+        centre = preprocess(renderer.render((x, y, heading), cam).rgb)
+        side = preprocess(renderer.render((x, y, heading), cam, lateral_m=0.6).rgb)
+    finally:
+        renderer.close()
+    warped = ViewpointWarp(cam)(centre, 0.6, 0.0)
+    road = slice(30, 66)  # the ground part of the image, where the flat-world model holds
+    err_warped = np.abs(warped[road].astype(int) - side[road]).mean()
+    err_plain = np.abs(centre[road].astype(int) - side[road]).mean()
+    assert err_warped < 2.0 and err_warped < 0.2 * err_plain
+
+
+def _pose_on_a_lane(town) -> tuple[float, float, float]:
+    lane = next(town.lane(index) for index in town.road_lanes() if town.lane(index).length > 60)
+    pos = lane.position(20.0, 0.0)
+    return float(pos[0]), float(pos[1]), float(lane.heading_at(20.0))
+
+
+def test_augmenter_flips_mirror_the_command_and_negate_steering():
+    rng = np.random.default_rng(0)
+    img = np.random.default_rng(1).integers(0, 255, (66, 200, 3), dtype=np.uint8)
+    aug = Augmenter(CameraConfig(), Augment(viewpoint_p=0.0, flip_p=1.0, brightness=(1.0, 1.0), shadow_p=0.0))
+    out, steer, command = aug(rng, img, 0.3, 8.0, 1)
+    assert steer == pytest.approx(-0.3) and command == 2 and np.array_equal(out, img[:, ::-1])
+    assert list(MIRRORED_COMMAND) == [0, 2, 1, 3]
+
+
+def test_balancing_flattens_the_steering_histogram():
+    rng = np.random.default_rng(0)
+    steer = np.concatenate([rng.normal(0, 0.02, 9000), rng.uniform(-0.8, 0.8, 1000)]).astype(np.float32)
+    w = balance_weights(steer)
+    straight = np.abs(steer) < 0.05
+    assert straight.mean() > 0.85 and w[straight].sum() < 0.5
+
+
+def test_split_is_by_episode():
+    n = 40
+    frames = FrameSet(np.zeros((n, 66, 200, 3), np.uint8), np.zeros(n, np.float32), np.ones(n, np.float32),
+                      np.zeros(n, np.int64), np.repeat(np.arange(8), 5), [None] * 8)  # type: ignore[list-item]
+    train, val = split_by_episode(frames, 0.25, seed=3)
+    assert len(val) == 10 and not set(train.episode) & set(val.episode)
+
+
+def test_onnx_export_matches_torch(tmp_path):
+    from agent.pilotnet_training import export, load_model
+
+    torch.manual_seed(0)
+    model = build(conditional=True).eval()
+    diff = export(model, {"conditional": True, "crop": {"top": 0.4, "bottom": 1.0}}, tmp_path / "p.pt")
+    assert diff <= 1e-4
+    loaded, meta = load_model(tmp_path / "p.pt")
+    assert meta["conditional"] is True
+    x = torch.rand(2, 3, 66, 200) * 255
+    c = torch.tensor([1, 3])
+    assert torch.equal(loaded(x, c), model(x, c))
+
+
+def test_loading_a_wrong_file_is_one_clear_error(tmp_path):
+    from agent.pilotnet_training import load_model
+
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="bad.pt is not a PilotNet checkpoint"):
+        load_model(bad)
+    with pytest.raises(FileNotFoundError, match="train one with"):
+        load_model(tmp_path / "missing.pt")
