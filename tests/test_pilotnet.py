@@ -144,3 +144,53 @@ def test_loading_a_wrong_file_is_one_clear_error(tmp_path):
         load_model(bad)
     with pytest.raises(FileNotFoundError, match="train one with"):
         load_model(tmp_path / "missing.pt")
+
+
+@pytest.fixture(scope="module")
+def tiny_dataset(tmp_path_factory):
+    """Two short autopilot episodes with side cameras, recorded by drive.py."""
+    import drive
+
+    folder = tmp_path_factory.mktemp("episodes")
+    assert drive.main(["--record", str(folder), "--episodes", "2", "--seconds", "4", "--side-cameras", "--noise",
+                       "--traffic", "0", "--width", "160", "--height", "80"]) == 0
+    return folder
+
+
+def test_side_cameras_load_with_corrected_labels(tiny_dataset):
+    from agent.pilotnet_data import load_frames
+
+    with_side = load_frames([tiny_dataset])
+    centre = load_frames([tiny_dataset], side_cameras=False)
+    assert len(with_side) == 3 * len(centre) > 0
+    first = with_side.steer[with_side.episode == 0].reshape(3, -1)  # centre, left camera, right camera
+    assert np.all(first[1] > first[0]) and np.all(first[2] < first[0])  # left camera steers right, and vice versa
+
+
+def _train(folder, out, *extra):
+    import train
+
+    return train.main(["pilotnet", "--data", str(folder), "--out", str(out), "--model", str(out / "m.pt"),
+                       "--samples-per-epoch", "96", "--batch", "32", "--threads", "1", "--validation", "0.5",
+                       "--seed", "7", *extra])
+
+
+def test_training_is_deterministic_resumable_and_exports(tiny_dataset, tmp_path):
+    from agent.pilotnet_training import load_model
+
+    assert _train(tiny_dataset, tmp_path / "a", "--epochs", "2") == 0
+    assert _train(tiny_dataset, tmp_path / "b", "--epochs", "1") == 0
+    assert _train(tiny_dataset, tmp_path / "b", "--epochs", "2", "--resume") == 0
+    a, _ = load_model(tmp_path / "a" / "last.pt")
+    b, _ = load_model(tmp_path / "b" / "last.pt")
+    for (name, pa), (_, pb) in zip(a.state_dict().items(), b.state_dict().items(), strict=True):
+        assert torch.equal(pa, pb), name
+    for name in ("log.csv", "loss.png", "best.pt", "m.onnx", "summary.json"):
+        assert (tmp_path / "a" / name).exists() or (tmp_path / "a" / "m.onnx").exists(), name
+    rows = (tmp_path / "b" / "log.csv").read_text().strip().splitlines()
+    assert len(rows) == 3  # header + two epochs, across the resume
+
+
+def test_training_on_a_missing_folder_is_one_clear_error(tmp_path, capsys):
+    assert _train(tmp_path / "nothing", tmp_path / "out", "--epochs", "1") == 2
+    assert "no such dataset folder" in capsys.readouterr().err

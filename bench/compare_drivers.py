@@ -1,0 +1,75 @@
+"""Closed-loop comparison of drivers on the same seeded routes: one table, one row per driver.
+
+Each driver runs ``envs.evaluation.evaluate`` on the same episodes (seed, town and weather per episode),
+with the safety driver of ``envs.metrics``. The defaults are the PilotNet issue's held-out test: towns
+100-104 (never used for training), every weather preset, no traffic.
+
+  python bench/compare_drivers.py --drivers autopilot pilotnet --episodes 10 --traffic 0
+  python bench/compare_drivers.py --drivers autopilot pilotnet --traffic 1 --out out/compare_traffic
+
+Per-driver reports (metrics.json, table.md, plots, the first episode's video) go to ``--out/<driver>``,
+the comparison to ``--out/table.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from agent.drivers import make_driver  # noqa: E402
+from envs.drive_env import DriveConfig  # noqa: E402
+from envs.evaluation import evaluate  # noqa: E402
+from sim.render import LIGHTING_PRESETS  # noqa: E402
+from sim.world import WorldConfig  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--drivers", nargs="+", default=["autopilot", "pilotnet"])
+    ap.add_argument("--episodes", type=int, default=10)
+    ap.add_argument("--seed", type=int, default=500)
+    ap.add_argument("--town-seed", type=int, default=100)
+    ap.add_argument("--towns", type=int, default=5)
+    ap.add_argument("--weathers", default="all", help="comma-separated presets or 'all'")
+    ap.add_argument("--traffic", type=float, default=0.0, help="NPC and pedestrian density (0: empty town)")
+    ap.add_argument("--seconds", type=float, default=120.0, help="time limit per episode")
+    ap.add_argument("--video", action="store_true", help="also write each driver's first-episode video")
+    ap.add_argument("--out", type=Path, default=Path("out/compare"))
+    args = ap.parse_args(argv)
+    weathers = sorted(LIGHTING_PRESETS) if args.weathers == "all" else args.weathers.split(",")
+    base = WorldConfig()
+    world = replace(base, npc_count=round(base.npc_count * args.traffic),
+                    pedestrian_count=round(base.pedestrian_count * args.traffic))
+    config = DriveConfig(world=world, max_time_s=args.seconds)
+
+    def options(k: int) -> dict:
+        return {"town_seed": args.town_seed + k % args.towns, "weather": weathers[k % len(weathers)]}
+
+    rows = []
+    for name in args.drivers:
+        t0 = time.perf_counter()
+        metrics = evaluate(make_driver(name), config, args.episodes, args.seed, args.out / name, video=args.video,
+                           options=options)
+        m = metrics["mean"]
+        inf = ", ".join(f"{k} {v}" for k, v in sorted(m["infractions"].items())) or "none"
+        rows.append(f"| {name} | {m['route_completion']:.1f} | {m['driving_score']:.1f} | {m['autonomy']:.2f} | "
+                    f"{m['interventions']} | {m['mean_abs_lane_offset_m']:.3f} | {m['mean_speed_mps']:.2f} | "
+                    f"{m['distance_km']:.2f} | {inf} | {time.perf_counter() - t0:.0f} |")
+    head = [f"Towns {args.town_seed}-{args.town_seed + args.towns - 1}, seeds {args.seed}-{args.seed + args.episodes - 1}, "
+            f"weathers {', '.join(weathers)}, traffic x{args.traffic:g}, {args.seconds:g} s per episode", "",
+            "| driver | route completion % | driving score | autonomy % | interventions | mean abs lane offset m "
+            "| mean speed m/s | km | infractions | wall s |", "|" + "---|" * 10]
+    table = "\n".join(head + rows) + "\n"
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "table.md").write_text(table)
+    print(table)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
