@@ -1,0 +1,384 @@
+"""Auto-labelling: 2D detection boxes from the renderer's segmentation map, checked against 3D ground truth.
+
+The segmentation map says which pixels belong to which object, but not how much of an object is hidden
+behind another or cut off by the image border. So each object's 3D box (from its ``ObjectSnapshot``, or
+the light's housing) is projected into the image as well:
+
+* **truncation**: the share of the projected box that falls inside the image;
+* **occlusion**: within the projected box, pixels that show something *nearer* than the object's nearest
+  face are occluded; ``visible / (visible + occluded)`` is the visible fraction. Pixels that show
+  something behind the object (the background between a pedestrian's legs) count as neither.
+
+An object becomes a label when it is visible enough, inside the image enough and large enough; otherwise it
+becomes an *ignore* region: neither a positive nor a negative for training, and detections on it are not
+counted as false positives in evaluation (KITTI's "don't care"). Traffic lights are labelled with their state
+(``light_red`` / ``light_yellow`` / ``light_green``) when their lamps face the camera. Lights seen from the
+side are ignored; lights seen from behind show no lamps and stay background, so that the detector learns not
+to report a state it cannot see.
+
+The box of a label is the bounding box of the object's *visible* pixels, clipped to the image.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from sim.objects import LIGHT_ID_BASE, LightState, ObjectSnapshot, SemanticClass
+from sim.render import CameraConfig, SceneRenderer
+from sim.scene_meshes import HOUSING_HALF, SURFACE_RAISED, Z_SLAB, to_world
+from sim.town import Town
+
+CLASSES: tuple[str, ...] = ("car", "truck", "pedestrian", "light_red", "light_yellow", "light_green")
+LIGHT_CLASSES: tuple[str, ...] = CLASSES[3:]
+STATE_OF_CLASS = {"light_red": "red", "light_yellow": "yellow", "light_green": "green"}
+_KIND_CLASS = {SemanticClass.CAR: 0, SemanticClass.TRUCK: 1, SemanticClass.PEDESTRIAN: 2}
+_STATE_CLASS = {LightState.RED: 3, LightState.YELLOW: 4, LightState.GREEN: 5}
+
+
+@dataclass(frozen=True)
+class LabelRules:
+    """Thresholds that decide label, ignore or nothing. Defaults are the dataset's."""
+
+    min_visible_fraction: float = 0.4  # of the unoccluded part inside the image
+    min_in_image_fraction: float = 0.3  # of the box's horizontal and vertical view angles (truncation)
+    min_height_px: int = 6  # KITTI's "moderate" 25 px at 1242 wide, scaled to 320: a car at 40 m is 6 px tall
+    min_width_px: int = 2
+    min_pixels: int = 10
+    occluder_margin_m: float = 0.3  # something nearer than the nearest face by this much occludes
+    light_facing_deg: float = 60.0  # lamps within this angle of the camera: labelled with state
+    light_side_deg: float = 110.0  # between facing and this: ignored; beyond it (seen from behind): background
+
+
+@dataclass(frozen=True)
+class ObjectLabel:
+    """One object in one frame, with everything the evaluation needs to slice results."""
+
+    cls: int  # index into CLASSES
+    box: tuple[int, int, int, int]  # x0, y0, x1, y1 in pixels, x1/y1 exclusive
+    object_id: int
+    distance_m: float  # camera to the object's centre, on the ground plane
+    visible_fraction: float
+    in_image_fraction: float
+    ignore: bool  # True: a "don't care" region, not a training target
+    reason: str = ""  # why it is ignored
+
+    @property
+    def name(self) -> str:
+        return CLASSES[self.cls]
+
+    def yolo_line(self, width: int, height: int) -> str:
+        """``cls cx cy w h``, normalised to the image size (the YOLO label format)."""
+        x0, y0, x1, y1 = self.box
+        return (f"{self.cls} {(x0 + x1) / 2 / width:.6f} {(y0 + y1) / 2 / height:.6f} "
+                f"{(x1 - x0) / width:.6f} {(y1 - y0) / height:.6f}")
+
+    def as_dict(self) -> dict:
+        return {"cls": self.cls, "name": self.name, "box": list(self.box), "id": self.object_id,
+                "distance_m": round(self.distance_m, 2), "visible": round(self.visible_fraction, 3),
+                "in_image": round(self.in_image_fraction, 3), "ignore": self.ignore, "reason": self.reason}
+
+
+# --------------------------------------------------------------------------- geometry
+@dataclass(frozen=True)
+class CameraPose:
+    """Camera eye and axes in pybullet's world frame (z up), as the renderer uses them."""
+
+    eye: np.ndarray
+    forward: np.ndarray
+    right: np.ndarray
+    down: np.ndarray
+    camera: CameraConfig
+
+    @classmethod
+    def of(cls, renderer: SceneRenderer, vehicle_pose: tuple[float, float, float], camera: CameraConfig) -> CameraPose:
+        eye, forward = renderer.camera_position(vehicle_pose, camera)
+        norm = math.hypot(forward[0], forward[1])
+        right = np.array([forward[1] / norm, -forward[0] / norm, 0.0])
+        down = np.cross(forward, right)
+        return cls(np.asarray(eye, float), np.asarray(forward, float), right, down, camera)
+
+    def to_camera(self, points_world: np.ndarray) -> np.ndarray:
+        """N x 3 world points -> N x 3 camera coordinates (x right, y down, z forward)."""
+        rel = points_world - self.eye
+        return np.stack([rel @ self.right, rel @ self.down, rel @ self.forward], axis=1)
+
+    def project(self, points_cam: np.ndarray) -> np.ndarray:
+        k = self.camera.intrinsics()
+        return np.stack([k[0, 0] * points_cam[:, 0] / points_cam[:, 2] + k[0, 2],
+                         k[1, 1] * points_cam[:, 1] / points_cam[:, 2] + k[1, 2]], axis=1)
+
+    def ground_distance(self, x: float, y: float) -> float:
+        """Distance on the ground from the camera to map point (x, y)."""
+        return math.hypot(x - self.eye[0], -y - self.eye[1])
+
+
+_EDGES = [(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7)]
+
+
+def box_corners(x: float, y: float, heading: float, length: float, width: float, z0: float, z1: float) -> np.ndarray:
+    """8 world-frame (z-up) corners of an oriented box standing on map point (x, y)."""
+    c, s = math.cos(heading), math.sin(heading)
+    local = np.array([[0.5, 0.5], [0.5, -0.5], [-0.5, -0.5], [-0.5, 0.5]]) * [length, width]
+    mx = x + local[:, 0] * c - local[:, 1] * s
+    my = y + local[:, 0] * s + local[:, 1] * c
+    bottom = np.stack([to_world(a, b, z0) for a, b in zip(mx, my, strict=True)])
+    top = np.stack([to_world(a, b, z1) for a, b in zip(mx, my, strict=True)])
+    return np.concatenate([bottom, top])
+
+
+def projected_hull(pose: CameraPose, corners_world: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """Image polygon of a 3D box clipped to the near plane, and the box's nearest z-depth (None if behind)."""
+    cam = pose.to_camera(corners_world)
+    near = pose.camera.near_m
+    pts = [cam[k] for k in range(8) if cam[k, 2] >= near]
+    for a, b in _EDGES:  # where an edge crosses the near plane, its crossing point is a vertex of the clipped box
+        za, zb = cam[a, 2], cam[b, 2]
+        if (za - near) * (zb - near) < 0:
+            t = (near - za) / (zb - za)
+            pts.append(cam[a] + t * (cam[b] - cam[a]))
+    if len(pts) < 3:
+        return None
+    pts_arr = np.array(pts)
+    uv = pose.project(pts_arr)
+    hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2)
+    return hull, float(pts_arr[:, 2].min())
+
+
+def in_view_fraction(pose: CameraPose, corners_world: np.ndarray) -> float:
+    """Share of a box's horizontal view angle times share of its vertical view angle that the image covers.
+
+    Angles, not projected areas: a car beside the camera projects to an enormous area near the near
+    plane, which would call it 99% truncated while half of it fills the image.
+    """
+    cam = pose.to_camera(corners_world)
+    cfg = pose.camera
+    k = cfg.intrinsics()
+    centre = cam.mean(axis=0)
+    az0 = math.atan2(centre[0], centre[2])  # angles about the centre's direction, so a box behind does not wrap
+    az = az0 + np.remainder(np.arctan2(cam[:, 0], cam[:, 2]) - az0 + np.pi, 2 * np.pi) - np.pi
+    el = np.arctan2(cam[:, 1], np.hypot(cam[:, 0], cam[:, 2]))  # positive down, like image rows
+    half_h = math.atan((cfg.width / 2) / k[0, 0])
+    top, bottom = math.atan((0 - k[1, 2]) / k[1, 1]), math.atan((cfg.height - k[1, 2]) / k[1, 1])
+
+    def share(lo: float, hi: float, view_lo: float, view_hi: float) -> float:
+        return max(0.0, min(hi, view_hi) - max(lo, view_lo)) / max(hi - lo, 1e-9)
+
+    return share(float(az.min()), float(az.max()), -half_h, half_h) * share(float(el.min()), float(el.max()), top, bottom)
+
+
+# --------------------------------------------------------------------------- labelling
+def _object_boxes(ids: np.ndarray) -> dict[int, tuple[int, int, int, int, int]]:
+    """object id -> (x0, y0, x1, y1, pixel count) of its visible pixels (ids > 0 only)."""
+    flat = np.flatnonzero(ids.ravel() > 0)
+    if len(flat) == 0:
+        return {}
+    vals = ids.ravel()[flat]
+    order = np.argsort(vals, kind="stable")
+    flat, vals = flat[order], vals[order]
+    starts = np.flatnonzero(np.r_[True, vals[1:] != vals[:-1]])
+    w = ids.shape[1]
+    rows, cols = flat // w, flat % w
+    x0, x1 = np.minimum.reduceat(cols, starts), np.maximum.reduceat(cols, starts)
+    y0, y1 = np.minimum.reduceat(rows, starts), np.maximum.reduceat(rows, starts)
+    counts = np.diff(np.r_[starts, len(vals)])
+    return {int(v): (int(a), int(b), int(c) + 1, int(d) + 1, int(n))
+            for v, a, b, c, d, n in zip(vals[starts], x0, y0, x1, y1, counts, strict=True)}
+
+
+def _pedestrian_base(renderer: SceneRenderer, x: float, y: float) -> float:
+    """Pedestrians on a raised surface (sidewalk, park) stand on it, as the renderer places them."""
+    surface = renderer.ground_map.lookup(np.array([x]), np.array([y]))
+    return Z_SLAB if bool(SURFACE_RAISED[surface][0]) else 0.0
+
+
+def label_frame(segmentation: np.ndarray, depth_m: np.ndarray, pose: CameraPose, renderer: SceneRenderer,
+                snapshots: list[ObjectSnapshot], town: Town, light_states: list[LightState],
+                rules: LabelRules | None = None) -> list[ObjectLabel]:
+    """Labels (and ignore regions) for every car, truck, pedestrian and traffic light with visible pixels."""
+    rules = rules or LabelRules()
+    h, w = segmentation.shape[:2]
+    ids = segmentation[..., 1]
+    boxes = _object_boxes(ids)
+    snaps = {s.object_id: s for s in snapshots}
+    out: list[ObjectLabel] = []
+    for oid, (x0, y0, x1, y1, count) in boxes.items():
+        reason = ""
+        if oid >= LIGHT_ID_BASE:
+            ap = town.approaches[oid - LIGHT_ID_BASE]
+            hx, hy, hz = HOUSING_HALF
+            zc = Town.LIGHT_HEAD_HEIGHT_M
+            corners = box_corners(float(ap.light_head[0]), float(ap.light_head[1]), ap.travel_heading + math.pi,
+                                  2 * hx, 2 * hy, zc - hz, zc + hz)
+            cx, cy = float(ap.light_head[0]), float(ap.light_head[1])
+            face = ap.travel_heading + math.pi  # the lamps look at the oncoming traffic
+            to_cam = math.atan2(-pose.eye[1] - cy, pose.eye[0] - cx)  # map frame: world y flipped back
+            angle = abs(math.degrees(math.remainder(to_cam - face, 2 * math.pi)))
+            if angle > rules.light_side_deg:
+                continue  # seen from behind: no lamps, no state; background
+            cls = _STATE_CLASS[LightState(light_states[ap.index])]
+            if angle > rules.light_facing_deg:
+                reason = "side view"
+            elif not np.any((ids[y0:y1, x0:x1] == oid)
+                            & (segmentation[y0:y1, x0:x1, 0] == int(SemanticClass.TRAFFIC_LAMP))):
+                reason = "lamps hidden"
+        elif oid in snaps:
+            s = snaps[oid]
+            cls = _KIND_CLASS.get(SemanticClass(s.kind))
+            if cls is None:
+                continue
+            base = _pedestrian_base(renderer, s.x, s.y) if s.kind == SemanticClass.PEDESTRIAN else 0.0
+            corners = box_corners(s.x, s.y, s.heading, s.length_m, s.width_m, base, base + s.height_m)
+            cx, cy = s.x, s.y
+        else:
+            continue
+        hull = projected_hull(pose, corners)
+        in_image, visible = in_view_fraction(pose, corners), 1.0
+        if hull is not None:
+            poly, z_near = hull
+            mask = np.zeros((h, w), np.uint8)
+            cv2.fillConvexPoly(mask, np.round(poly * 16).astype(np.int32), 1, lineType=cv2.LINE_8, shift=4)
+            inside = mask.astype(bool)
+            occluded = int(np.count_nonzero(inside & (ids != oid) & (depth_m < z_near - rules.occluder_margin_m)))
+            visible = count / max(count + occluded, 1)
+        bw, bh = x1 - x0, y1 - y0
+        if not reason:
+            if visible < rules.min_visible_fraction:
+                reason = "occluded"
+            elif in_image < rules.min_in_image_fraction:
+                reason = "truncated"
+            elif bh < rules.min_height_px or bw < rules.min_width_px or count < rules.min_pixels:
+                reason = "small"
+        out.append(ObjectLabel(cls, (x0, y0, x1, y1), oid, pose.ground_distance(cx, cy), visible, in_image,
+                               bool(reason), reason))
+    return out
+
+
+def render_and_label(renderer: SceneRenderer, world, camera: CameraConfig, weather: str,
+                     rules: LabelRules | None = None):  # -> tuple[CameraFrame, list[ObjectLabel]]
+    """Render the ego camera's frame of ``world`` (a ``sim.world.World``) and label it."""
+    x, y, heading = float(world.ego.position[0]), float(world.ego.position[1]), float(world.ego.heading)
+    renderer.sync(world.object_snapshots(), world.lights.states, view=(x, y, heading, camera.hfov_deg, camera.far_m))
+    frame = renderer.render((x, y, heading), camera, weather)
+    pose = CameraPose.of(renderer, (x, y, heading), camera)
+    labels = label_frame(frame.segmentation, frame.depth_m, pose, renderer, world.object_snapshots(), world.town,
+                         world.lights.states, rules)
+    return frame, labels
+
+
+# --------------------------------------------------------------------------- dataset generation
+WEATHERS: tuple[str, ...] = ("noon", "dusk", "overcast", "night")
+
+
+@dataclass(frozen=True)
+class SplitSpec:
+    """Which towns and weathers one split is drawn from, and how many frames."""
+
+    name: str
+    town_seeds: tuple[int, ...]
+    weathers: tuple[str, ...]
+    frames: int
+    frames_per_episode: int = 40
+
+
+def default_splits(train_frames: int = 6000, val_frames: int = 1200, test_frames: int = 1200) -> list[SplitSpec]:
+    """Training towns 0-29; validation (checkpoint choice) towns 100-109; test (the reported figures) towns
+    200-209. Neither held-out set shares a town with training; all four weathers are in each."""
+    return [SplitSpec("train", tuple(range(30)), WEATHERS, train_frames),
+            SplitSpec("val", tuple(range(100, 110)), WEATHERS, val_frames),
+            SplitSpec("test", tuple(range(200, 210)), WEATHERS, test_frames)]
+
+
+def generate_split(root, spec: SplitSpec, seed: int, progress: bool = True) -> dict:
+    """Drive the autopilot through ``spec``'s towns and weathers and write sampled frames in the YOLO layout.
+
+    The env steps without pictures (fast); only sampled frames are rendered, by this function's own
+    renderer, with segmentation and depth for the labels. Frames are sampled every 0.4-1.25 s of driving;
+    while the car stands still most samples are skipped, so a long red light does not fill the set with
+    copies. Returns counts per class (labels and ignore regions).
+    """
+    import json
+    from pathlib import Path
+
+    from tqdm import tqdm
+
+    from agent.drivers import make_driver
+    from envs.drive_env import DriveConfig, DriveEnv
+
+    root = Path(root)
+    img_dir, lab_dir = root / "images" / spec.name, root / "labels" / spec.name
+    img_dir.mkdir(parents=True, exist_ok=True)
+    lab_dir.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng((seed, sum(map(ord, spec.name))))
+    env = DriveEnv(DriveConfig(render_camera=False, terminate_on_route_deviation=False, terminate_on_infraction=True))
+    camera = env.config.camera
+    renderer: SceneRenderer | None = None
+    renderer_town: int | None = None
+    counts = {"frames": 0, "labels": dict.fromkeys(CLASSES, 0), "ignored": dict.fromkeys(CLASSES, 0)}
+    index = 0
+    episode = 0
+    bar = tqdm(total=spec.frames, desc=f"dataset {spec.name}", unit="frame", disable=not progress)
+    with open(root / f"{spec.name}_meta.jsonl", "w") as meta:
+        while index < spec.frames:
+            town_seed = spec.town_seeds[episode % len(spec.town_seeds)]
+            weather = spec.weathers[(episode // len(spec.town_seeds) + episode) % len(spec.weathers)]
+            density = float(rng.uniform(1.0, 2.2))
+            obs, _ = env.reset(seed=int(rng.integers(2**31 - 1)),
+                               options={"town_seed": town_seed, "weather": weather, "traffic_density": density})
+            world = env.world
+            assert world is not None
+            if renderer is None or renderer_town != id(world.town):
+                if renderer is not None:
+                    renderer.close()
+                renderer, renderer_town = SceneRenderer(world.town, seed=world.town.seed), id(world.town)
+            driver = make_driver("autopilot")
+            driver.reset(env)
+            next_sample = int(rng.integers(10, 40))
+            taken, step, stopped_before = 0, 0, False
+            while taken < spec.frames_per_episode and index < spec.frames and step < 4000:
+                obs, _, terminated, truncated, _ = env.step(driver.act(obs))
+                step += 1
+                if terminated or truncated:
+                    break
+                if step < next_sample:
+                    continue
+                next_sample = step + int(rng.integers(8, 26))
+                stopped = world.ego.speed < 0.3
+                if stopped and stopped_before and rng.random() < 0.75:
+                    continue
+                stopped_before = stopped
+                frame, labels = render_and_label(renderer, world, camera, weather)
+                name = f"{spec.name}_{index:06d}"
+                cv2.imwrite(str(img_dir / f"{name}.png"), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
+                kept = [lab for lab in labels if not lab.ignore]
+                (lab_dir / f"{name}.txt").write_text("".join(lab.yolo_line(camera.width, camera.height) + "\n"
+                                                             for lab in kept))
+                meta.write(json.dumps({"image": f"images/{spec.name}/{name}.png", "town_seed": town_seed,
+                                       "weather": weather, "time_s": round(world.time_s, 2),
+                                       "objects": [lab.as_dict() for lab in labels]}) + "\n")
+                for lab in labels:
+                    counts["ignored" if lab.ignore else "labels"][lab.name] += 1
+                index += 1
+                taken += 1
+                counts["frames"] += 1
+                bar.update(1)
+            episode += 1
+    bar.close()
+    if renderer is not None:
+        renderer.close()
+    env.close()
+    return counts
+
+
+def write_dataset_yaml(root) -> None:
+    """The dataset YAML any YOLO tool reads (ultralytics' layout: path, train, val, names), written by hand:
+    it is five keys, not worth a YAML dependency."""
+    from pathlib import Path
+
+    root = Path(root)
+    lines = [f"path: {root.resolve()}", "train: images/train", "val: images/val", "test: images/test", "names:"]
+    lines += [f"  {k}: {name}" for k, name in enumerate(CLASSES)]
+    (root / "dataset.yaml").write_text("\n".join(lines) + "\n")

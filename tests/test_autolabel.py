@@ -1,0 +1,81 @@
+"""Auto-labelling: boxes of a known object in a rendered frame, occlusion, truncation, YOLO lines."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from agent.autolabel import CLASSES, CameraPose, box_corners, in_view_fraction, projected_hull, render_and_label
+from sim.objects import SemanticClass
+from sim.render import CameraConfig, SceneRenderer
+from sim.world import World, WorldConfig
+
+
+def scene(town, ahead_m: tuple[float, ...], kinds: tuple[SemanticClass, ...]):
+    """An empty world (no traffic, no people) with vehicles placed ahead of the ego in its own lane."""
+    world = World(town, WorldConfig(npc_count=0, pedestrian_count=0), seed=5, spawn_traffic=False)
+    lane_index, s_ego = world.ego_lane[0], world.ego_lane[1]
+    for d, kind in zip(ahead_m, kinds, strict=True):
+        assert world.spawn_npc(lane_index, s_ego + d, kind=kind, color=(0.8, 0.1, 0.1)) is not None
+    return world
+
+
+@pytest.fixture(scope="module")
+def renderer(town):
+    r = SceneRenderer(town, seed=town.seed)
+    yield r
+    r.close()
+
+
+def test_known_car_gets_a_tight_full_label(town, renderer):
+    world = scene(town, (15.0,), (SemanticClass.CAR,))
+    camera = CameraConfig()
+    frame, labels = render_and_label(renderer, world, camera, "noon")
+    cars = [lab for lab in labels if lab.name == "car"]
+    assert len(cars) == 1
+    car = cars[0]
+    assert not car.ignore and car.visible_fraction > 0.95 and car.in_image_fraction == pytest.approx(1.0)
+    # The camera is 1 m ahead of the ego's centre: the car's centre is ~14 m from it.
+    assert car.distance_m == pytest.approx(14.0, abs=0.5)
+    # Its box is exactly the bounding box of its segmentation pixels...
+    ys, xs = np.nonzero(frame.segmentation[..., 1] == car.object_id)
+    assert car.box == (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1)
+    # ...and agrees with the projection of its 3D box (a car body fills most of its bounding box).
+    snap = next(s for s in world.object_snapshots() if s.object_id == car.object_id)
+    pose = CameraPose.of(renderer, (*world.ego.position, world.ego.heading), camera)
+    hull, _ = projected_hull(pose, box_corners(snap.x, snap.y, snap.heading, snap.length_m, snap.width_m, 0.0,
+                                               snap.height_m))
+    x0, y0 = hull.min(axis=0)
+    x1, y1 = hull.max(axis=0)
+    assert abs(car.box[0] - x0) < 3 and abs(car.box[2] - x1) < 3 and abs(car.box[3] - y1) < 3
+    assert car.box[1] >= y0 - 1  # the cabin is narrower than the box, so the top may sit lower
+    line = car.yolo_line(camera.width, camera.height).split()
+    assert int(line[0]) == CLASSES.index("car")
+    cx, cy, w, h = map(float, line[1:])
+    assert cx == pytest.approx((car.box[0] + car.box[2]) / 2 / camera.width, abs=1e-5)
+    assert w == pytest.approx((car.box[2] - car.box[0]) / camera.width, abs=1e-5)
+    assert 0 < cy < 1 and 0 < h < 1
+
+
+def test_car_hidden_behind_a_truck_is_ignored_as_occluded(town, renderer):
+    world = scene(town, (9.0, 22.0), (SemanticClass.TRUCK, SemanticClass.CAR))
+    _, labels = render_and_label(renderer, world, CameraConfig(), "dusk")
+    by_name = {lab.name: lab for lab in labels}
+    assert not by_name["truck"].ignore
+    if "car" in by_name:  # a sliver may show; then it must be an ignore region, never a training target
+        assert by_name["car"].ignore and by_name["car"].reason == "occluded"
+        assert by_name["car"].visible_fraction < 0.4
+
+
+def test_in_view_fraction_measures_truncation_by_angle(renderer):
+    camera = CameraConfig()
+    pose = CameraPose.of(renderer, (0.0, 0.0, 0.0), camera)  # looking along +x of the map
+    ahead = box_corners(20.0, 0.0, 0.0, 4.0, 2.0, 0.0, 1.5)
+    assert in_view_fraction(pose, ahead) == pytest.approx(1.0)
+    # Centred on the left edge of a 90 degree view (45 degrees to the left, map y up is negative):
+    edge = box_corners(20.0 * math.cos(math.pi / 4), -20.0 * math.sin(math.pi / 4), math.pi / 4, 6.0, 2.0, 0.0, 1.5)
+    assert 0.3 < in_view_fraction(pose, edge) < 0.7
+    behind = box_corners(-10.0, 0.0, 0.0, 4.0, 2.0, 0.0, 1.5)
+    assert in_view_fraction(pose, behind) == 0.0
