@@ -13,6 +13,7 @@ import sys
 # subcommand -> module with add_arguments(parser) and run(args)
 SUBCOMMANDS: dict[str, str] = {
     "pilotnet": "agent.pilotnet_training",
+    "detector": "agent.detector_training",
 }
 
 

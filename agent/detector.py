@@ -1,0 +1,248 @@
+"""A small one-stage YOLO-style detector in plain PyTorch, its decoding, NMS and ONNX Runtime inference.
+
+Why this shape: the camera is 320x160 and the CPU must run it in well under 15 ms, so the backbone is a
+plain stack of 3x3 conv-BN-ReLU layers (what ONNX Runtime's CPU kernels run fastest) down to stride 16,
+with a top-down path that brings stride-16 context to the stride-8 map, where the small things live
+(a pedestrian at 40 m is 2x7 pixels, a traffic light 3x8). Two anchor-free grid heads predict per cell:
+objectness, one score per class and a box (centre offset in cells as in YOLOv5, ``2 sigmoid - 0.5``, and
+width and height as ``exp`` times the stride). Scores are ``objectness x class probability``. NMS is
+OpenCV's ``NMSBoxesBatched`` within class groups (car and truck share one, the three light states
+another), so one object is never reported both as a red and a green light.
+
+The ONNX model contains the decoding: its one output is ``N x cells x (4 + 1 + classes)`` with boxes in
+pixels (x0, y0, x1, y1), so ONNX Runtime's caller only has to threshold and run NMS.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from agent.autolabel import CLASSES
+
+STRIDES = (8, 16)
+INPUT_HW = (160, 320)
+# Class groups for NMS: the same object cannot be two classes of one group.
+NMS_GROUP = {"car": 0, "truck": 0, "pedestrian": 1, "light_red": 2, "light_yellow": 2, "light_green": 2}
+
+
+def conv(c_in: int, c_out: int, stride: int = 1, k: int = 3) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(c_in, c_out, k, stride, k // 2, bias=False), nn.BatchNorm2d(c_out),
+                         nn.ReLU(inplace=True))
+
+
+class Residual(nn.Module):
+    """Two 3x3 convs with a skip: depth without the vanishing gradients of a plain stack."""
+
+    def __init__(self, c: int) -> None:
+        super().__init__()
+        self.body = nn.Sequential(conv(c, c), nn.Conv2d(c, c, 3, 1, 1, bias=False), nn.BatchNorm2d(c))
+        self.act = nn.ReLU(inplace=True)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.act(x + self.body(x))
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    width: int = 32  # channels at stride 4; doubled at each stride
+    num_classes: int = len(CLASSES)
+
+
+class Detector(nn.Module):
+    """Input: float RGB N x 3 x 160 x 320 in [0, 1]. ``forward`` returns raw head maps; ``decode`` boxes."""
+
+    def __init__(self, config: DetectorConfig | None = None) -> None:
+        super().__init__()
+        self.config = config or DetectorConfig()
+        c = self.config.width
+        nc = self.config.num_classes
+        self.stem = nn.Sequential(conv(3, c // 2, 2), conv(c // 2, c, 2))  # stride 4
+        self.s8 = nn.Sequential(conv(c, 2 * c, 2), Residual(2 * c))
+        self.s16 = nn.Sequential(conv(2 * c, 4 * c, 2), Residual(4 * c))
+        self.lateral = conv(4 * c, 2 * c, k=1)
+        self.up = nn.Upsample(scale_factor=2, mode="nearest")
+        self.fuse8 = nn.Sequential(conv(4 * c, 2 * c, k=1), conv(2 * c, 2 * c))
+        self.head8 = nn.Conv2d(2 * c, 5 + nc, 1)
+        self.head16 = nn.Conv2d(4 * c, 5 + nc, 1)
+        self._init_bias()
+
+    def _init_bias(self) -> None:
+        """Objectness starts near 0.01 and classes near 0.05 (RetinaNet's prior), so early losses are sane."""
+        for head in (self.head8, self.head16):
+            with torch.no_grad():
+                head.bias.zero_()
+                head.bias[4] = -4.6
+                head.bias[5:] = -3.0
+
+    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+        f4 = self.stem(x)
+        f8 = self.s8(f4)
+        f16 = self.s16(f8)
+        p8 = self.fuse8(torch.cat([f8, self.up(self.lateral(f16))], 1))
+        return [self.head8(p8), self.head16(f16)]
+
+
+def grids(height: int = INPUT_HW[0], width: int = INPUT_HW[1]) -> list[tuple[np.ndarray, int]]:
+    """Per stride: cell (col, row) coordinates, flattened in the head's row-major order."""
+    out = []
+    for s in STRIDES:
+        gy, gx = np.meshgrid(np.arange(height // s), np.arange(width // s), indexing="ij")
+        out.append((np.stack([gx.ravel(), gy.ravel()], 1).astype(np.float32), s))
+    return out
+
+
+def decode(maps: list[torch.Tensor]) -> torch.Tensor:
+    """Raw head maps -> N x cells x (x0, y0, x1, y1, objectness, class probabilities...), boxes in pixels."""
+    outs = []
+    for m, stride in zip(maps, STRIDES, strict=True):
+        n, ch, h, w = m.shape
+        t = m.permute(0, 2, 3, 1).reshape(n, h * w, ch)
+        gy, gx = torch.meshgrid(torch.arange(h, dtype=m.dtype), torch.arange(w, dtype=m.dtype), indexing="ij")
+        grid = torch.stack([gx.reshape(-1), gy.reshape(-1)], 1)
+        xy = (torch.sigmoid(t[..., :2]) * 2 - 0.5 + grid) * stride
+        wh = torch.exp(t[..., 2:4].clamp(-6, 6)) * stride
+        boxes = torch.cat([xy - wh / 2, xy + wh / 2], -1)
+        outs.append(torch.cat([boxes, torch.sigmoid(t[..., 4:])], -1))
+    return torch.cat(outs, 1)
+
+
+class DecodedDetector(nn.Module):
+    """Network plus decoding, as exported to ONNX: uint8-free float input, one output tensor."""
+
+    def __init__(self, net: Detector) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return decode(self.net(x))
+
+
+# --------------------------------------------------------------------------- post-processing
+@dataclass(frozen=True)
+class Detection:
+    box: tuple[float, float, float, float]  # x0, y0, x1, y1 in pixels
+    cls: int
+    score: float
+
+    @property
+    def name(self) -> str:
+        return CLASSES[self.cls]
+
+
+def postprocess(pred: np.ndarray, score_threshold: float = 0.3, iou_threshold: float = 0.5,
+                max_detections: int = 100) -> list[Detection]:
+    """One image's decoded cells (cells x (4 + 1 + C)) -> detections after per-group NMS (OpenCV)."""
+    import cv2
+
+    obj = pred[:, 4:5]
+    scores_all = obj * pred[:, 5:]
+    cls = scores_all.argmax(1)
+    score = scores_all[np.arange(len(cls)), cls]
+    keep = np.flatnonzero(score >= score_threshold)
+    if len(keep) == 0:
+        return []
+    if len(keep) > 2000:
+        keep = keep[np.argsort(-score[keep])[:2000]]
+    boxes = pred[keep, :4]
+    xywh = np.stack([boxes[:, 0], boxes[:, 1], boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]], 1)
+    groups = np.array([NMS_GROUP[CLASSES[c]] for c in cls[keep]], np.int32)
+    idx = cv2.dnn.NMSBoxesBatched(xywh.tolist(), score[keep].astype(float).tolist(), groups.tolist(),
+                                  float(score_threshold), float(iou_threshold))
+    idx = np.asarray(idx, dtype=np.int64).reshape(-1)
+    idx = idx[np.argsort(-score[keep][idx])][:max_detections]
+    return [Detection(tuple(float(v) for v in boxes[i]), int(cls[keep][i]), float(score[keep][i])) for i in idx]
+
+
+def nms_numpy(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float) -> np.ndarray:
+    """Greedy NMS in numpy (the reference the OpenCV path is tested against); returns kept indices."""
+    order = np.argsort(-scores)
+    keep = []
+    while len(order):
+        i = order[0]
+        keep.append(i)
+        rest = order[1:]
+        iou = box_iou(boxes[i:i + 1], boxes[rest])[0]
+        order = rest[iou <= iou_threshold]
+    return np.array(keep, dtype=np.int64)
+
+
+def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """IoU matrix of two box arrays (x0, y0, x1, y1)."""
+    lt = np.maximum(a[:, None, :2], b[None, :, :2])
+    rb = np.minimum(a[:, None, 2:], b[None, :, 2:])
+    inter = np.prod(np.clip(rb - lt, 0, None), axis=2)
+    area_a = np.prod(a[:, 2:] - a[:, :2], axis=1)
+    area_b = np.prod(b[:, 2:] - b[:, :2], axis=1)
+    return inter / np.maximum(area_a[:, None] + area_b[None, :] - inter, 1e-9)
+
+
+def to_input(rgb: np.ndarray) -> np.ndarray:
+    """uint8 H x W x 3 RGB (160 x 320) -> float32 1 x 3 x H x W in [0, 1]."""
+    if rgb.shape != (*INPUT_HW, 3):
+        raise ValueError(f"The detector takes {INPUT_HW[1]}x{INPUT_HW[0]} RGB frames; got shape {rgb.shape}. "
+                         "Use the default CameraConfig (320x160) or resize the frame.")
+    return np.ascontiguousarray(rgb.transpose(2, 0, 1)[None], dtype=np.float32) / np.float32(255.0)
+
+
+# --------------------------------------------------------------------------- checkpoints and inference
+def load_detector(path: str | Path) -> Detector:
+    """A trained detector from a checkpoint written by ``train.py detector train``."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"Detector checkpoint {path} not found; train one with `python train.py detector train`.")
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
+        raise ValueError(f"{path} is not a detector checkpoint (no state_dict); retrain with train.py detector train.")
+    if tuple(ckpt.get("classes", ())) != CLASSES:
+        raise ValueError(f"{path} was trained for classes {ckpt.get('classes')}, not {CLASSES}; retrain it.")
+    model = Detector(DetectorConfig(**ckpt.get("config", {})))
+    model.load_state_dict(ckpt["state_dict"])
+    return model.eval()
+
+
+class TorchDetector:
+    """Frames in, detections out, with torch."""
+
+    def __init__(self, path: str | Path = "data/models/detector.pt", score_threshold: float = 0.3) -> None:
+        self.model = DecodedDetector(load_detector(path)).eval()
+        self.score_threshold = score_threshold
+
+    def raw(self, rgb: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return self.model(torch.from_numpy(to_input(rgb)))[0].numpy()
+
+    def __call__(self, rgb: np.ndarray) -> list[Detection]:
+        return postprocess(self.raw(rgb), self.score_threshold)
+
+
+class OnnxDetector:
+    """Frames in, detections out, through ONNX Runtime (the deployment path)."""
+
+    def __init__(self, path: str | Path = "data/models/detector.onnx", score_threshold: float = 0.3,
+                 threads: int = 0) -> None:
+        from agent.onnx_export import onnx_session
+
+        self.session = onnx_session(path, threads)
+        self.input_name = self.session.get_inputs()[0].name
+        self.score_threshold = score_threshold
+
+    def raw(self, rgb: np.ndarray) -> np.ndarray:
+        return self.session.run(None, {self.input_name: to_input(rgb)})[0][0]
+
+    def __call__(self, rgb: np.ndarray) -> list[Detection]:
+        return postprocess(self.raw(rgb), self.score_threshold)
+
+
+def export_detector(checkpoint: str | Path, out: str | Path, tolerance: float = 1e-4) -> float:
+    """Write the decoded detector to ONNX; returns ONNX Runtime's largest difference from torch."""
+    from agent.onnx_export import export_onnx
+
+    model = DecodedDetector(load_detector(checkpoint)).eval()
+    gen = torch.Generator().manual_seed(0)
+    example = torch.rand(2, 3, *INPUT_HW, generator=gen)
+    return export_onnx(model, [example], out, ["image"], ["detections"], tolerance=tolerance)

@@ -1,0 +1,282 @@
+"""Training of the YOLO-style detector: augmentation, target assignment, the YOLO loss, EMA, best checkpoint.
+
+Target assignment follows YOLOv5: a ground-truth box is given to the cell holding its centre and to the
+two neighbouring cells nearest to the centre (the ``2 sigmoid - 0.5`` offsets reach them), on the stride-8
+map when its longer side is at most 64 px and on the stride-16 map when it is at least 32 px (both in
+between). Smaller boxes overwrite larger ones in shared cells. Cells whose centre lies in an ignore
+region get no objectness loss. Loss: ``1 - GIoU`` for boxes, BCE for objectness (stride-8 weighted 4x, as
+YOLOv5 weights P3) and BCE for classes, in YOLOv5's proportions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import math
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from agent.autolabel import CLASSES
+from agent.detector import INPUT_HW, STRIDES, DecodedDetector, Detector, DetectorConfig, postprocess
+from agent.detector_eval import Sample, detection_report, load_split, read_rgb
+
+LOSS_WEIGHTS = {"box": 0.05, "obj": 0.2, "cls": 0.04}
+OBJ_BALANCE = (4.0, 1.0)
+
+
+# --------------------------------------------------------------------------- augmentation
+def augment(img: np.ndarray, boxes: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Flip, scale, translate and HSV-jitter one frame and its boxes (all objects, labels and ignores).
+
+    Returns the image, the boxes clipped to it, and which boxes survive (at least 40% of their area stays
+    in the frame and they stay 2 px wide and tall; the others become ignore regions). The hue jitter is kept
+    to a few degrees: a light's state *is* its hue.
+    """
+    h, w = img.shape[:2]
+    boxes = boxes.copy()
+    if rng.random() < 0.5:
+        img = img[:, ::-1]
+        boxes[:, [0, 2]] = w - boxes[:, [2, 0]]
+    scale = float(rng.uniform(0.75, 1.3))
+    tx, ty = float(rng.uniform(-0.1, 0.1) * w), float(rng.uniform(-0.1, 0.1) * h)
+    m = np.array([[scale, 0, (1 - scale) * w / 2 + tx], [0, scale, (1 - scale) * h / 2 + ty]], np.float32)
+    img = cv2.warpAffine(np.ascontiguousarray(img), m, (w, h), flags=cv2.INTER_LINEAR, borderValue=(114, 114, 114))
+    area0 = np.prod(boxes[:, 2:] - boxes[:, :2], axis=1) * scale * scale
+    boxes = boxes * scale + np.array([m[0, 2], m[1, 2], m[0, 2], m[1, 2]], np.float32)
+    boxes[:, [0, 2]] = boxes[:, [0, 2]].clip(0, w)
+    boxes[:, [1, 3]] = boxes[:, [1, 3]].clip(0, h)
+    wh = boxes[:, 2:] - boxes[:, :2]
+    ok = (np.prod(wh, axis=1) >= 0.4 * area0) & (wh.min(axis=1) >= 2) if len(boxes) else np.zeros(0, bool)
+    # HSV jitter (YOLOv5's gains: hue 0.015, saturation 0.7, value 0.4), on a lookup table.
+    gains = rng.uniform(-1, 1, 3) * np.array([0.015, 0.6, 0.4]) + 1
+    hue, sat, val = cv2.split(cv2.cvtColor(img, cv2.COLOR_RGB2HSV))
+    x = np.arange(256, dtype=np.float32)
+    lut_h = ((x * gains[0]) % 180).astype(np.uint8)
+    lut_s = np.clip(x * gains[1], 0, 255).astype(np.uint8)
+    lut_v = np.clip(x * gains[2], 0, 255).astype(np.uint8)
+    hsv = cv2.merge((cv2.LUT(hue, lut_h), cv2.LUT(sat, lut_s), cv2.LUT(val, lut_v)))
+    return cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB), boxes, ok
+
+
+# --------------------------------------------------------------------------- targets and loss
+def build_targets(boxes: np.ndarray, cls: np.ndarray, ignore: np.ndarray) -> list[dict[str, np.ndarray]]:
+    """Per stride: positive cells with their box and class, and the objectness weight of every cell."""
+    h, w = INPUT_HW
+    out = []
+    for level, s in enumerate(STRIDES):
+        gh, gw = h // s, w // s
+        weight = np.ones((gh, gw), np.float32)
+        owner = -np.ones((gh, gw), np.int64)
+        for b in boxes[ignore]:  # cells centred in an ignore region: no objectness loss
+            c0, c1 = int(np.floor(b[0] / s - 0.5)) + 1, int(np.ceil(b[2] / s - 0.5))
+            r0, r1 = int(np.floor(b[1] / s - 0.5)) + 1, int(np.ceil(b[3] / s - 0.5))
+            cx, cy = int((b[0] + b[2]) / 2 / s), int((b[1] + b[3]) / 2 / s)
+            weight[max(0, r0):max(0, r1), max(0, c0):max(0, c1)] = 0.0
+            weight[min(cy, gh - 1), min(cx, gw - 1)] = 0.0
+        keep = np.flatnonzero(~ignore)
+        sides = np.max(boxes[keep, 2:] - boxes[keep, :2], axis=1) if len(keep) else np.zeros(0)
+        take = keep[(sides <= 64) if level == 0 else (sides >= 32)]
+        areas = np.prod(boxes[take, 2:] - boxes[take, :2], axis=1)
+        for k in take[np.argsort(-areas)]:  # large first, so small ones overwrite shared cells
+            b = boxes[k]
+            gx, gy = (b[0] + b[2]) / 2 / s, (b[1] + b[3]) / 2 / s
+            ci, cj = min(int(gx), gw - 1), min(int(gy), gh - 1)
+            cells = [(ci, cj), (ci - 1 if gx - ci < 0.5 else ci + 1, cj), (ci, cj - 1 if gy - cj < 0.5 else cj + 1)]
+            for i, j in cells:
+                if 0 <= i < gw and 0 <= j < gh:
+                    owner[j, i] = k
+        pos = np.flatnonzero(owner.ravel() >= 0)
+        own = owner.ravel()[pos]
+        weight.ravel()[pos] = 1.0
+        out.append({"pos": pos, "box": boxes[own].astype(np.float32), "cls": cls[own], "weight": weight.ravel()})
+    return out
+
+
+def giou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Generalised IoU of paired boxes (x0, y0, x1, y1)."""
+    lt, rb = torch.max(a[:, :2], b[:, :2]), torch.min(a[:, 2:], b[:, 2:])
+    inter = (rb - lt).clamp(min=0).prod(1)
+    area_a, area_b = (a[:, 2:] - a[:, :2]).prod(1), (b[:, 2:] - b[:, :2]).prod(1)
+    union = area_a + area_b - inter
+    iou = inter / union.clamp(min=1e-9)
+    hull = (torch.max(a[:, 2:], b[:, 2:]) - torch.min(a[:, :2], b[:, :2])).clamp(min=0).prod(1)
+    return iou - (hull - union) / hull.clamp(min=1e-9)
+
+
+def yolo_loss(maps: list[torch.Tensor], targets: list[list[dict[str, np.ndarray]]]) -> tuple[torch.Tensor, dict]:
+    """The YOLO loss family over a batch; ``targets[image][level]`` from ``build_targets``."""
+    bce = torch.nn.functional.binary_cross_entropy_with_logits
+    nc = len(CLASSES)
+    lbox, lcls, lobj = maps[0].new_zeros(()), maps[0].new_zeros(()), maps[0].new_zeros(())
+    n_pos = 0
+    for level, (m, s) in enumerate(zip(maps, STRIDES, strict=True)):
+        n, ch, gh, gw = m.shape
+        t = m.permute(0, 2, 3, 1).reshape(n, gh * gw, ch)
+        weight = torch.from_numpy(np.stack([tg[level]["weight"] for tg in targets]))
+        obj_target = torch.zeros(n, gh * gw)
+        img_idx = np.concatenate([np.full(len(tg[level]["pos"]), i) for i, tg in enumerate(targets)])
+        pos = np.concatenate([tg[level]["pos"] for tg in targets])
+        if len(pos):
+            ii, pp = torch.from_numpy(img_idx.astype(np.int64)), torch.from_numpy(pos.astype(np.int64))
+            tbox = torch.from_numpy(np.concatenate([tg[level]["box"] for tg in targets]))
+            tcls = torch.from_numpy(np.concatenate([tg[level]["cls"] for tg in targets]).astype(np.int64))
+            p = t[ii, pp]
+            grid = torch.stack([pp % gw, pp // gw], 1).float()
+            xy = (torch.sigmoid(p[:, :2]) * 2 - 0.5 + grid) * s
+            wh = torch.exp(p[:, 2:4].clamp(-6, 6)) * s
+            pbox = torch.cat([xy - wh / 2, xy + wh / 2], 1)
+            lbox = lbox + (1 - giou(pbox, tbox)).sum()
+            onehot = torch.nn.functional.one_hot(tcls, nc).float()
+            lcls = lcls + bce(p[:, 5:], onehot, reduction="sum") / nc
+            obj_target[ii, pp] = 1.0
+            n_pos += len(pos)
+        lobj = lobj + OBJ_BALANCE[level] * (bce(t[..., 4], obj_target, reduction="none") * weight).mean()
+    n_pos = max(n_pos, 1)
+    parts = {"box": lbox / n_pos, "obj": lobj, "cls": lcls / n_pos}
+    total = sum(LOSS_WEIGHTS[k] * v for k, v in parts.items()) * len(targets)
+    return total, {k: float(v.detach()) for k, v in parts.items()}
+
+
+# --------------------------------------------------------------------------- data
+def load_images(samples: list[Sample], desc: str) -> np.ndarray:
+    return np.stack([read_rgb(s.image) for s in tqdm(samples, desc=f"load {desc}", unit="frame", leave=False)])
+
+
+def make_batch(images: np.ndarray, samples: list[Sample], idx: np.ndarray, rng: np.random.Generator | None):
+    """Images as a float tensor and per-image targets, augmented when ``rng`` is given."""
+    xs, tgs = [], []
+    for k in idx:
+        s = samples[k]
+        img, boxes, ignore = images[k], s.boxes, s.ignore.copy()
+        if rng is not None:
+            img, boxes, ok = augment(img, boxes, rng)
+            ignore = ignore | ~ok
+        xs.append(img.transpose(2, 0, 1))
+        tgs.append(build_targets(boxes, s.cls, ignore))
+    x = torch.from_numpy(np.ascontiguousarray(np.stack(xs))).float().div_(255.0)
+    return x, tgs
+
+
+class EMA:
+    """Exponential moving average of weights (YOLOv5's ModelEMA): steadier evaluations and checkpoints."""
+
+    def __init__(self, model: torch.nn.Module, decay: float = 0.999, tau: float = 1000.0) -> None:
+        self.model = copy.deepcopy(model).eval()
+        self.decay, self.tau, self.updates = decay, tau, 0
+        for p in self.model.parameters():
+            p.requires_grad_(False)
+
+    def update(self, model: torch.nn.Module) -> None:
+        self.updates += 1
+        d = self.decay * (1 - math.exp(-self.updates / self.tau))
+        with torch.no_grad():
+            src = model.state_dict()
+            for k, v in self.model.state_dict().items():
+                if v.dtype.is_floating_point:
+                    v.mul_(d).add_(src[k].detach(), alpha=1 - d)
+                else:
+                    v.copy_(src[k])
+
+
+def evaluate_model(model: Detector, images: np.ndarray, samples: list[Sample]) -> dict:
+    """Detection report of a model on preloaded images (batched torch inference, score threshold 0.01)."""
+    dec = DecodedDetector(model).eval()
+    dets = []
+    with torch.no_grad():
+        for i in range(0, len(samples), 32):
+            x = torch.from_numpy(np.ascontiguousarray(images[i:i + 32].transpose(0, 3, 1, 2))).float().div_(255.0)
+            for row in dec(x).numpy():
+                dets.append(postprocess(row, 0.01))
+    return detection_report(samples, dets)
+
+
+def save_checkpoint(path: Path, model: Detector, meta: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {k: v.clone() for k, v in model.state_dict().items()}
+    tmp = path.with_suffix(".tmp")
+    torch.save({"state_dict": state, "config": {"width": model.config.width, "num_classes": model.config.num_classes},
+                "classes": CLASSES, "input_hw": INPUT_HW, **meta}, tmp)
+    tmp.replace(path)
+
+
+# --------------------------------------------------------------------------- training
+def train(args: argparse.Namespace) -> int:
+    """``train.py detector train``: AdamW, cosine schedule, EMA, best checkpoint by val mAP@0.5."""
+    torch.manual_seed(args.seed)
+    torch.set_num_threads(max(1, args.threads))
+    rng = np.random.default_rng(args.seed)
+    train_s, val_s = load_split(args.data, "train"), load_split(args.data, "val")
+    train_x, val_x = load_images(train_s, "train"), load_images(val_s, "val")
+    model = Detector(DetectorConfig())
+    if args.resume:
+        model.load_state_dict(torch.load(args.resume, map_location="cpu", weights_only=False)["state_dict"])
+    ema = EMA(model)
+    decay, no_decay = [], []
+    for name, p in model.named_parameters():
+        (no_decay if p.ndim <= 1 or name.endswith(".bias") else decay).append(p)
+    opt = torch.optim.AdamW([{"params": decay, "weight_decay": 5e-4}, {"params": no_decay, "weight_decay": 0.0}],
+                            lr=args.lr)
+    steps_per_epoch = len(train_s) // args.batch
+    total = steps_per_epoch * args.epochs
+    warmup = min(300, total // 10)
+    out = Path(args.out)
+    log_path = out.with_suffix(".log.jsonl")
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    best, t0, step = -1.0, time.perf_counter(), 0
+    history = []
+    print(f"train {len(train_s)} frames, val {len(val_s)} frames, {steps_per_epoch} steps/epoch, "
+          f"{sum(p.numel() for p in model.parameters())} parameters, {torch.get_num_threads()} thread(s)")
+    stop = False
+    for epoch in range(args.epochs):
+        model.train()
+        order = rng.permutation(len(train_s))
+        bar = tqdm(range(steps_per_epoch), desc=f"epoch {epoch + 1}/{args.epochs}", unit="batch")
+        run = {"box": 0.0, "obj": 0.0, "cls": 0.0}
+        for b in bar:
+            lr = args.lr * (step / max(warmup, 1) if step < warmup
+                            else 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * (step - warmup) / max(total - warmup, 1))))
+            for g in opt.param_groups:
+                g["lr"] = lr
+            x, tgs = make_batch(train_x, train_s, order[b * args.batch:(b + 1) * args.batch], rng)
+            loss, parts = yolo_loss(model(x), tgs)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+            opt.step()
+            ema.update(model)
+            step += 1
+            for k in run:
+                run[k] = 0.9 * run[k] + 0.1 * parts[k] if b else parts[k]
+            bar.set_postfix(box=f"{run['box']:.3f}", obj=f"{run['obj']:.4f}", cls=f"{run['cls']:.3f}", lr=f"{lr:.1e}")
+            if args.time_limit_min and time.perf_counter() - t0 > args.time_limit_min * 60:
+                stop = True
+                break
+        bar.close()
+        rep = evaluate_model(ema.model, val_x, val_s)
+        score = rep["map50"]
+        entry = {"epoch": epoch + 1, "steps": step, "minutes": round((time.perf_counter() - t0) / 60, 2),
+                 "val_map50": round(score, 4), "val_map50_95": round(rep["map50_95"], 4),
+                 "val_ap50": {k: round(v["ap50"], 4) for k, v in rep["per_class"].items()},
+                 "val_within_40m_ap50": {k: round(v["ap50"], 4) for k, v in rep["within_40m"].items()},
+                 "loss": {k: round(v, 4) for k, v in run.items()}}
+        history.append(entry)
+        with open(log_path, "a") as f:
+            f.write(json.dumps(entry) + "\n")
+        msg = "  ".join(f"{k} {v:.3f}" for k, v in entry["val_ap50"].items())
+        print(f"epoch {epoch + 1}: val mAP@0.5 {score:.3f}, mAP@0.5:0.95 {rep['map50_95']:.3f} | {msg}")
+        if score > best:
+            best = score
+            save_checkpoint(out, ema.model, {"epoch": epoch + 1, "val_map50": score, "seed": args.seed,
+                                             "command": "train.py detector train", "args": vars(args) | {"run": None}})
+            print(f"  best so far: saved {out}")
+        if stop:
+            print(f"Time limit of {args.time_limit_min} min reached after {step} steps.")
+            break
+    print(f"Training took {(time.perf_counter() - t0) / 60:.1f} min; best val mAP@0.5 {best:.3f} -> {out}")
+    return 0

@@ -1,0 +1,145 @@
+"""Detector: auto-labelled dataset, training, evaluation and ONNX export (``train.py detector ACTION``).
+
+Actions, in the order a new user runs them:
+
+  dataset   drive the autopilot through many towns and weathers and write YOLO-layout labelled frames
+  train     train the YOLO-style detector (agent/detector.py), keep the best checkpoint by val mAP@0.5
+  evaluate  per-class AP@0.5 and AP@0.5:0.95 on the held-out towns, cars/pedestrians within 40 m,
+            traffic-light state against the HSV baseline, accuracy against distance
+  export    write the ONNX model, check it against torch, run it through ONNX Runtime
+  sheet     draw the ONNX model's detections on held-out dusk and night frames (docs/detections_sheet.png)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+DEFAULT_DATA = "data/datasets/detector"
+DEFAULT_CKPT = "data/models/detector.pt"
+DEFAULT_ONNX = "data/models/detector.onnx"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="action", required=True, metavar="{dataset,train,evaluate,export,sheet}")
+    p = sub.add_parser("dataset", help="generate the auto-labelled YOLO dataset")
+    p.add_argument("--out", default=DEFAULT_DATA, help="dataset root (images/, labels/, dataset.yaml)")
+    p.add_argument("--train-frames", type=int, default=6000)
+    p.add_argument("--val-frames", type=int, default=1200)
+    p.add_argument("--test-frames", type=int, default=1200)
+    p.add_argument("--splits", default="train,val,test", help="which splits to (re)generate, comma-separated")
+    p.add_argument("--seed", type=int, default=0)
+
+    p = sub.add_parser("train", help="train the detector on a generated dataset")
+    p.add_argument("--data", default=DEFAULT_DATA)
+    p.add_argument("--out", default=DEFAULT_CKPT, help="best checkpoint (by val mAP@0.5)")
+    p.add_argument("--epochs", type=int, default=30)
+    p.add_argument("--batch", type=int, default=32)
+    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    p.add_argument("--time-limit-min", type=float, default=0.0, help="stop after this many minutes (0: no limit)")
+    p.add_argument("--resume", default="", help="continue from this checkpoint's weights")
+
+    p = sub.add_parser("evaluate", help="AP per class, light state vs HSV baseline, on the held-out split")
+    p.add_argument("--data", default=DEFAULT_DATA)
+    p.add_argument("--model", default=DEFAULT_CKPT, help=".pt checkpoint or .onnx model")
+    p.add_argument("--split", default="test", help="test: towns 200-209, never used for training or model choice")
+    p.add_argument("--report", default="out/detector/eval.json")
+
+    p = sub.add_parser("export", help="export the checkpoint to ONNX with a parity check")
+    p.add_argument("--model", default=DEFAULT_CKPT)
+    p.add_argument("--out", default=DEFAULT_ONNX)
+
+    p = sub.add_parser("sheet", help="a sheet of detections on held-out dusk and night frames")
+    p.add_argument("--data", default=DEFAULT_DATA)
+    p.add_argument("--model", default=DEFAULT_ONNX)
+    p.add_argument("--split", default="test")
+    p.add_argument("--out", default="docs/detections_sheet.png")
+    p.add_argument("--frames", type=int, default=12)
+
+
+def run(args: argparse.Namespace) -> int:
+    actions = {"dataset": _dataset, "train": _train, "evaluate": _evaluate, "export": _export, "sheet": _sheet}
+    return actions[args.action](args)
+
+
+def _dataset(args: argparse.Namespace) -> int:
+    from agent.autolabel import default_splits, generate_split, write_dataset_yaml
+
+    root = Path(args.out)
+    t0 = time.perf_counter()
+    summary_path = root / "summary.json"
+    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    wanted = set(args.splits.split(","))
+    for spec in default_splits(args.train_frames, args.val_frames, args.test_frames):
+        if spec.name not in wanted:
+            continue
+        t_split = time.perf_counter()
+        summary[spec.name] = generate_split(root, spec, args.seed)
+        summary[spec.name]["towns"] = list(spec.town_seeds)
+        summary[spec.name]["weathers"] = list(spec.weathers)
+        summary[spec.name]["seconds"] = round(time.perf_counter() - t_split, 1)
+    write_dataset_yaml(root)
+    summary["seed"] = args.seed
+    summary_path.write_text(json.dumps(summary, indent=1))
+    print(json.dumps(summary, indent=1))
+    print(f"Dataset written to {root} ({time.perf_counter() - t0:.0f} s).")
+    return 0
+
+
+def _train(args: argparse.Namespace) -> int:
+    from agent.detector_train_loop import train
+
+    return train(args)
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from agent.detector_eval import evaluate_command
+
+    return evaluate_command(args)
+
+
+def _export(args: argparse.Namespace) -> int:
+    from agent.detector import export_detector
+
+    diff = export_detector(args.model, args.out)
+    print(f"Wrote {args.out}; largest |ONNX Runtime - torch| difference on the check inputs: {diff:.2e}")
+    return 0
+
+
+def _sheet(args: argparse.Namespace) -> int:
+    """Half dusk, half night frames with the most labelled objects, spread over the split; 2 columns."""
+    import cv2
+    import numpy as np
+
+    from agent.detector import OnnxDetector
+    from agent.detector_eval import load_split, read_rgb
+    from agent.overlays import draw_detections
+
+    samples = load_split(args.data, args.split)
+    detector = OnnxDetector(args.model, score_threshold=0.3)
+    tiles = []
+    for weather in ("dusk", "night"):
+        cand = [s for s in samples if s.weather == weather]
+        cand.sort(key=lambda s: -int((~s.ignore).sum()))
+        chosen = cand[: args.frames * 3][:: 3][: args.frames // 2]  # busy frames, not all from one stretch
+        for s in chosen:
+            rgb = read_rgb(s.image)
+            tile = draw_detections(rgb, detector(rgb))
+            cv2.putText(tile, f"{weather} {Path(s.image).stem}", (4, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                        (255, 255, 255), 1, cv2.LINE_AA)
+            tiles.append(tile)
+    if not tiles:
+        print("No dusk or night frames in the split; generate the dataset first.")
+        return 1
+    if len(tiles) % 2:
+        tiles.append(np.zeros_like(tiles[0]))
+    rows = [np.concatenate(tiles[k:k + 2], axis=1) for k in range(0, len(tiles), 2)]
+    sheet = np.concatenate(rows, axis=0)
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(args.out), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+    print(f"Wrote {args.out} ({len(tiles)} frames)")
+    return 0

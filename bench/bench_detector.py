@@ -1,0 +1,81 @@
+"""Detector latency on the CPU: torch and ONNX Runtime, network alone and frame-to-detections (p50, p95).
+
+    python bench/bench_detector.py                # 1 thread, the shipped models, 300 repeats
+    python bench/bench_detector.py --threads 2
+
+The input is a real 320x160 frame rendered by the simulator (town 200 at dusk, the detector's held-out
+towns), so that NMS sees a realistic number of candidates. "Frame to detections" includes the uint8 to
+float conversion, the network with its decoding, thresholding and OpenCV NMS. Target: <= 15 ms per frame
+through ONNX Runtime.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def sample_frame():
+    """A frame from the held-out towns with traffic in view."""
+    import numpy as np
+
+    from agent.drivers import make_driver
+    from envs.drive_env import DriveConfig, DriveEnv
+
+    env = DriveEnv(DriveConfig(town_seed=200, weather="dusk"))
+    obs, _ = env.reset(seed=3, options={"traffic_density": 1.5})
+    driver = make_driver("autopilot")
+    driver.reset(env)
+    for _ in range(120):
+        obs, *_ = env.step(driver.act(obs))
+    env.close()
+    return np.ascontiguousarray(obs["image"])
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--threads", type=int, default=1, help="threads for torch and ONNX Runtime")
+    parser.add_argument("--repeats", type=int, default=300)
+    parser.add_argument("--pt", default="data/models/detector.pt")
+    parser.add_argument("--onnx", default="data/models/detector.onnx")
+    args = parser.parse_args(argv)
+    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
+    import torch
+
+    from agent.detector import OnnxDetector, TorchDetector, to_input
+    from bench.timing import measure
+
+    torch.set_num_threads(args.threads)
+    frame = sample_frame()
+    tdet = TorchDetector(args.pt)
+    odet = OnnxDetector(args.onnx, threads=args.threads)
+    x_t = torch.from_numpy(to_input(frame))
+    x_o = to_input(frame)
+
+    def torch_net() -> None:
+        with torch.no_grad():
+            tdet.model(x_t)
+
+    rows = [
+        ("torch, network + decode", measure(torch_net, args.repeats)),
+        ("torch, frame to detections", measure(lambda: tdet(frame), args.repeats)),
+        ("ONNX Runtime, network + decode", measure(lambda: odet.session.run(None, {odet.input_name: x_o}),
+                                                   args.repeats)),
+        ("ONNX Runtime, frame to detections", measure(lambda: odet(frame), args.repeats)),
+    ]
+    print(f"Detector latency, 320x160 frame, {args.threads} thread(s), {len(odet(frame))} detections in the frame")
+    print(f"{'path':<36}{'p50 ms':>8}{'p95 ms':>8}{'mean ms':>9}")
+    for name, lat in rows:
+        print(f"{name:<36}{lat.p50_ms:>8.2f}{lat.p95_ms:>8.2f}{lat.mean_ms:>9.2f}")
+    onnx_e2e = rows[3][1]
+    print(f"target <= 15 ms per frame through ONNX Runtime (p95 {onnx_e2e.p95_ms:.2f} ms): "
+          f"{'met' if onnx_e2e.p95_ms <= 15.0 else 'NOT met'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

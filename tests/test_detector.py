@@ -1,0 +1,172 @@
+"""The detector: NMS, targets, loss, AP, ONNX parity, overlays, the HSV baseline and the shipped model."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from agent.autolabel import CLASSES, render_and_label
+from agent.detector import (
+    DecodedDetector,
+    Detection,
+    Detector,
+    DetectorConfig,
+    OnnxDetector,
+    TorchDetector,
+    box_iou,
+    nms_numpy,
+    postprocess,
+)
+from agent.detector_eval import Sample, class_ap
+from agent.detector_train_loop import build_targets, yolo_loss
+from agent.light_state import hsv_state
+from agent.overlays import CLASS_COLORS, draw_detections
+from sim.objects import SemanticClass
+from sim.render import CameraConfig, SceneRenderer
+from sim.world import World, WorldConfig
+
+MODELS = Path(__file__).resolve().parents[1] / "data" / "models"
+
+
+@pytest.fixture(autouse=True)
+def one_torch_thread():
+    """Small tensors on a shared 2-core machine: one thread is several times faster than two fighting."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def cells(entries: list[tuple[tuple[float, float, float, float], int, float]]) -> np.ndarray:
+    """Decoded-cell rows (x0, y0, x1, y1, objectness, class probabilities) for postprocess."""
+    out = np.zeros((len(entries), 5 + len(CLASSES)), np.float32)
+    for k, (box, cls, score) in enumerate(entries):
+        out[k, :4], out[k, 4], out[k, 5 + cls] = box, score, 1.0
+    return out
+
+
+def test_nms_groups_light_states_but_keeps_a_person_beside_a_car():
+    car, ped, red, green = (CLASSES.index(n) for n in ("car", "pedestrian", "light_red", "light_green"))
+    pred = cells([((100, 60, 160, 100), car, 0.9), ((102, 61, 161, 101), car, 0.8),  # duplicate car
+                  ((110, 50, 130, 100), ped, 0.7),  # person overlapping the car: another group, kept
+                  ((200, 20, 206, 40), red, 0.8), ((200, 21, 206, 41), green, 0.6),  # one light, two states
+                  ((10, 10, 20, 20), car, 0.1)])  # below the threshold
+    dets = postprocess(pred, score_threshold=0.3, iou_threshold=0.5)
+    assert sorted((d.name, round(d.score, 2)) for d in dets) == [("car", 0.9), ("light_red", 0.8), ("pedestrian", 0.7)]
+
+
+def test_opencv_nms_agrees_with_numpy_reference():
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 250, (60, 2))
+    boxes = np.concatenate([xy, xy + rng.uniform(10, 60, (60, 2))], 1).astype(np.float32)
+    scores = rng.uniform(0.31, 1.0, 60).astype(np.float32)
+    pred = cells([(tuple(b), 0, float(s)) for b, s in zip(boxes, scores, strict=True)])
+    got = sorted(round(d.score, 5) for d in postprocess(pred, 0.3, 0.45))
+    ref = sorted(round(float(scores[k]), 5) for k in nms_numpy(boxes, scores, 0.45))
+    assert got == ref
+
+
+def test_targets_put_a_small_object_on_the_stride_8_map_at_its_centre_cell():
+    boxes = np.array([[100.0, 60.0, 110.0, 90.0], [0.0, 0.0, 100.0, 100.0]], np.float32)
+    tg = build_targets(boxes, np.array([2, 0]), np.array([False, True]))
+    # Centre (105, 75) -> stride-8 cell (13, 9); neighbours toward the centre: (12, 9)? 105/8 = 13.1 -> left.
+    pos = {(int(p % 40), int(p // 40)) for p in tg[0]["pos"]}
+    assert pos == {(13, 9), (12, 9), (13, 8)}
+    assert set(tg[0]["cls"].tolist()) == {2} and len(tg[1]["pos"]) == 0  # 30 px: not on the stride-16 map
+    w = tg[0]["weight"].reshape(20, 40)
+    assert w[5, 5] == 0.0 and w[15, 30] == 1.0  # inside the ignore region: no objectness loss
+
+
+def test_loss_decreases_on_a_tiny_batch():
+    torch.manual_seed(0)
+    img = torch.full((2, 3, 160, 320), 0.3)
+    img[0, :, 60:90, 100:160] = torch.tensor([0.9, 0.1, 0.1])[:, None, None]
+    img[1, :, 40:100, 200:220] = torch.tensor([0.1, 0.2, 0.9])[:, None, None]
+    targets = [build_targets(np.array([[100, 60, 160, 90]], np.float32), np.array([0]), np.array([False])),
+               build_targets(np.array([[200, 40, 220, 100]], np.float32), np.array([2]), np.array([False]))]
+    model = Detector(DetectorConfig(width=8))  # narrow: the loss and targets are under test, not capacity
+    opt = torch.optim.Adam(model.parameters(), lr=1e-2)
+    losses = []
+    for _ in range(20):
+        loss, _ = yolo_loss(model(img), targets)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    assert losses[-1] < 0.6 * losses[0] and losses[-1] < min(losses[:3])
+
+
+def test_ap_counts_ignore_regions_neither_way():
+    s = Sample("x.png", "noon", np.array([[10, 10, 50, 40], [100, 10, 140, 40], [200, 10, 240, 40]], np.float32),
+               np.array([0, 0, 0]), np.array([False, False, True]), np.array([10.0, 50.0, 20.0], np.float32))
+    perfect = [Detection((10, 10, 50, 40), 0, 0.9), Detection((100, 10, 140, 40), 0, 0.8),
+               Detection((200, 10, 240, 40), 0, 0.95)]  # the last one sits on the ignore region
+    assert class_ap([s], [perfect], 0)["ap50"] == pytest.approx(1.0)
+    with_fp = [*perfect, Detection((260, 100, 300, 140), 0, 0.99)]  # a false positive ranked first
+    assert class_ap([s], [with_fp], 0)["ap50"] < 0.9
+    near = class_ap([s], [perfect], 0, max_distance_m=40.0)  # the 50 m car becomes an ignore region
+    assert near["gt"] == 1 and near["ap50"] == pytest.approx(1.0)
+
+
+def test_onnx_export_matches_torch_and_runs_in_onnx_runtime(tmp_path):
+    from agent.detector import export_detector
+    from agent.detector_train_loop import save_checkpoint
+
+    torch.manual_seed(1)
+    save_checkpoint(tmp_path / "d.pt", Detector(), {})
+    diff = export_detector(tmp_path / "d.pt", tmp_path / "d.onnx")
+    assert diff < 1e-4
+    frame = np.random.default_rng(0).integers(0, 255, (160, 320, 3), dtype=np.uint8)
+    a = TorchDetector(tmp_path / "d.pt").raw(frame)
+    b = OnnxDetector(tmp_path / "d.onnx", threads=1).raw(frame)
+    assert a.shape == b.shape == (20 * 40 + 10 * 20, 5 + len(CLASSES))
+    assert np.max(np.abs(a - b)) < 1e-3
+
+
+def test_overlay_draws_boxes_labels_ids_and_distances():
+    frame = np.zeros((160, 320, 3), np.uint8)
+    dets = [Detection((100, 60, 160, 100), 0, 0.9), Detection((10, 10, 20, 40), 3, 0.8)]
+    out = draw_detections(frame, dets, scale=2, track_ids=[7, None], distances_m=[12.3, None])
+    assert out.shape == (320, 640, 3)
+    assert np.all(out[150, 200] == CLASS_COLORS["car"])  # left edge of the car's box, midway down
+    assert out.sum() > 0 and frame.sum() == 0  # draws on a copy
+    with pytest.raises(ValueError, match="track_ids"):
+        draw_detections(frame, dets, track_ids=[1])
+
+
+def test_hsv_baseline_reads_lit_lamps():
+    img = np.full((40, 20, 3), 25, np.uint8)
+    img[5:10, 8:12] = (255, 30, 20)
+    assert hsv_state(img, (0, 0, 20, 40)) == "red"
+    img[5:10, 8:12] = 25
+    img[28:33, 8:12] = (38, 255, 90)
+    assert hsv_state(img, (0, 0, 20, 40)) == "green"
+    assert hsv_state(np.full((40, 20, 3), 25, np.uint8), (0, 0, 20, 40)) == "none"
+
+
+@pytest.mark.skipif(not (MODELS / "detector.onnx").is_file(), reason="no shipped detector")
+@pytest.mark.parametrize("backend", ["torch", "onnx"])
+def test_shipped_model_detects_a_car_ahead(town, backend):
+    world = World(town, WorldConfig(npc_count=0, pedestrian_count=0), seed=5, spawn_traffic=False)
+    lane, s = world.ego_lane[0], world.ego_lane[1]
+    world.spawn_npc(lane, s + 18.0, kind=SemanticClass.CAR, color=(0.2, 0.3, 0.8))
+    renderer = SceneRenderer(town, seed=town.seed)
+    try:
+        frame, labels = render_and_label(renderer, world, CameraConfig(), "dusk")
+    finally:
+        renderer.close()
+    car = next(lab for lab in labels if lab.name == "car")
+    det = TorchDetector(MODELS / "detector.pt") if backend == "torch" else OnnxDetector(MODELS / "detector.onnx")
+    cars = [d for d in det(frame.rgb) if d.name == "car"]
+    assert cars, "the shipped detector missed a car 17 m ahead"
+    best = max(box_iou(np.array([d.box for d in cars]), np.array([car.box], np.float32))[:, 0])
+    assert best >= 0.5
+
+
+def test_decoded_detector_has_one_output_row_per_cell():
+    out = DecodedDetector(Detector().eval())(torch.rand(1, 3, 160, 320))
+    assert out.shape == (1, 1000, 5 + len(CLASSES))
+    assert torch.all(out[..., 2] > out[..., 0]) and torch.all((out[..., 4:] >= 0) & (out[..., 4:] <= 1))
