@@ -14,6 +14,7 @@ the comparison to ``--out/table.md``.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from dataclasses import replace
@@ -40,6 +41,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=120.0, help="time limit per episode")
     ap.add_argument("--video", action="store_true", help="also write each driver's first-episode video")
     ap.add_argument("--out", type=Path, default=Path("out/compare"))
+    ap.add_argument("--reuse", action="store_true",
+                    help="take a driver's row from an earlier run in --out with the same settings instead of re-running")
     args = ap.parse_args(argv)
     weathers = sorted(LIGHTING_PRESETS) if args.weathers == "all" else args.weathers.split(",")
     base = WorldConfig()
@@ -50,16 +53,25 @@ def main(argv: list[str] | None = None) -> int:
     def options(k: int) -> dict:
         return {"town_seed": args.town_seed + k % args.towns, "weather": weathers[k % len(weathers)]}
 
+    settings = {k: v for k, v in vars(args).items() if k not in ("drivers", "out", "reuse", "video")}
     rows = []
     for name in args.drivers:
         t0 = time.perf_counter()
-        metrics = evaluate(make_driver(name), config, args.episodes, args.seed, args.out / name, video=args.video,
-                           options=options)
+        folder = args.out / name
+        earlier = folder / "settings.json"
+        if args.reuse and earlier.is_file() and json.loads(earlier.read_text()) == settings:
+            metrics = json.loads((folder / "metrics.json").read_text())
+            print(f"{name}: reusing {folder / 'metrics.json'}")
+        else:
+            metrics = evaluate(make_driver(name), config, args.episodes, args.seed, folder, video=args.video,
+                               options=options)
+            earlier.write_text(json.dumps(settings, indent=2))
+            (folder / "wall_s.txt").write_text(f"{time.perf_counter() - t0:.1f}\n")
         m = metrics["mean"]
         inf = ", ".join(f"{k} {v}" for k, v in sorted(m["infractions"].items())) or "none"
         rows.append(f"| {name} | {m['route_completion']:.1f} | {m['driving_score']:.1f} | {m['autonomy']:.2f} | "
                     f"{m['interventions']} | {m['mean_abs_lane_offset_m']:.3f} | {m['mean_speed_mps']:.2f} | "
-                    f"{m['distance_km']:.2f} | {inf} | {time.perf_counter() - t0:.0f} |")
+                    f"{m['distance_km']:.2f} | {inf} | {float((folder / 'wall_s.txt').read_text()):.0f} |")
     head = [f"Towns {args.town_seed}-{args.town_seed + args.towns - 1}, seeds {args.seed}-{args.seed + args.episodes - 1}, "
             f"weathers {', '.join(weathers)}, traffic x{args.traffic:g}, {args.seconds:g} s per episode", "",
             "| driver | route completion % | driving score | autonomy % | interventions | mean abs lane offset m "
