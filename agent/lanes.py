@@ -1,0 +1,468 @@
+"""Lane detection by classic computer vision (seed 000 ch. 5, seed 003 ch. 5): bird's-eye warp, colour and
+gradient thresholds, sliding windows, second-order fits, the car's offset and the curvature radius in metres.
+
+Why each piece is the way it is:
+
+- The bird's-eye warp is a homography computed from the camera's intrinsics ``K``, its mounting height and
+  pitch (``BirdsEye``), not from four hand-picked pixels, so the metric scale is exact and follows the rig.
+- Thresholds run in the bird's-eye image, where a lane line has a known width in pixels. White is HLS
+  lightness clearly above the local road lightness (a horizontal top-hat), yellow is an HSV hue band with
+  saturation and brightness above the local road; both must sit next to a horizontal intensity gradient.
+  Relative rather than absolute levels are what let one detector work at noon, dusk, overcast and night
+  (a white line is L=246 at noon and L=110 at dusk, with the road at 68 and 34).
+- The top-hat kernel (0.35 m) is wider than a line (0.14 m) and narrower than a zebra stripe (0.5 m) or a
+  stop bar seen sideways, so crossings and stop lines do not pull the fits.
+- Both lines share curvature and heading when both are found (parallel lines), which lets a solid line
+  steady the fit of a dashed one that shows only two or three dashes.
+- ``LaneResult.detected`` is False ("no lane") when neither line has enough evidence; nothing is guessed.
+
+Coordinates: the ground frame is metric, origin below the camera, ``x_m`` to the right, ``z_m`` forward.
+A line is ``x = a z^2 + b z + c``. Offsets are signed, positive when the car is right of the lane centre,
+measured at the vehicle centre (``camera.mount_forward_m`` behind the camera), like ``World.lane_offset_m``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from sim.render import CameraConfig
+
+
+# --------------------------------------------------------------------------- geometry
+@dataclass(frozen=True)
+class BirdsEyeConfig:
+    """The patch of road the bird's-eye image covers and its resolution."""
+
+    x_min_m: float = -7.0
+    x_max_m: float = 7.0
+    z_min_m: float = 3.0  # the bonnet-free near edge: the lowest image row sees ~2.2 m ahead of the camera
+    z_max_m: float = 30.0  # beyond this one image row spans more than 3 m of road at 320x160
+    px_per_m_x: float = 20.0
+    px_per_m_z: float = 10.0
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) in pixels."""
+        return (int(round((self.x_max_m - self.x_min_m) * self.px_per_m_x)),
+                int(round((self.z_max_m - self.z_min_m) * self.px_per_m_z)))
+
+
+def ground_homography(camera: CameraConfig) -> np.ndarray:
+    """3x3 H mapping a road-plane point (x_m right, z_m forward, 1) below the camera to its image pixel.
+
+    The camera sits ``mount_height_m`` above the road, pitched down by ``-pitch_deg``. In a level frame
+    (x right, y down, z forward) a road point is (x, h, z); rotating by the pitch gives the camera frame,
+    and ``K`` projects it.
+    """
+    theta = math.radians(-camera.pitch_deg)
+    h = camera.mount_height_m
+    s, c = math.sin(theta), math.cos(theta)
+    # camera = R @ (x, h, z): x_c = x; y_c = h cos - z sin; z_c = h sin + z cos
+    r = np.array([[1.0, 0.0, 0.0], [0.0, -s, h * c], [0.0, c, h * s]])
+    return camera.intrinsics() @ r
+
+
+class BirdsEye:
+    """Warp between the camera image and a metric top-down view of the road plane."""
+
+    def __init__(self, camera: CameraConfig, config: BirdsEyeConfig | None = None) -> None:
+        self.camera = camera
+        self.config = cfg = config or BirdsEyeConfig()
+        self.size = cfg.size
+        # bev pixel (u, v) -> ground (x, z): x = x_min + (u + .5)/ppx, z = z_max - (v + .5)/ppz
+        self.bev_to_ground = np.array([[1.0 / cfg.px_per_m_x, 0.0, cfg.x_min_m + 0.5 / cfg.px_per_m_x],
+                                       [0.0, -1.0 / cfg.px_per_m_z, cfg.z_max_m - 0.5 / cfg.px_per_m_z],
+                                       [0.0, 0.0, 1.0]])
+        self.ground_to_image = ground_homography(camera)
+        self.bev_to_image = self.ground_to_image @ self.bev_to_ground
+        self.image_to_bev = np.linalg.inv(self.bev_to_image)
+        # Each bird's-eye row's forward distance, and each column's lateral position.
+        w, h = self.size
+        self.z_of_row = cfg.z_max_m - (np.arange(h) + 0.5) / cfg.px_per_m_z
+        self.x_of_col = cfg.x_min_m + (np.arange(w) + 0.5) / cfg.px_per_m_x
+        # Where the warp samples the image: a trapezoid on the road (the region of interest).
+        corners = np.array([[cfg.x_min_m, cfg.z_min_m], [cfg.x_max_m, cfg.z_min_m], [cfg.x_max_m, cfg.z_max_m],
+                            [cfg.x_min_m, cfg.z_max_m]])
+        self.roi_polygon = self.image_of_ground(corners[:, 0], corners[:, 1])
+
+    def warp(self, image: np.ndarray, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+        """Bird's-eye image (top row = farthest) of a camera image."""
+        return cv2.warpPerspective(image, self.bev_to_image, self.size, flags=interpolation | cv2.WARP_INVERSE_MAP,
+                                   borderMode=cv2.BORDER_CONSTANT)
+
+    def image_of_ground(self, x_m: np.ndarray, z_m: np.ndarray) -> np.ndarray:
+        """Image pixels (N x 2, u right, v down) of road-plane points."""
+        pts = np.stack([np.asarray(x_m, float).ravel(), np.asarray(z_m, float).ravel(), np.ones(np.size(x_m))])
+        uvw = self.ground_to_image @ pts
+        return (uvw[:2] / uvw[2]).T
+
+    def ground_z_of_row(self, v: np.ndarray) -> np.ndarray:
+        """Forward distance of the road seen on image row ``v`` (nan at and above the horizon)."""
+        k = self.camera.intrinsics()
+        theta = math.radians(-self.camera.pitch_deg)
+        t = (np.asarray(v, float) - k[1, 2]) / k[1, 1]  # tan of the angle below the optical axis
+        below = np.arctan(t) + theta  # angle below the horizontal
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = self.camera.mount_height_m / np.tan(below)
+        # z is along the level forward axis; the ground point's z in the ground frame is the same
+        return np.where(below > 1e-4, z, np.nan)
+
+
+# --------------------------------------------------------------------------- thresholds
+@dataclass(frozen=True)
+class ThresholdConfig:
+    line_kernel_m: float = 0.35  # top-hat width: wider than a line, narrower than a zebra stripe
+    white_min_contrast: float = 18.0  # lightness above the local road, 0..255
+    white_min_ratio: float = 1.45  # lightness / local road lightness
+    yellow_hue: tuple[int, int] = (8, 38)  # OpenCV hue (0..180)
+    yellow_min_sat: int = 90
+    yellow_min_ratio: float = 1.35  # HSV value / local road value
+    yellow_background_m: float = 1.5  # width of the road background yellow is compared with
+    gradient_min: float = 6.0  # |d lightness / d x| per pixel, 0..255
+    gradient_ratio: float = 0.12  # ... or this share of the local road lightness, whichever is larger
+
+
+def lane_masks(bev_rgb: np.ndarray, cfg: ThresholdConfig, px_per_m_x: float) -> dict[str, np.ndarray]:
+    """Binary masks (uint8 0/1) of white paint, yellow paint, gradient support and their combination."""
+    hls = cv2.cvtColor(bev_rgb, cv2.COLOR_RGB2HLS)
+    hsv = cv2.cvtColor(bev_rgb, cv2.COLOR_RGB2HSV)
+    light = hls[..., 1]
+    k = max(3, int(round(cfg.line_kernel_m * px_per_m_x)) | 1)
+    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (k, 1))
+    bg_l = cv2.morphologyEx(light, cv2.MORPH_OPEN, kernel).astype(np.float32)
+    lf = light.astype(np.float32)
+    white = ((lf - bg_l) >= cfg.white_min_contrast) & (lf >= cfg.white_min_ratio * bg_l)
+    hue, sat, val = hsv[..., 0], hsv[..., 1], hsv[..., 2]
+    # Yellow is told apart by its hue, so its brightness is compared with a wider road background: a yellow
+    # line seen at a shallow angle smears wider than the top-hat kernel in the bird's-eye view.
+    kw = max(3, int(round(cfg.yellow_background_m * px_per_m_x)) | 1)
+    bg_v = cv2.morphologyEx(val, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_RECT, (kw, 1))).astype(np.float32)
+    yellow = ((hue >= cfg.yellow_hue[0]) & (hue <= cfg.yellow_hue[1]) & (sat >= cfg.yellow_min_sat)
+              & (val.astype(np.float32) >= cfg.yellow_min_ratio * bg_v) & (val >= 30))
+    gx = np.abs(cv2.Sobel(lf, cv2.CV_32F, 1, 0, ksize=3)) / 4.0
+    strong = (gx >= np.maximum(cfg.gradient_min, cfg.gradient_ratio * bg_l)).astype(np.uint8)
+    support = cv2.dilate(strong, cv2.getStructuringElement(cv2.MORPH_RECT, (k, 1)))
+    white_u8, yellow_u8 = white.astype(np.uint8), yellow.astype(np.uint8)
+    combined = (white_u8 | yellow_u8) & support
+    return {"white": white_u8, "yellow": yellow_u8, "gradient": support, "combined": combined}
+
+
+# --------------------------------------------------------------------------- results
+@dataclass
+class LaneLine:
+    """One lane boundary on the road plane: ``x_m = a z^2 + b z + c`` for ``z_m`` in ``z_range_m``."""
+
+    coeffs: np.ndarray  # (a, b, c)
+    z_range_m: tuple[float, float]
+    confidence: float  # 0..1
+    n_pixels: int
+    color: str = "white"  # "white" or "yellow", by majority of its pixels
+
+    def x_at(self, z_m: np.ndarray | float) -> np.ndarray:
+        return np.polyval(self.coeffs, z_m)
+
+
+@dataclass
+class LaneResult:
+    """What the lane detector saw in one frame."""
+
+    left: LaneLine | None
+    right: LaneLine | None
+    offset_m: float  # car right of the lane centre (positive), at the vehicle centre; nan when no lane
+    curvature_radius_m: float  # signed: positive bends right; inf when straight; nan when no lane
+    heading_rad: float  # lane direction relative to the car (positive: lane turns right of the car's axis)
+    lane_width_m: float
+    confidence: float
+    detected: bool
+    windows: list[tuple[int, int, int, int]] = field(default_factory=list)  # bird's-eye (x0, y0, x1, y1)
+    used_previous: bool = False  # True when the search ran around the previous fit instead of windows
+    bev: np.ndarray | None = None
+    mask: np.ndarray | None = None
+
+
+# --------------------------------------------------------------------------- detector
+@dataclass(frozen=True)
+class LaneConfig:
+    birdseye: BirdsEyeConfig = field(default_factory=BirdsEyeConfig)
+    thresholds: ThresholdConfig = field(default_factory=ThresholdConfig)
+    n_windows: int = 9
+    window_margin_m: float = 0.6  # half width of a sliding window
+    window_min_pixels: int = 12  # pixels that re-centre the next window
+    search_margin_m: float = 0.4  # half width of the band around the previous fit
+    base_search_m: tuple[float, float] = (0.4, 3.4)  # where the histogram looks for each line's foot
+    min_pixels: int = 40
+    min_extent_m: float = 4.0  # a line must span at least this much road ahead
+    partner_min_extent_m: float = 1.5  # ... or this much (one dash) when the other line is sure
+    full_extent_m: float = 14.0  # ... and earns full confidence from this span on
+    max_rms_m: float = 0.2  # residual of the fit beyond which confidence drops to 0
+    min_confidence: float = 0.25  # per line
+    lane_width_prior_m: float = 3.5  # used until both lines have been seen together
+    lane_width_range_m: tuple[float, float] = (2.6, 4.4)
+    smoothing: float = 0.5  # weight of the new fit in the running average
+    quadratic_min_extent_m: float = 10.0  # shorter evidence gets a straight-line fit
+
+
+class LaneDetector:
+    """Sliding-window lane finder with search around the previous fit and temporal smoothing."""
+
+    def __init__(self, camera: CameraConfig | None = None, config: LaneConfig | None = None) -> None:
+        self.camera = camera or CameraConfig()
+        self.config = config or LaneConfig()
+        self.birdseye = BirdsEye(self.camera, self.config.birdseye)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the previous frames (call at the start of an episode)."""
+        self._prev: tuple[LaneLine | None, LaneLine | None] = (None, None)
+        self.lane_width_m = self.config.lane_width_prior_m
+
+    # ------------------------------------------------------------------ main entry
+    def detect(self, rgb: np.ndarray, keep_images: bool = False) -> LaneResult:
+        cfg = self.config
+        bev = self.birdseye.warp(rgb)
+        masks = lane_masks(bev, cfg.thresholds, cfg.birdseye.px_per_m_x)
+        binary = masks["combined"]
+        ys, xs = np.nonzero(binary)
+        windows: list[tuple[int, int, int, int]] = []
+        used_previous = False
+        left_idx = right_idx = None
+        prev_l, prev_r = self._prev
+        if prev_l is not None and prev_r is not None:
+            left_idx, right_idx = self._around_previous(xs, ys, prev_l, prev_r)
+            used_previous = True
+        lines = self._fit_pair(xs, ys, left_idx, right_idx, masks) if used_previous else (None, None)
+        if used_previous and (lines[0] is None or lines[1] is None):
+            used_previous = False
+        if not used_previous:
+            left_idx, right_idx, windows = self._sliding_windows(binary, xs, ys)
+            lines = self._fit_pair(xs, ys, left_idx, right_idx, masks)
+        left, right = self._smooth(*lines)
+        result = self._summarise(left, right)
+        result.windows, result.used_previous = windows, used_previous
+        if keep_images:
+            result.bev, result.mask = bev, masks
+        return result
+
+    # ------------------------------------------------------------------ pixel selection
+    def _around_previous(self, xs: np.ndarray, ys: np.ndarray, left: LaneLine,
+                         right: LaneLine) -> tuple[np.ndarray, np.ndarray]:
+        be = self.birdseye
+        z = be.z_of_row[ys]
+        x = be.x_of_col[xs]
+        m = self.config.search_margin_m
+        return (np.nonzero(np.abs(x - left.x_at(z)) < m)[0], np.nonzero(np.abs(x - right.x_at(z)) < m)[0])
+
+    def _sliding_windows(self, binary: np.ndarray, xs: np.ndarray,
+                         ys: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None, list[tuple[int, int, int, int]]]:
+        cfg, be = self.config, self.birdseye
+        h, w = binary.shape
+        hist = binary[h // 2:].sum(axis=0).astype(np.float32)
+        hist = np.convolve(hist, np.ones(5, np.float32), mode="same")
+        ppx = cfg.birdseye.px_per_m_x
+        centre_col = (0.0 - cfg.birdseye.x_min_m) * ppx
+        lo, hi = cfg.base_search_m
+        bases: list[int | None] = []
+        for sign in (-1, 1):
+            a, b = sorted((centre_col + sign * lo * ppx, centre_col + sign * hi * ppx))
+            a, b = max(0, int(a)), min(w, int(b))
+            seg = hist[a:b]
+            bases.append(a + int(np.argmax(seg)) if len(seg) and seg.max() >= cfg.window_min_pixels else None)
+        win_h = h // cfg.n_windows
+        margin = int(round(cfg.window_margin_m * ppx))
+        windows: list[tuple[int, int, int, int]] = []
+        picked: list[np.ndarray | None] = []
+        for base in bases:
+            if base is None:
+                picked.append(None)
+                continue
+            current = base
+            chosen = []
+            drift = 0.0
+            for k in range(cfg.n_windows):
+                y1 = h - k * win_h
+                y0 = y1 - win_h
+                x0, x1 = current - margin, current + margin
+                windows.append((x0, y0, x1, y1))
+                inside = np.nonzero((ys >= y0) & (ys < y1) & (xs >= x0) & (xs < x1))[0]
+                chosen.append(inside)
+                if len(inside) >= cfg.window_min_pixels:
+                    new = int(np.mean(xs[inside]))
+                    drift = 0.5 * drift + 0.5 * (new - current)
+                    current = new
+                else:
+                    current = int(round(current + drift))  # keep going in the direction the line was heading
+            picked.append(np.concatenate(chosen) if chosen else np.zeros(0, np.int64))
+        del be
+        return picked[0], picked[1], windows
+
+    # ------------------------------------------------------------------ fitting
+    def _line_stats(self, z: np.ndarray) -> tuple[int, float]:
+        """How much a line's pixels can be trusted: 2 alone, 1 next to a sure partner line, 0 not at all;
+        and a confidence from the stretch of road they cover (0..1)."""
+        cfg = self.config
+        if len(z) < cfg.min_pixels // 2:
+            return 0, 0.0
+        extent = float(np.ptp(z))
+        level = 2 if extent >= cfg.min_extent_m and len(z) >= cfg.min_pixels else int(extent >= cfg.partner_min_extent_m)
+        return level, min(1.0, extent / cfg.full_extent_m)
+
+    def _fit_pair(self, xs: np.ndarray, ys: np.ndarray, left_idx: np.ndarray | None, right_idx: np.ndarray | None,
+                  masks: dict[str, np.ndarray]) -> tuple[LaneLine | None, LaneLine | None]:
+        cfg, be = self.config, self.birdseye
+        sides: list[tuple[np.ndarray, np.ndarray, float, str] | None] = []
+        levels = []
+        for idx in (left_idx, right_idx):
+            if idx is None or len(idx) == 0:
+                sides.append(None)
+                levels.append(0)
+                continue
+            z, x = be.z_of_row[ys[idx]], be.x_of_col[xs[idx]]
+            level, extent_conf = self._line_stats(z)
+            yellow = masks["yellow"][ys[idx], xs[idx]].mean() > 0.5
+            sides.append((z, x, extent_conf, "yellow" if yellow else "white") if level else None)
+            levels.append(level)
+        if max(levels) < 2:  # a weak line is only kept beside a sure one
+            sides = [None, None]
+        fits: list[LaneLine | None] = [None, None]
+        if sides[0] is not None and sides[1] is not None:
+            # Parallel lines: shared a, b, separate offsets (least squares on both lines' pixels).
+            zl, xl, cl, coll = sides[0]
+            zr, xr, cr, colr = sides[1]
+            z_all = np.concatenate([zl, zr])
+            quad = min(np.ptp(zl), np.ptp(zr)) >= cfg.quadratic_min_extent_m or max(np.ptp(zl), np.ptp(zr)) >= 16.0
+            cols = [z_all ** 2] if quad else []
+            a_mat = np.column_stack(cols + [z_all, np.r_[np.ones_like(zl), np.zeros_like(zr)],
+                                            np.r_[np.zeros_like(zl), np.ones_like(zr)]])
+            sol, *_ = np.linalg.lstsq(a_mat, np.concatenate([xl, xr]), rcond=None)
+            a, b = (sol[0], sol[1]) if quad else (0.0, sol[0])
+            c_l, c_r = sol[-2], sol[-1]
+            width = c_r - c_l
+            if cfg.lane_width_range_m[0] <= width <= cfg.lane_width_range_m[1]:
+                for k, (z, x, conf, col), c in ((0, sides[0], c_l), (1, sides[1], c_r)):
+                    coeffs = np.array([a, b, c])
+                    rms = float(np.sqrt(np.mean((np.polyval(coeffs, z) - x) ** 2)))
+                    fits[k] = self._make_line(coeffs, z, conf, rms, col, alone=False)
+                if all(f is not None for f in fits):
+                    return fits[0], fits[1]
+            # Not a plausible lane: keep only the better-supported line.
+            keep = 0 if (levels[0], len(zl) * cl) >= (levels[1], len(zr) * cr) else 1
+            sides[1 - keep] = None
+            fits = [None, None]
+        for k, side in enumerate(sides):
+            if side is None or levels[k] < 2:
+                continue
+            z, x, conf, col = side
+            deg = 2 if np.ptp(z) >= cfg.quadratic_min_extent_m else 1
+            coeffs = np.polyfit(z, x, deg)
+            if deg == 1:
+                coeffs = np.r_[0.0, coeffs]
+            rms = float(np.sqrt(np.mean((np.polyval(coeffs, z) - x) ** 2)))
+            line = self._make_line(coeffs, z, conf, rms, col)
+            # A lone line must be on its own side of the car at the car.
+            if line is not None and (line.x_at(0.0) < 0) == (k == 0):
+                fits[k] = line
+        return fits[0], fits[1]
+
+    def _make_line(self, coeffs: np.ndarray, z: np.ndarray, extent_conf: float, rms: float, color: str,
+                   alone: bool = True) -> LaneLine | None:
+        """A fitted line, or None when its confidence is too low (a line fitted jointly with a sure partner
+        only has to fit its own pixels well)."""
+        cfg = self.config
+        fit_quality = max(0.0, 1.0 - rms / cfg.max_rms_m)
+        conf = extent_conf * fit_quality
+        if fit_quality <= 0.0 or (alone and conf < cfg.min_confidence):
+            return None
+        return LaneLine(np.asarray(coeffs, float), (float(z.min()), float(z.max())), float(conf), int(len(z)), color)
+
+    # ------------------------------------------------------------------ smoothing and summary
+    def _smooth(self, left: LaneLine | None, right: LaneLine | None) -> tuple[LaneLine | None, LaneLine | None]:
+        alpha = self.config.smoothing
+        out = []
+        for new, old in zip((left, right), self._prev, strict=True):
+            if new is not None and old is not None:
+                new = LaneLine(alpha * new.coeffs + (1 - alpha) * old.coeffs, new.z_range_m, new.confidence,
+                               new.n_pixels, new.color)
+            out.append(new)
+        self._prev = (out[0], out[1])
+        return out[0], out[1]
+
+    def _summarise(self, left: LaneLine | None, right: LaneLine | None) -> LaneResult:
+        cfg = self.config
+        z0 = -self.camera.mount_forward_m  # the vehicle centre, behind the camera
+        nan = float("nan")
+        if left is None and right is None:
+            return LaneResult(None, None, nan, nan, nan, self.lane_width_m, 0.0, False)
+        if left is not None and right is not None:
+            width = float(right.x_at(z0) - left.x_at(z0))
+            if cfg.lane_width_range_m[0] <= width <= cfg.lane_width_range_m[1]:
+                self.lane_width_m = 0.9 * self.lane_width_m + 0.1 * width
+            centre = 0.5 * (left.coeffs + right.coeffs)
+            confidence = 0.5 * (left.confidence + right.confidence)
+        elif left is not None:
+            centre = left.coeffs + np.array([0.0, 0.0, self.lane_width_m / 2])
+            confidence = 0.5 * left.confidence
+        else:
+            assert right is not None
+            centre = right.coeffs - np.array([0.0, 0.0, self.lane_width_m / 2])
+            confidence = 0.5 * right.confidence
+        a, b, _ = centre
+        slope = 2 * a * z0 + b
+        heading = math.atan(slope)
+        offset = -float(np.polyval(centre, z0)) * math.cos(heading)
+        radius = math.inf if abs(a) < 1e-6 else (1 + slope ** 2) ** 1.5 / (2 * a)
+        return LaneResult(left, right, offset, float(radius), heading, self.lane_width_m, float(confidence), True)
+
+
+# --------------------------------------------------------------------------- pictures
+def draw_lanes(rgb: np.ndarray, result: LaneResult, birdseye: BirdsEye) -> np.ndarray:
+    """The camera image with the lane area and lines drawn back through the homography."""
+    out = rgb.copy()
+    zz = np.linspace(birdseye.config.z_min_m, birdseye.config.z_max_m, 40)
+    pts = {}
+    for name, line, color in (("left", result.left, (255, 60, 60)), ("right", result.right, (60, 120, 255))):
+        if line is None:
+            continue
+        z = zz[(zz >= line.z_range_m[0] - 3) & (zz <= max(line.z_range_m[1], 15.0))]
+        uv = birdseye.image_of_ground(line.x_at(z), z)
+        pts[name] = uv
+        cv2.polylines(out, [np.round(uv).astype(np.int32)], False, color, 2, cv2.LINE_AA)
+    if "left" in pts and "right" in pts:
+        poly = np.round(np.concatenate([pts["left"], pts["right"][::-1]])).astype(np.int32)
+        layer = out.copy()
+        cv2.fillPoly(layer, [poly], (60, 220, 90))
+        out = cv2.addWeighted(layer, 0.3, out, 0.7, 0)
+    return out
+
+
+def draw_birdseye(result: LaneResult, birdseye: BirdsEye) -> np.ndarray:
+    """Bird's-eye mask (white paint grey, yellow paint yellow), the sliding windows and the fits."""
+    assert result.mask is not None
+    m = result.mask
+    h, w = m["combined"].shape
+    out = np.zeros((h, w, 3), np.uint8)
+    out[m["combined"] > 0] = (200, 200, 200)
+    out[(m["combined"] > 0) & (m["yellow"] > 0)] = (230, 200, 40)
+    for x0, y0, x1, y1 in result.windows:
+        cv2.rectangle(out, (x0, y0), (x1, y1), (0, 200, 0), 1)
+    cfg = birdseye.config
+    if result.used_previous:  # the band searched around the previous fit, instead of windows
+        margin = LaneConfig().search_margin_m
+        for line in (result.left, result.right):
+            if line is None:
+                continue
+            for side in (-1, 1):
+                u = (line.x_at(birdseye.z_of_row) + side * margin - cfg.x_min_m) * cfg.px_per_m_x
+                pts = np.stack([u, np.arange(h)], 1)
+                cv2.polylines(out, [np.round(pts).astype(np.int32)], False, (0, 160, 0), 1)
+    for line, color in ((result.left, (255, 60, 60)), (result.right, (60, 120, 255))):
+        if line is None:
+            continue
+        z = birdseye.z_of_row
+        u = (line.x_at(z) - cfg.x_min_m) * cfg.px_per_m_x
+        pts = np.stack([u, np.arange(h)], 1)
+        cv2.polylines(out, [np.round(pts).astype(np.int32)], False, color, 2)
+    return out

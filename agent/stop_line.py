@@ -1,0 +1,105 @@
+"""Stop-line detection: a wide, short, bright bar across the lane in the bird's-eye view, and its distance.
+
+A stop bar is a band about half a metre deep that spans the whole lane. Bright paint is found in the
+camera image with a vertical top-hat (``bar_kernel_rows`` image rows: longer than the bar is tall at 3 m,
+so the bar survives at every distance), then warped into the bird's-eye view, where a row is a
+stop-line row when most of the lane corridor is bright in it. Zebra stripes (half the width painted),
+dashes and lane lines (narrow) fail that fill test. Far away a bar is less than one image row tall, so the
+depth a band may have grows with the distance (one image row spans ``z^2 / (f h)`` metres of road).
+The corridor is the detected lane (so the opposite direction's stop bar, across the centre line, is
+ignored); with ``require_lane`` (the default) there is no stop line without a lane, which keeps zebra
+crossings and the far side's bars seen from inside a junction out, and a bar must lie near where the lane
+lines end. Without a lane result the corridor is a band straight ahead of the car.
+The distance is from the camera to the bar's near edge along the road, in metres.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from agent.lanes import BirdsEye, BirdsEyeConfig, LaneResult
+from sim.render import CameraConfig
+
+
+@dataclass(frozen=True)
+class StopLineConfig:
+    birdseye: BirdsEyeConfig = field(default_factory=BirdsEyeConfig)
+    bar_kernel_rows: int = 11  # vertical top-hat length in image rows
+    min_contrast: float = 18.0  # lightness above the road, 0..255
+    min_ratio: float = 1.45  # lightness / road lightness
+    min_fill: float = 0.6  # share of the corridor's width that must be bright
+    depth_range_m: tuple[float, float] = (0.2, 1.4)  # how deep (along the road) the band may be
+    corridor_half_m: float = 1.2  # half width of the corridor when no lane is known
+    corridor_inset_m: float = 0.25  # kept clear of the lane lines
+    max_distance_m: float = 20.0  # beyond this a 0.5 m bar is a fraction of an image row at 320x160
+    require_lane: bool = True  # stop bars end painted lanes: without a lane in view (inside a junction) report none
+    beyond_lane_m: float = 6.0  # the bar may lie at most this far past the end of the detected lane lines
+
+
+@dataclass
+class StopLine:
+    distance_m: float  # camera to the near edge, along the road
+    depth_m: float  # how deep the band is
+    fill: float  # share of the corridor that is bright at the band
+    row: int  # bird's-eye row of the near edge
+
+
+class StopLineDetector:
+    """Finds the nearest stop bar in the lane ahead."""
+
+    def __init__(self, camera: CameraConfig | None = None, config: StopLineConfig | None = None) -> None:
+        self.camera = camera or CameraConfig()
+        self.config = config or StopLineConfig()
+        self.birdseye = BirdsEye(self.camera, self.config.birdseye)
+
+    def detect(self, rgb: np.ndarray, lanes: LaneResult | None = None, bev: np.ndarray | None = None) -> StopLine | None:
+        """The nearest stop line ahead, or None. Pass the lane result (and its bird's-eye image) if there is one."""
+        cfg, be = self.config, self.birdseye
+        del bev  # the bar is found in the camera image (see the module docstring)
+        if cfg.require_lane and (lanes is None or not lanes.detected):
+            return None
+        lane_end = max((ln.z_range_m[1] for ln in (lanes.left, lanes.right) if ln is not None), default=math.inf) \
+            if lanes is not None else math.inf
+        light = cv2.cvtColor(rgb, cv2.COLOR_RGB2HLS)[..., 1]
+        kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (1, cfg.bar_kernel_rows | 1))
+        bg = cv2.morphologyEx(light, cv2.MORPH_OPEN, kernel).astype(np.float32)
+        lf = light.astype(np.float32)
+        bright_img = (((lf - bg) >= cfg.min_contrast) & (lf >= cfg.min_ratio * bg)).astype(np.uint8) * 255
+        bright = be.warp(bright_img) >= 128
+        h, w = bright.shape
+        z = be.z_of_row
+        x = be.x_of_col
+        if lanes is not None and lanes.left is not None and lanes.right is not None:
+            lo = lanes.left.x_at(z) + cfg.corridor_inset_m
+            hi = lanes.right.x_at(z) - cfg.corridor_inset_m
+        elif lanes is not None and lanes.detected and math.isfinite(lanes.offset_m):
+            line = lanes.left or lanes.right
+            assert line is not None
+            centre = line.x_at(z) + (lanes.lane_width_m / 2 if line is lanes.left else -lanes.lane_width_m / 2)
+            lo, hi = centre - cfg.corridor_half_m, centre + cfg.corridor_half_m
+        else:
+            lo = np.full(h, -cfg.corridor_half_m)
+            hi = np.full(h, cfg.corridor_half_m)
+        inside = (x[None, :] >= lo[:, None]) & (x[None, :] <= hi[:, None])
+        width = inside.sum(axis=1)
+        fill = np.where(width > 0, (bright & inside).sum(axis=1) / np.maximum(width, 1), 0.0)
+        rows = fill >= cfg.min_fill
+        # Bands of consecutive rows, nearest (bottom) first.
+        edges = np.diff(np.r_[0, rows.astype(np.int8), 0])
+        starts, ends = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
+        for r0, r1 in sorted(zip(starts, ends, strict=True), key=lambda b: -b[1]):
+            depth_m = (r1 - r0) / cfg.birdseye.px_per_m_z
+            near = float(z[r1 - 1]) - 0.5 / cfg.birdseye.px_per_m_z  # lower edge of the band's last row
+            row_span_m = near ** 2 / (self.camera.focal_px * self.camera.mount_height_m)  # road per image row
+            max_depth = max(cfg.depth_range_m[1], 2.5 * row_span_m)
+            if not (cfg.depth_range_m[0] <= depth_m + 0.05 <= max_depth) or near > min(cfg.max_distance_m,
+                                                                                         lane_end + cfg.beyond_lane_m):
+                continue
+            if r1 >= h - 1:  # touching the near edge of the view: the bar may continue below it
+                continue
+            return StopLine(near, depth_m, float(fill[r0:r1].mean()), int(r1 - 1))
+        return None
