@@ -28,8 +28,9 @@ from sim.render import LIGHTING_PRESETS
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--driver", default="autopilot", help="who drives: autopilot, keyboard, gamepad, pilotnet")
-    p.add_argument("--model", type=Path, default=None, help="pilotnet: model file (default data/models/pilotnet.pt)")
+    p.add_argument("--driver", default="autopilot", help="who drives: autopilot, keyboard, gamepad, pilotnet, rl")
+    p.add_argument("--model", type=Path, default=None,
+                   help="pilotnet/rl: model file (default data/models/pilotnet.pt, data/models/rl_ppo.zip)")
     p.add_argument("--backend", default="onnx", choices=["onnx", "torch"], help="pilotnet: inference backend")
     p.add_argument("--target-speed", type=float, default=None, help="pilotnet: cruise speed in m/s (default 7)")
     p.add_argument("--seed", type=int, default=0, help="first episode seed (traffic, start and route)")
@@ -100,14 +101,16 @@ def make_named_driver(args: argparse.Namespace) -> Any:
     kwargs: dict[str, Any] = {"noise": True, "noise_seed": args.seed} if args.noise else {}
     if args.noise and args.driver != "autopilot":
         raise ValueError("--noise is for the autopilot only.")
+    if args.driver in ("pilotnet", "rl") and args.model is not None:
+        kwargs["model"] = args.model
     if args.driver == "pilotnet":
         kwargs["backend"] = args.backend
-        if args.model is not None:
-            kwargs["model"] = args.model
         if args.target_speed is not None:
             kwargs["target_speed_mps"] = args.target_speed
-    elif args.model is not None or args.target_speed is not None:
-        raise ValueError(f"--model and --target-speed are for the pilotnet driver, not {args.driver}.")
+    elif args.target_speed is not None:
+        raise ValueError(f"--target-speed is for the pilotnet driver, not {args.driver}.")
+    elif args.model is not None and args.driver != "rl":
+        raise ValueError(f"--model is for the pilotnet and rl drivers, not {args.driver}.")
     return make_driver(args.driver, **kwargs)
 
 

@@ -14,6 +14,7 @@ import sys
 SUBCOMMANDS: dict[str, str] = {
     "pilotnet": "agent.pilotnet_training",
     "detector": "agent.detector_training",
+    "rl": "agent.rl_training",
 }
 
 

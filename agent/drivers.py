@@ -57,3 +57,4 @@ def _load_builtin() -> None:
     import agent.autopilot  # noqa: F401
     import agent.human  # noqa: F401
     import agent.pilotnet_driver  # noqa: F401
+    import agent.rl_driver  # noqa: F401
