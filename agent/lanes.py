@@ -238,7 +238,7 @@ class LaneDetector:
         if used_previous and (lines[0] is None or lines[1] is None):
             used_previous = False
         if not used_previous:
-            left_idx, right_idx, windows = self._sliding_windows(binary, xs, ys)
+            left_idx, right_idx, windows = self._sliding_windows(binary, xs, ys, self._prev)
             lines = self._fit_pair(xs, ys, left_idx, right_idx, masks)
         left, right = self._smooth(*lines)
         result = self._summarise(left, right)
@@ -256,8 +256,12 @@ class LaneDetector:
         m = self.config.search_margin_m
         return (np.nonzero(np.abs(x - left.x_at(z)) < m)[0], np.nonzero(np.abs(x - right.x_at(z)) < m)[0])
 
-    def _sliding_windows(self, binary: np.ndarray, xs: np.ndarray,
-                         ys: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None, list[tuple[int, int, int, int]]]:
+    def _sliding_windows(self, binary: np.ndarray, xs: np.ndarray, ys: np.ndarray,
+                         previous: tuple[LaneLine | None, LaneLine | None] = (None, None),
+                         ) -> tuple[np.ndarray | None, np.ndarray | None, list[tuple[int, int, int, int]]]:
+        """Windows stacked from the histogram's peaks upwards; until two windows have seen the line, the
+        next one follows the previous frame's line direction (a slanted line, as in a lane change, leaves a
+        window's width within two windows)."""
         cfg, be = self.config, self.birdseye
         h, w = binary.shape
         hist = binary[h // 2:].sum(axis=0).astype(np.float32)
@@ -275,28 +279,34 @@ class LaneDetector:
         margin = int(round(cfg.window_margin_m * ppx))
         windows: list[tuple[int, int, int, int]] = []
         picked: list[np.ndarray | None] = []
-        for base in bases:
+        for base, prev in zip(bases, previous, strict=True):
             if base is None:
                 picked.append(None)
                 continue
-            current = base
+            current = float(base)
             chosen = []
-            drift = 0.0
+            hits: list[tuple[float, float]] = []  # (window index, line centre) of windows that saw the line
             for k in range(cfg.n_windows):
                 y1 = h - k * win_h
                 y0 = y1 - win_h
-                x0, x1 = current - margin, current + margin
+                x0, x1 = int(round(current)) - margin, int(round(current)) + margin
                 windows.append((x0, y0, x1, y1))
                 inside = np.nonzero((ys >= y0) & (ys < y1) & (xs >= x0) & (xs < x1))[0]
                 chosen.append(inside)
                 if len(inside) >= cfg.window_min_pixels:
-                    new = int(np.mean(xs[inside]))
-                    drift = 0.5 * drift + 0.5 * (new - current)
-                    current = new
-                else:
-                    current = int(round(current + drift))  # keep going in the direction the line was heading
+                    hits.append((k, float(np.mean(xs[inside]))))
+                # Next window: where the line through the last hits points (a bend leaves a window's
+                # width within two windows), else straight on from the last hit.
+                if len(hits) >= 2:
+                    kk, cc = np.array(hits[-3:]).T
+                    slope, icpt = np.polyfit(kk, cc, 1)
+                    current = slope * (k + 1) + icpt
+                elif prev is not None:
+                    z_here, z_next = be.z_of_row[min(h - 1, y1 - 1)], be.z_of_row[max(0, y0 - 1)]
+                    current = (hits[-1][1] if hits else current) + (prev.x_at(z_next) - prev.x_at(z_here)) * ppx
+                elif hits:
+                    current = hits[-1][1]
             picked.append(np.concatenate(chosen) if chosen else np.zeros(0, np.int64))
-        del be
         return picked[0], picked[1], windows
 
     # ------------------------------------------------------------------ fitting
@@ -413,6 +423,10 @@ class LaneDetector:
         slope = 2 * a * z0 + b
         heading = math.atan(slope)
         offset = -float(np.polyval(centre, z0)) * math.cos(heading)
+        if left is None or right is None:
+            # A lone line may bound the neighbouring lane (the car is crossing the other line): report the
+            # offset from the centre of the lane the car is in, the nearest one.
+            offset -= round(offset / self.lane_width_m) * self.lane_width_m
         radius = math.inf if abs(a) < 1e-6 else (1 + slope ** 2) ** 1.5 / (2 * a)
         return LaneResult(left, right, offset, float(radius), heading, self.lane_width_m, float(confidence), True)
 

@@ -35,8 +35,11 @@ class StopLineConfig:
     depth_range_m: tuple[float, float] = (0.2, 1.4)  # how deep (along the road) the band may be
     corridor_half_m: float = 1.2  # half width of the corridor when no lane is known
     corridor_inset_m: float = 0.25  # kept clear of the lane lines
+    nominal_depth_m: float = 0.5  # stop bars are 0.3-0.6 m deep; used where the band is too thin to measure
     max_distance_m: float = 20.0  # beyond this a 0.5 m bar is a fraction of an image row at 320x160
-    require_lane: bool = True  # stop bars end painted lanes: without a lane in view (inside a junction) report none
+    require_lane: bool = True  # stop bars end painted lanes: without a lane in view (inside a junction) report none,
+    #                            unless the bar continues one tracked from frames that had a lane (see detect)
+    track_frames: int = 10  # frames a tracked bar may go unseen before it is forgotten
     beyond_lane_m: float = 6.0  # the bar may lie at most this far past the end of the detected lane lines
 
 
@@ -55,13 +58,42 @@ class StopLineDetector:
         self.camera = camera or CameraConfig()
         self.config = config or StopLineConfig()
         self.birdseye = BirdsEye(self.camera, self.config.birdseye)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the tracked bar (call at the start of an episode)."""
+        self._track_m: float | None = None
+        self._unseen = 0
 
     def detect(self, rgb: np.ndarray, lanes: LaneResult | None = None, bev: np.ndarray | None = None) -> StopLine | None:
-        """The nearest stop line ahead, or None. Pass the lane result (and its bird's-eye image) if there is one."""
-        cfg, be = self.config, self.birdseye
+        """The nearest stop line ahead, or None. Pass the lane result if there is one.
+
+        Close to a stop bar the lane lines ahead are only a few metres long and the lane detector may
+        report no lane; a bar first found with a lane is then followed without one, as long as it keeps
+        coming nearer (it cannot move away while the car drives towards it).
+        """
         del bev  # the bar is found in the camera image (see the module docstring)
-        if cfg.require_lane and (lanes is None or not lanes.detected):
+        cfg = self.config
+        have_lane = lanes is not None and lanes.detected
+        following = self._track_m is not None and self._unseen <= cfg.track_frames
+        if cfg.require_lane and not have_lane and not following:
+            self._track_m = None
             return None
+        found = self._find(rgb, lanes if have_lane else None)
+        if found is not None and cfg.require_lane and not have_lane:
+            assert self._track_m is not None
+            if not (self._track_m - 3.0 <= found.distance_m <= self._track_m + 1.0):
+                found = None
+        if found is None:
+            self._unseen += 1
+            if self._unseen > cfg.track_frames:
+                self._track_m = None
+            return None
+        self._track_m, self._unseen = found.distance_m, 0
+        return found
+
+    def _find(self, rgb: np.ndarray, lanes: LaneResult | None) -> StopLine | None:
+        cfg, be = self.config, self.birdseye
         lane_end = max((ln.z_range_m[1] for ln in (lanes.left, lanes.right) if ln is not None), default=math.inf) \
             if lanes is not None else math.inf
         light = cv2.cvtColor(rgb, cv2.COLOR_RGB2HLS)[..., 1]
@@ -93,7 +125,11 @@ class StopLineDetector:
         starts, ends = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
         for r0, r1 in sorted(zip(starts, ends, strict=True), key=lambda b: -b[1]):
             depth_m = (r1 - r0) / cfg.birdseye.px_per_m_z
-            near = float(z[r1 - 1]) - 0.5 / cfg.birdseye.px_per_m_z  # lower edge of the band's last row
+            # Far away the band is one image row smeared over a metre or more of bird's-eye rows, so its
+            # lower edge is biased near; its fill-weighted centre is not. Near edge = centre - half the depth.
+            centre = self._centre_z(lf - bg, float(np.average(z[r0:r1], weights=fill[r0:r1])), float(z[r0]),
+                                    float(z[r1 - 1]), float(np.median(lo[r0:r1])), float(np.median(hi[r0:r1])))
+            near = centre - min(depth_m, cfg.nominal_depth_m) / 2
             row_span_m = near ** 2 / (self.camera.focal_px * self.camera.mount_height_m)  # road per image row
             max_depth = max(cfg.depth_range_m[1], 2.5 * row_span_m)
             if not (cfg.depth_range_m[0] <= depth_m + 0.05 <= max_depth) or near > min(cfg.max_distance_m,
@@ -103,3 +139,27 @@ class StopLineDetector:
                 continue
             return StopLine(near, depth_m, float(fill[r0:r1].mean()), int(r1 - 1))
         return None
+
+    def _centre_z(self, contrast: np.ndarray, fallback_z: float, z_far: float, z_near: float, x_lo: float,
+                  x_hi: float) -> float:
+        """Distance of the bar's middle from the image rows' contrast-weighted centroid.
+
+        A far bar covers part of one or two image rows; with an anti-aliasing camera the contrast of each
+        row is proportional to how much of it the bar covers, so the centroid locates the bar to a fraction
+        of a row (and with a point-sampling renderer it is no worse than the bird's-eye band).
+        """
+        be = self.birdseye
+        uv = be.image_of_ground(np.array([x_lo, x_hi, x_lo, x_hi]), np.array([z_far, z_far, z_near, z_near]))
+        v0, v1 = int(np.floor(uv[:, 1].min())), int(np.ceil(uv[:, 1].max()))  # the band's rows only: the zebra is near
+        u0, u1 = int(np.floor(uv[:, 0].min())), int(np.ceil(uv[:, 0].max())) + 1
+        h, w = contrast.shape
+        v0, v1, u0, u1 = max(0, v0), min(h, v1 + 1), max(0, u0), min(w, u1)
+        if v1 <= v0 or u1 <= u0:
+            return fallback_z
+        weight = np.clip(contrast[v0:v1, u0:u1], 0, None).mean(axis=1)
+        weight[weight < 0.5 * weight.max()] = 0.0  # only the bar's rows, not the road's noise
+        if weight.sum() <= 0:
+            return fallback_z
+        v_c = float(np.average(np.arange(v0, v1), weights=weight))
+        z_c = float(be.ground_z_of_row(np.array([v_c]))[0])
+        return z_c if np.isfinite(z_c) else fallback_z

@@ -7,9 +7,13 @@ predictions by IoU with the Hungarian method (``scipy.optimize.linear_sum_assign
 below ``iou_threshold``, update matched tracks, start tracks from unmatched detections, and delete tracks
 not matched for more than ``max_age`` frames. A track is reported once it has ``min_hits`` matches in a
 row (or in the first ``min_hits`` frames of a sequence); this is what keeps SORT's false positives low.
-One change from the paper: a confirmed track stays confirmed, and for up to ``coast_frames`` frames
-without a match it is reported at its predicted box (the paper reports matched tracks only, so one
-dropped detection costs three frames of a known object: the miss and two frames of re-confirmation).
+Two changes from the paper. A track that has not yet learnt its velocity (``young_hits`` matches or
+fewer) may also be matched, in a second Hungarian stage, by centre distance (within ``centre_gate`` box
+sizes) when IoU fails: with the detector running every k frames an object moves more than its own width
+between detections, before the filter knows it moves at all. And a confirmed track stays confirmed,
+and for up to ``coast_frames`` frames without a match it is reported at its predicted box (the paper
+reports matched tracks only, so one dropped detection costs three frames of a known object: the miss
+and two frames of re-confirmation).
 
 ``SkipTracker`` runs an expensive detector only every ``k``-th frame and reports the Kalman predictions
 on the frames in between, the trade seed 000 measured on a Jetson.
@@ -142,6 +146,8 @@ class SortConfig:
     min_hits: int = 3  # matches in a row before a track is reported
     iou_threshold: float = 0.3
     coast_frames: int = 2  # a confirmed track is still reported (predicted) this many frames after its last match
+    young_hits: int = 2  # tracks with this many matches or fewer may be matched by centre distance
+    centre_gate: float = 1.0  # ... within this many box sizes (sqrt of the area)
     noise: KalmanNoise = KalmanNoise()
 
 
@@ -213,11 +219,27 @@ class Sort:
     def _associate(self, dets: np.ndarray, predicted: np.ndarray) -> tuple[list[tuple[int, int]], list[int]]:
         if len(predicted) == 0 or len(dets) == 0:
             return [], list(range(len(dets)))
+        cfg = self.config
         iou = iou_matrix(dets, predicted)
         rows, cols = linear_sum_assignment(-iou)
-        matches = [(int(r), int(c)) for r, c in zip(rows, cols, strict=True) if iou[r, c] >= self.config.iou_threshold]
-        matched = {r for r, _ in matches}
-        return matches, [d for d in range(len(dets)) if d not in matched]
+        matches = [(int(r), int(c)) for r, c in zip(rows, cols, strict=True) if iou[r, c] >= cfg.iou_threshold]
+        free_d = [d for d in range(len(dets)) if d not in {r for r, _ in matches}]
+        used_t = {c for _, c in matches}
+        young = [t for t in range(len(predicted)) if t not in used_t and self._tracks[t].hits <= cfg.young_hits]
+        if free_d and young:
+            dz = np.array([box_to_z(dets[d]) for d in free_d])
+            tz = np.array([box_to_z(predicted[t]) for t in young])
+            size = np.sqrt(np.maximum(tz[None, :, 2], 1.0))
+            dist = np.hypot(dz[:, None, 0] - tz[None, :, 0], dz[:, None, 1] - tz[None, :, 1]) / size
+            ratio = dz[:, None, 2] / np.maximum(tz[None, :, 2], 1e-6)
+            cost = np.where((ratio > 0.5) & (ratio < 2.0), dist, 1e6)
+            r2, c2 = linear_sum_assignment(cost)
+            for r, c in zip(r2, c2, strict=True):
+                if cost[r, c] <= cfg.centre_gate:
+                    matches.append((free_d[r], young[c]))
+            matched = {r for r, _ in matches}
+            free_d = [d for d in range(len(dets)) if d not in matched]
+        return matches, free_d
 
     @staticmethod
     def _report(t: _State) -> Track:

@@ -1,7 +1,7 @@
 """Lane and stop-line detection measured against the simulator's ground truth, per lighting preset.
 
-    python bench/eval_lanes.py                       # 300 frames per preset, noon/dusk/overcast/night
-    python bench/eval_lanes.py --frames 100 --sheet docs/lanes_sheet.png
+    python bench/eval_lanes.py                       # 2 drives x 250 frames per preset, noon/dusk/overcast/night
+    python bench/eval_lanes.py --frames 100 --episodes 1 --sheet docs/lanes_sheet.png
 
 The autopilot drives with steering perturbations (so the car is not always centred); each frame is run
 through the sliding-window detector, the Canny + Hough detector and the stop-line detector. Ground truth
@@ -130,7 +130,7 @@ class StopTally:
                 f"p95 {p95:.2f} m; " + "; ".join(parts) + f"; false detections {self.false}/{self.frames} frames")
 
 
-def run(frames: int, seed: int, sheet: Path | None) -> None:
+def run(frames: int, episodes: int, seed: int, sheet: Path | None) -> None:
     env = DriveEnv(DriveConfig(observe_depth=True, observe_segmentation=True, max_time_s=1e9,
                                terminate_on_infraction=False, terminate_on_route_deviation=False))
     cam = env.config.camera
@@ -143,39 +143,43 @@ def run(frames: int, seed: int, sheet: Path | None) -> None:
     totals = {"windows": Tally(), "hough": Tally(), "stop": StopTally()}
     for preset in PRESETS:
         tally = {"windows": Tally(), "hough": Tally(), "stop": StopTally()}
-        driver = Autopilot(noise=True, noise_seed=seed, noise_every_s=(1.0, 3.0), noise_steer=0.12, noise_duration_s=0.5)
-        obs, info = env.reset(seed=seed, options={"weather": preset})
-        driver.reset(env)
-        windows.reset()
-        hough.reset()
         shots = 0
         t0 = time.perf_counter()
-        for k in range(frames):
-            obs, _, terminated, truncated, info = env.step(driver.act(obs))
-            if terminated or truncated:
-                obs, info = env.reset(seed=seed + k, options={"weather": preset})
-                driver.reset(env)
-                windows.reset()
-                hough.reset()
-            rgb = obs["image"]
-            res = windows.detect(rgb, keep_images=sheet is not None)
-            res_h = hough.detect(rgb)
-            sl = stop.detect(rgb, res)
-            assert env.world is not None and env.renderer is not None
-            gt = lane_truth(env.world, cam, env.renderer.ground_map, obs["depth"], h_samples)
-            st = stop_line_truth(env.world, cam, obs["segmentation"])
-            for name, r, det in (("windows", res, windows), ("hough", res_h, hough)):
-                pred = predicted_x(r, det.birdseye, h_samples)
-                tally[name].add(r, pred, gt, h_samples, thresh_px)
-                totals[name].add(r, pred, gt, h_samples, thresh_px)
-            tally["stop"].add(sl, st)
-            totals["stop"].add(sl, st)
-            want_stop = sl is not None and shots == 1
-            if sheet is not None and shots < 2 and (k == frames // 3 or want_stop or (shots == 1 and k == frames - 1)):
-                tiles.append(_tile(rgb, res, sl, gt, st, windows.birdseye, h_samples, preset))
-                shots += 1
+        for episode in range(episodes):
+            driver = Autopilot(noise=True, noise_seed=seed + episode, noise_every_s=(1.0, 3.0), noise_steer=0.12,
+                               noise_duration_s=0.5)
+            obs, info = env.reset(seed=seed + episode, options={"weather": preset})
+            driver.reset(env)
+            windows.reset()
+            hough.reset()
+            stop.reset()
+            for k in range(frames):
+                obs, _, terminated, truncated, info = env.step(driver.act(obs))
+                if terminated or truncated:
+                    obs, info = env.reset(seed=seed + 100 + k, options={"weather": preset})
+                    driver.reset(env)
+                    windows.reset()
+                    hough.reset()
+                    stop.reset()
+                rgb = obs["image"]
+                res = windows.detect(rgb, keep_images=sheet is not None)
+                res_h = hough.detect(rgb)
+                sl = stop.detect(rgb, res)
+                assert env.world is not None and env.renderer is not None
+                gt = lane_truth(env.world, cam, env.renderer.ground_map, obs["depth"], h_samples)
+                st = stop_line_truth(env.world, cam, obs["segmentation"])
+                for name, r, det in (("windows", res, windows), ("hough", res_h, hough)):
+                    pred = predicted_x(r, det.birdseye, h_samples)
+                    tally[name].add(r, pred, gt, h_samples, thresh_px)
+                    totals[name].add(r, pred, gt, h_samples, thresh_px)
+                tally["stop"].add(sl, st)
+                totals["stop"].add(sl, st)
+                if sheet is not None and episode == 0 and shots < 2 and (k == frames // 3 or (shots == 1 and (
+                        sl is not None or k == frames - 1))):
+                    tiles.append(_tile(rgb, res, sl, gt, st, windows.birdseye, h_samples, preset))
+                    shots += 1
         dt = time.perf_counter() - t0
-        print(f"[{preset}] {frames} frames in {dt:.0f} s")
+        print(f"[{preset}] {episodes} x {frames} frames in {dt:.0f} s")
         print(f"  sliding windows : {tally['windows'].row()}")
         print(f"  canny + hough   : {tally['hough'].row()}")
         print(f"  stop line       : {tally['stop'].row()}")
@@ -217,12 +221,13 @@ def _tile(rgb: np.ndarray, res: LaneResult, sl: StopLine | None, gt, st, be: Bir
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--frames", type=int, default=300, help="frames per preset")
+    ap.add_argument("--frames", type=int, default=250, help="frames per drive")
+    ap.add_argument("--episodes", type=int, default=2, help="drives per preset (seeds seed, seed + 1, ...)")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--sheet", type=Path, default=None, help="write a contact sheet of detections here")
     args = ap.parse_args()
     cv2.setNumThreads(1)
-    run(args.frames, args.seed, args.sheet)
+    run(args.frames, args.episodes, args.seed, args.sheet)
 
 
 if __name__ == "__main__":

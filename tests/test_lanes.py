@@ -1,0 +1,137 @@
+"""Lane and stop-line detection: the bird's-eye geometry against the renderer, and the detectors on
+synthetic roads whose lines are placed in metres (so the expected offset and radius are known)."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from agent.lanes import BirdsEye, BirdsEyeConfig, LaneDetector, ground_homography
+from agent.lanes_hough import HoughLaneDetector
+from agent.stop_line import StopLineDetector
+from envs.perception_truth import lane_z_range_rows, tusimple_frame
+from sim.render import CameraConfig
+
+CAM = CameraConfig()
+
+
+def synthetic_road(lines: list[tuple[float, float, float]], stop_at_m: float | None = None, noise: int = 0,
+                   seed: int = 0) -> np.ndarray:
+    """A camera image of a flat grey road with white lines x = a z^2 + b z + c (metres), rendered by warping a
+    fine top-down canvas through the camera homography."""
+    cfg = BirdsEyeConfig(x_min_m=-10, x_max_m=10, z_min_m=0.5, z_max_m=80, px_per_m_x=50, px_per_m_z=50)
+    scale = 4  # render 4x larger and shrink with area averaging, so far thin lines are not aliased away
+    be = BirdsEye(CAM, cfg)
+    # small-image pixel (u, v) covers big-image pixels whose centres average to scale * (u + 0.5) - 0.5
+    to_big = np.array([[scale, 0, (scale - 1) / 2], [0, scale, (scale - 1) / 2], [0, 0, 1.0]])
+    w, h = cfg.size
+    canvas = np.full((h, w, 3), (62, 62, 66), np.uint8)
+    z = be.z_of_row
+    for a, b, c in lines:
+        x = a * z ** 2 + b * z + c
+        u = (x - cfg.x_min_m) * cfg.px_per_m_x
+        for du in range(-3, 4):  # 0.14 m wide line
+            cols = np.round(u + du).astype(int)
+            ok = (cols >= 0) & (cols < w)
+            canvas[np.arange(h)[ok], cols[ok]] = (235, 235, 230)
+    if stop_at_m is not None:
+        r0, r1 = int((cfg.z_max_m - stop_at_m - 0.5) * cfg.px_per_m_z), int((cfg.z_max_m - stop_at_m) * cfg.px_per_m_z)
+        c0, c1 = int((-3.4 - cfg.x_min_m) * cfg.px_per_m_x), int((3.4 - cfg.x_min_m) * cfg.px_per_m_x)
+        canvas[r0:r1, c0:c1] = (240, 240, 238)
+    img = cv2.warpPerspective(canvas, to_big @ be.bev_to_image, (CAM.width * scale, CAM.height * scale),
+                              flags=cv2.INTER_LINEAR, borderValue=(120, 160, 210))
+    img = cv2.resize(img, (CAM.width, CAM.height), interpolation=cv2.INTER_AREA)
+    if noise:
+        rng = np.random.default_rng(seed)
+        img = np.clip(img.astype(np.int16) + rng.integers(-noise, noise + 1, img.shape), 0, 255).astype(np.uint8)
+    return img
+
+
+def test_homography_matches_renderer_depth(town) -> None:
+    """Road pixels mapped to the ground with our homography have the renderer's metric depth."""
+    from sim.objects import SemanticClass
+    from sim.render import SceneRenderer
+
+    renderer = SceneRenderer(town, seed=town.seed)
+    lane = town.lane(town.road_lanes()[0])
+    x, y = lane.position(10.0, 0.0)
+    frame = renderer.render((float(x), float(y), float(lane.heading_at(10.0))), CAM)
+    renderer.close()
+    be = BirdsEye(CAM)
+    h_inv = np.linalg.inv(ground_homography(CAM))
+    theta = math.radians(-CAM.pitch_deg)
+    rows, cols = np.nonzero(frame.segmentation[..., 0] == SemanticClass.ROAD)
+    assert len(rows) > 1000
+    g = h_inv @ np.vstack([cols, rows, np.ones(len(rows))])
+    gz = g[1] / g[2]
+    predicted = gz * math.cos(theta) + CAM.mount_height_m * math.sin(theta)  # camera z of (x, -h, z)
+    err = np.abs(predicted - frame.depth_m[rows, cols]) / frame.depth_m[rows, cols]
+    assert np.median(err) < 0.01 and np.percentile(err, 95) < 0.03
+    # Rows and distances agree both ways.
+    z = np.array([4.0, 8.0, 15.0, 25.0])
+    uv = be.image_of_ground(np.zeros(4), z)
+    assert np.allclose(be.ground_z_of_row(uv[:, 1]), z, rtol=1e-6)
+    assert math.isnan(be.ground_z_of_row(np.array([0.0]))[0])  # the top row is sky
+
+
+@pytest.mark.parametrize("car_offset_m", [-0.6, 0.0, 0.45])
+def test_sliding_windows_offset_on_straight_road(car_offset_m: float) -> None:
+    # Lane lines at +-1.75 m about the lane centre; the car is car_offset_m right of the centre.
+    img = synthetic_road([(0, 0, -1.75 - car_offset_m), (0, 0, 1.75 - car_offset_m), (0, 0, 5.25 - car_offset_m)], noise=6)
+    det = LaneDetector(CAM)
+    res = det.detect(img)
+    assert res.detected and res.left is not None and res.right is not None
+    assert abs(res.offset_m - car_offset_m) < 0.05
+    assert abs(res.lane_width_m - 3.5) < 0.1 or abs((res.right.x_at(0) - res.left.x_at(0)) - 3.5) < 0.1
+    assert abs(res.curvature_radius_m) > 500  # straight
+
+
+def test_curvature_radius_and_tracking_mode() -> None:
+    radius = 60.0  # x = z^2 / (2 R): a right-hand bend seen from its start
+    a = 1 / (2 * radius)
+    img = synthetic_road([(a, 0, -1.75), (a, 0, 1.75)])
+    det = LaneDetector(CAM)
+    first = det.detect(img)
+    second = det.detect(img)
+    assert first.detected and second.detected
+    assert not first.used_previous and second.used_previous
+    assert 0.7 * radius < second.curvature_radius_m < 1.4 * radius  # positive: bends right
+    mirrored = LaneDetector(CAM).detect(synthetic_road([(-a, 0, -1.75), (-a, 0, 1.75)]))
+    assert mirrored.curvature_radius_m < 0
+
+
+def test_no_lane_when_no_paint() -> None:
+    res = LaneDetector(CAM).detect(synthetic_road([], noise=8))
+    assert not res.detected and math.isnan(res.offset_m)
+
+
+def test_hough_offset() -> None:
+    img = synthetic_road([(0, 0, -1.75 - 0.3), (0, 0, 1.75 - 0.3)])
+    res = HoughLaneDetector(CAM).detect(img)
+    assert res.detected
+    assert abs(res.offset_m - 0.3) < 0.15
+
+
+@pytest.mark.parametrize("distance_m", [5.0, 9.0, 14.0])
+def test_stop_line_distance(distance_m: float) -> None:
+    img = synthetic_road([(0, 0, -1.75), (0, 0, 1.75)], stop_at_m=distance_m)
+    det = LaneDetector(CAM)
+    lanes = det.detect(img)
+    line = StopLineDetector(CAM).detect(img, lanes)
+    assert line is not None
+    assert abs(line.distance_m - distance_m) < 0.5
+    assert StopLineDetector(CAM).detect(synthetic_road([(0, 0, -1.75), (0, 0, 1.75)]), lanes) is None
+
+
+def test_tusimple_metric() -> None:
+    rows = lane_z_range_rows(CAM, 3.0, 30.0)
+    gt = [np.linspace(100, 150, len(rows)), np.linspace(220, 170, len(rows))]
+    perfect = tusimple_frame([g.copy() for g in gt], gt, rows, 5.0)
+    assert perfect.accuracy == 1.0 and perfect.false_positives == 0 and perfect.false_negatives == 0
+    shifted = tusimple_frame([gt[0] + 12.0, gt[1]], gt, rows, 5.0)
+    assert shifted.false_negatives == 1 and shifted.false_positives == 1 and shifted.accuracy == pytest.approx(0.5)
+    missing = tusimple_frame([gt[0]], gt, rows, 5.0)
+    assert missing.false_negatives == 1 and missing.false_positives == 0
