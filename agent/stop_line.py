@@ -76,7 +76,9 @@ class StopLineDetector:
         cfg = self.config
         have_lane = lanes is not None and lanes.detected
         following = self._track_m is not None and self._unseen <= cfg.track_frames
-        if cfg.require_lane and not have_lane and not following:
+        # A new bar needs both lines of the lane (a lone line is often a kerb or a zebra's edge in a turn).
+        both_lines = have_lane and lanes is not None and lanes.left is not None and lanes.right is not None
+        if cfg.require_lane and not both_lines and not following:
             self._track_m = None
             return None
         found = self._find(rgb, lanes if have_lane else None)

@@ -65,6 +65,7 @@ class Tally:
         self.fp = self.fn = self.n_pred = self.n_gt = 0
         self.err_model: list[float] = []
         self.err_painted: list[float] = []
+        self.err_in_lane: list[float] = []  # painted-centre error while the car is within 1 m of it (not changing lanes)
         self.frames = self.with_offset = 0
 
     def add(self, result: LaneResult, pred: list[np.ndarray], gt, h_samples: np.ndarray, thresh_px: float) -> None:
@@ -84,6 +85,8 @@ class Tally:
                 self.err_model.append(abs(result.offset_m - gt.offset_m))
             if math.isfinite(gt.painted_offset_m):
                 self.err_painted.append(abs(result.offset_m - gt.painted_offset_m))
+                if abs(gt.painted_offset_m) <= 1.0:
+                    self.err_in_lane.append(abs(result.offset_m - gt.painted_offset_m))
 
     def row(self) -> str:
         acc = np.mean(self.acc) if self.acc else float("nan")
@@ -91,8 +94,11 @@ class Tally:
         fnr = self.fn / max(1, self.n_gt)
         mp = np.mean(self.err_painted) if self.err_painted else float("nan")
         mm = np.mean(self.err_model) if self.err_model else float("nan")
-        return (f"acc {acc:6.3f}  FP {fpr:5.3f}  FN {fnr:5.3f}  offset MAE painted {mp:5.3f} m  model {mm:5.3f} m  "
-                f"offset available {self.with_offset / max(1, self.frames):5.1%} of {self.frames} road frames")
+        med = np.median(self.err_painted) if self.err_painted else float("nan")
+        il = np.mean(self.err_in_lane) if self.err_in_lane else float("nan")
+        return (f"acc {acc:5.3f} FP {fpr:5.3f} FN {fnr:5.3f} | offset MAE vs painted centre {mp:5.3f} m (median {med:5.3f}, "
+                f"in lane {il:5.3f}), vs lane model {mm:5.3f} m | offset given in {self.with_offset / max(1, self.frames):4.0%} "
+                f"of {self.frames} road frames")
 
 
 class StopTally:

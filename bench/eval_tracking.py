@@ -136,6 +136,7 @@ def main() -> None:
     ap.add_argument("--noise", type=float, default=0.05, help="edge jitter, share of the box size (std)")
     ap.add_argument("--dropout", type=float, default=0.1, help="probability that a box is missed")
     ap.add_argument("--false-rate", type=float, default=0.2, help="spurious boxes per frame (Poisson mean)")
+    ap.add_argument("--picture", type=Path, default=None, help="write frames with SORT's tracks and ids here")
     ap.add_argument("--detector", type=Path, default=None, help="trained detector checkpoint (agent/detector.py)")
     args = ap.parse_args()
     cv2.setNumThreads(1)
@@ -174,6 +175,8 @@ def main() -> None:
     summary = mh.compute_many(accs, names=names, metrics=["mota", "idf1", "num_switches", "precision", "recall",
                                                           "num_false_positives", "num_misses"])
     print(mm.io.render_summary(summary, formatters=mh.formatters, namemap=mm.io.motchallenge_metric_names))
+    if args.picture is not None:
+        _picture(sequences[0], [cache[(0, k)] for k in range(len(sequences[0]))], config, args.picture)
     rate = tracker_rate(sequences, config)
     print(f"tracker: {rate:.0f} updates/s (Sort.update on noisy ground-truth boxes, one core)")
     det_path = args.detector
@@ -186,23 +189,48 @@ def main() -> None:
     _with_detector(det_path, sequences, config, mh)
 
 
+def _picture(seq, dets: list[np.ndarray], config: SortConfig, path: Path) -> None:
+    """Six frames of one drive: noisy input boxes (thin grey) and SORT's tracks with their ids (coloured)."""
+    sort = Sort(config)
+    picks = set(np.linspace(20, len(seq) - 1, 6).astype(int).tolist())
+    tiles = []
+    for k, ((_, _, image), d) in enumerate(zip(seq, dets, strict=True)):
+        tracks = sort.update(d)
+        if k not in picks:
+            continue
+        img = cv2.resize(image, (640, 320), interpolation=cv2.INTER_LINEAR)
+        for b in d:
+            x0, y0, x1, y1 = (int(round(2 * v)) for v in b)
+            cv2.rectangle(img, (x0, y0), (x1, y1), (170, 170, 170), 1)
+        for t in tracks:
+            rng = np.random.default_rng(t.track_id)
+            color = tuple(int(c) for c in rng.integers(80, 256, 3))
+            x0, y0, x1, y1 = (int(round(2 * v)) for v in t.box)
+            cv2.rectangle(img, (x0, y0), (x1, y1), color, 2)
+            cv2.putText(img, f"id {t.track_id}", (x0, max(12, y0 - 3)), cv2.FONT_HERSHEY_SIMPLEX, 0.45, color, 1, cv2.LINE_AA)
+        cv2.putText(img, f"frame {k}", (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+        tiles.append(img)
+    rows = [np.concatenate(tiles[i:i + 2], axis=1) for i in range(0, len(tiles) - 1, 2)]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), cv2.cvtColor(np.concatenate(rows, axis=0), cv2.COLOR_RGB2BGR))
+    print(f"picture: {path}")
+
+
 def _with_detector(path: Path, sequences, config: SortConfig, mh) -> None:
-    """MOTA with the trained detector's boxes (movers only), if its module offers a loader."""
+    """MOTA with the trained detector's car, truck and pedestrian boxes (agent/detector.py's TorchDetector)."""
     try:
-        from agent import detector as det_mod
-    except Exception as exc:  # the detector is someone else's work in progress
-        print(f"trained detector: cannot import agent.detector ({exc}); skipped")
+        from agent.detector import TorchDetector
+        model = TorchDetector(path)
+    except Exception as exc:  # the detector is someone else's work; say why it could not be used
+        print(f"trained detector: cannot load {path} ({exc}); skipped")
         return
-    loader = getattr(det_mod, "load_detector", None)
-    if loader is None:
-        print("trained detector: agent.detector has no load_detector(); skipped")
-        return
-    model = loader(path)
+    log = path.with_name(path.stem + ".log.jsonl")
+    if log.exists():
+        print(f"trained detector {path}: last log line {log.read_text().strip().splitlines()[-1][:160]}")
     movers = {"car", "truck", "pedestrian"}
 
     def boxes_of(image: np.ndarray) -> np.ndarray:
-        dets = model(image)
-        return np.array([d.box for d in dets if getattr(d, "label", "car") in movers], float).reshape(-1, 4)
+        return np.array([d.box for d in model(image) if d.name in movers], float).reshape(-1, 4)
 
     cache = {(e, k): boxes_of(img) for e, s in enumerate(sequences) for k, (_, _, img) in enumerate(s)}
     accs, names = [], []
@@ -210,7 +238,8 @@ def _with_detector(path: Path, sequences, config: SortConfig, mh) -> None:
         acc, _, _ = evaluate(sequences, lambda e, k, item: cache[(e, k)], every, config, "")
         accs.append(acc)
         names.append(f"detector + SORT, every {every}")
-    summary = mh.compute_many(accs, names=names, metrics=["mota", "idf1", "num_switches", "precision", "recall"])
+    summary = mh.compute_many(accs, names=names, metrics=["mota", "idf1", "num_switches", "precision", "recall",
+                                                          "num_false_positives", "num_misses"])
     print(mm.io.render_summary(summary, formatters=mh.formatters, namemap=mm.io.motchallenge_metric_names))
 
 
