@@ -67,6 +67,7 @@ class Tally:
         self.err_painted: list[float] = []
         self.err_in_lane: list[float] = []  # painted-centre error while the car is within 1 m of it (not changing lanes)
         self.frames = self.with_offset = 0
+        self.radius: list[tuple[float, float]] = []  # (true |R|, estimated |R|) on bends
 
     def add(self, result: LaneResult, pred: list[np.ndarray], gt, h_samples: np.ndarray, thresh_px: float) -> None:
         if not gt.on_road:
@@ -81,6 +82,8 @@ class Tally:
         self.frames += 1
         if result.detected and math.isfinite(result.offset_m):
             self.with_offset += 1
+            if math.isfinite(gt.radius_m):
+                self.radius.append((gt.radius_m, abs(result.curvature_radius_m)))
             if math.isfinite(gt.offset_m):
                 self.err_model.append(abs(result.offset_m - gt.offset_m))
             if math.isfinite(gt.painted_offset_m):
@@ -98,7 +101,18 @@ class Tally:
         il = np.mean(self.err_in_lane) if self.err_in_lane else float("nan")
         return (f"acc {acc:5.3f} FP {fpr:5.3f} FN {fnr:5.3f} | offset MAE vs painted centre {mp:5.3f} m (median {med:5.3f}, "
                 f"in lane {il:5.3f}), vs lane model {mm:5.3f} m | offset given in {self.with_offset / max(1, self.frames):4.0%} "
-                f"of {self.frames} road frames")
+                f"of {self.frames} road frames" + self._radius())
+
+    def _radius(self) -> str:
+        if not self.radius:
+            return ""
+        r = np.array(self.radius)
+        curved = np.isfinite(r[:, 1])
+        if not curved.any():
+            return f" | bends: no curvature estimated (n={len(r)})"
+        rel = np.abs(r[curved, 1] - r[curved, 0]) / r[curved, 0]
+        return (f" | bends (R {r[:, 0].min():.0f}-{r[:, 0].max():.0f} m): radius error median {np.median(rel):.0%} "
+                f"(n={len(r)}, {1 - curved.mean():.0%} fitted straight)")
 
 
 class StopTally:

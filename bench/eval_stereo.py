@@ -1,6 +1,6 @@
 """Stereo depth measured against the simulator's depth: D1-all and object distance error by range.
 
-    python bench/eval_stereo.py                       # ZED-like 0.12 m baseline, 4 presets x 60 frames
+    python bench/eval_stereo.py                       # ZED-like 0.12 m baseline, 4 presets x 2 drives x 30 frames
     python bench/eval_stereo.py --baseline 0.3        # a wider automotive rig
     python bench/eval_stereo.py --picture docs/stereo_disparity.png
 
@@ -37,7 +37,8 @@ RANGES = ((0.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, 40.0))
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--frames", type=int, default=60, help="frames per preset (one every --every steps)")
+    ap.add_argument("--frames", type=int, default=30, help="frames per drive (one every --every steps)")
+    ap.add_argument("--episodes", type=int, default=2, help="drives per preset (seeds seed, seed + 1, ...)")
     ap.add_argument("--every", type=int, default=4)
     ap.add_argument("--seed", type=int, default=21)
     ap.add_argument("--baseline", type=float, default=None, help="stereo baseline in metres (default: the camera's)")
@@ -57,43 +58,44 @@ def main() -> None:
     print(f"rig: {cam.width}x{cam.height}, f = {cam.focal_px:.0f} px, baseline {cam.stereo_baseline_m:.2f} m "
           f"(1 px of disparity = {cam.focal_px * cam.stereo_baseline_m:.1f} m); SGBM 3-way, "
           f"{stereo.config.num_disparities} disparities, block {stereo.config.block_size}")
-    all_err: list[tuple[float, float]] = []
+    all_err: list[tuple[float, float, tuple[int, int]]] = []
     all_d1: list[tuple[float, ...]] = []
     pictures = []
     for preset in presets:
-        driver = Autopilot()
-        obs, _ = env.reset(seed=args.seed, options={"weather": preset, "traffic_density": 2.0})
-        driver.reset(env)
         d1s: list[tuple[float, ...]] = []
-        errs: list[tuple[float, float]] = []
+        errs: list[tuple[float, float, tuple[int, int]]] = []
         t0 = time.perf_counter()
-        for k in range(args.frames * args.every):
-            obs, _, terminated, truncated, _ = env.step(driver.act(obs))
-            if terminated or truncated:
-                obs, _ = env.reset(seed=args.seed + k, options={"weather": preset, "traffic_density": 2.0})
-                driver.reset(env)
-            if k % args.every:
-                continue
-            assert env.world is not None and env.renderer is not None
-            truth = stereo_truth(env.renderer, env.world, cam, preset)
-            if not np.array_equal(truth.left, obs["stereo"][0]):
-                raise RuntimeError("the re-rendered left image differs from the observation; ground truth would not match")
-            disp = stereo.disparity(obs["stereo"][0], obs["stereo"][1])
-            valid_gt = truth.disparity_px > 0
-            matched = disp > 0
-            both = valid_gt & matched
-            err = np.abs(disp - truth.disparity_px)[both]
-            d1s.append((d1_all(fill_invalid(disp), truth.disparity_px, valid_gt), d1_all(disp, truth.disparity_px, both),
-                        float(both.sum()) / max(1, int(valid_gt.sum())), float(err.mean()) if len(err) else np.nan,
-                        float((err > 1.0).mean()) if len(err) else np.nan))
-            depth = stereo.depth(disp)
-            boxes, ids, oid = boxes_from_segmentation(truth.segmentation, min_pixels=100)
-            for box, i in zip(boxes, ids, strict=True):
-                true_d = float(np.median(truth.depth_m[oid == i]))
-                est = stereo.object_distance(depth, box)
-                errs.append((true_d, est))
-            if args.picture is not None and len(pictures) < len(presets) and k == args.every * (args.frames // 2):
-                pictures.append(_picture(obs["stereo"][0], disp, truth.disparity_px, boxes, stereo, depth, preset))
+        for episode in range(args.episodes):
+            driver = Autopilot()
+            obs, _ = env.reset(seed=args.seed + episode, options={"weather": preset, "traffic_density": 2.0})
+            driver.reset(env)
+            for k in range(args.frames * args.every):
+                obs, _, terminated, truncated, _ = env.step(driver.act(obs))
+                if terminated or truncated:
+                    obs, _ = env.reset(seed=args.seed + 100 + k, options={"weather": preset, "traffic_density": 2.0})
+                    driver.reset(env)
+                if k % args.every:
+                    continue
+                assert env.world is not None and env.renderer is not None
+                truth = stereo_truth(env.renderer, env.world, cam, preset)
+                if not np.array_equal(truth.left, obs["stereo"][0]):
+                    raise RuntimeError("the re-rendered left image differs from the observation; ground truth would not match")
+                disp = stereo.disparity(obs["stereo"][0], obs["stereo"][1])
+                valid_gt = truth.disparity_px > 0
+                matched = disp > 0
+                both = valid_gt & matched
+                err = np.abs(disp - truth.disparity_px)[both]
+                d1s.append((d1_all(fill_invalid(disp), truth.disparity_px, valid_gt),
+                            d1_all(disp, truth.disparity_px, both), float(both.sum()) / max(1, int(valid_gt.sum())),
+                            float(err.mean()) if len(err) else np.nan, float((err > 1.0).mean()) if len(err) else np.nan))
+                depth = stereo.depth(disp)
+                boxes, ids, oid = boxes_from_segmentation(truth.segmentation, min_pixels=100)
+                for box, i in zip(boxes, ids, strict=True):
+                    true_m = float(np.median(truth.depth_m[oid == i]))
+                    errs.append((true_m, stereo.object_distance(depth, box), (episode, int(i))))
+                if (args.picture is not None and episode == 0 and len(pictures) < len(presets)
+                        and k == args.every * (args.frames // 2)):
+                    pictures.append(_picture(obs["stereo"][0], disp, truth.disparity_px, boxes, stereo, depth, preset))
         d1 = np.array(d1s)
         print(f"[{preset}] {len(d1s)} frames in {time.perf_counter() - t0:.0f} s: D1-all {d1[:, 0].mean():.2%}, "
               f"D1 valid {d1[:, 1].mean():.2%}, density {d1[:, 2].mean():.1%}, end-point error {np.nanmean(d1[:, 3]):.2f} px, "
@@ -113,18 +115,21 @@ def main() -> None:
         print(f"picture: {args.picture}")
 
 
-def _ranges(errs: list[tuple[float, float]]) -> str:
+def _ranges(errs: list[tuple[float, float, tuple[int, int]]]) -> str:
     parts = []
     for lo, hi in RANGES:
-        sel = [(t, e) for t, e in errs if lo <= t < hi]
+        sel = [(t, e, o) for t, e, o in errs if lo <= t < hi]
         if not sel:
             continue
-        ok = [(t, e) for t, e in sel if np.isfinite(e)]
+        ok = [(t, e) for t, e, _ in sel if np.isfinite(e)]
+        n_obj = len({o for _, _, o in sel})
+        if not ok:
+            parts.append(f"{lo:.0f}-{hi:.0f} m: {len(sel)} boxes, none measured")
+            continue
         ae = np.abs([e - t for t, e in ok])
         rel = np.abs([(e - t) / t for t, e in ok])
-        parts.append(f"{lo:.0f}-{hi:.0f} m: n={len(sel)}, measured {len(ok) / len(sel):.0%}, "
-                     f"MAE {ae.mean():.2f} m, median {np.median(ae):.2f} m ({np.median(rel):.1%})" if len(ok) else
-                     f"{lo:.0f}-{hi:.0f} m: n={len(sel)}, none measured")
+        parts.append(f"{lo:.0f}-{hi:.0f} m: {len(sel)} boxes of {n_obj} objects, measured {len(ok) / len(sel):.0%}, "
+                     f"MAE {ae.mean():.2f} m, median {np.median(ae):.2f} m ({np.median(rel):.1%})")
     return "; ".join(parts)
 
 

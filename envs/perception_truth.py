@@ -135,6 +135,7 @@ class LaneTruth:
     offset_m: float  # World.lane_offset_m: vehicle centre right of the lane model's centre
     painted_offset_m: float  # vehicle centre right of the middle of the two painted lines
     on_road: bool  # on a plain road or bend lane (painted), not inside a junction
+    radius_m: float = math.inf  # the lane's curvature radius (magnitude) where the car is; inf on straight roads
 
 
 def lane_truth(world: World, camera: CameraConfig, ground_map: GroundMap, depth_m: np.ndarray,
@@ -201,7 +202,8 @@ def lane_truth(world: World, camera: CameraConfig, ground_map: GroundMap, depth_
                 x[j] = -2.0
         if (x >= 0).sum() >= 2:
             lanes_x.append(x)
-    return LaneTruth(lanes_x, lat, offset, painted, True)
+    radius = float(getattr(town.lane(index), "radius", math.inf))
+    return LaneTruth(lanes_x, lat, offset, painted, True, radius)
 
 
 # --------------------------------------------------------------------------- TuSimple metric

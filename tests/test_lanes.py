@@ -135,3 +135,27 @@ def test_tusimple_metric() -> None:
     assert shifted.false_negatives == 1 and shifted.false_positives == 1 and shifted.accuracy == pytest.approx(0.5)
     missing = tusimple_frame([gt[0]], gt, rows, 5.0)
     assert missing.false_negatives == 1 and missing.false_positives == 0
+
+
+def test_ground_truth_lines_lie_on_painted_pixels() -> None:
+    """The evaluation's lane truth (projected from the ground map) falls on lane-marking pixels of the render."""
+    from envs.drive_env import DriveConfig, DriveEnv
+    from envs.perception_truth import lane_truth
+    from sim.objects import SemanticClass
+
+    env = DriveEnv(DriveConfig(observe_depth=True, observe_segmentation=True))
+    obs, _ = env.reset(seed=4, options={"traffic_density": 0.0})
+    rows = lane_z_range_rows(CAM, 3.0, 15.0)
+    assert env.world is not None and env.renderer is not None
+    gt = lane_truth(env.world, CAM, env.renderer.ground_map, obs["depth"], rows)
+    env.close()
+    assert gt.on_road and len(gt.lanes_x) == 2
+    paint = obs["segmentation"][..., 0] == SemanticClass.LANE_MARKING
+    shares = []
+    for x in gt.lanes_x:
+        ok = x >= 0
+        hit = [paint[int(r), max(0, int(round(c)) - 2):int(round(c)) + 3].any() for r, c in zip(rows[ok], x[ok], strict=True)]
+        shares.append(float(np.mean(hit)))
+    assert max(shares) > 0.9  # the solid line (edge or centre line)
+    assert min(shares) > 0.2  # a dashed line: paint on about a third of its length
+    assert abs(gt.lateral_m[1] - gt.lateral_m[0] - 3.3) < 0.15  # painted lines are 3.2-3.4 m apart
