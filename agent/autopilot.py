@@ -104,12 +104,17 @@ class Autopilot:
 
     # ------------------------------------------------------------------ decisions
     def choose_lane(self, world: World) -> int:
-        """The lane to drive in: the current one, unless the next junction move must start from the
-        other lane (left turns from lane 0, right turns from lane 1); change when that lane is clear."""
+        """The lane to drive in: the current one, unless the announced turn must start from the other lane
+        (left turns from lane 0, right turns from lane 1); change when that lane is clear.
+
+        It waits for the route command to announce the turn, as a driver who only hears the command would:
+        a lane change the camera sees under "follow" would teach a cloned driver to weave."""
         current = world.ego_lane[0][2] if world.ego_lane is not None else 0
         town = world.town
         edge = world.route[world.route_index]
         if town.lane_info[(*edge, 0)].kind != "road" or world.route_index + 1 >= len(world.route):
+            return current
+        if world.command() not in (Command.LEFT, Command.RIGHT):
             return current
         allowed = lanes_for(town.lane_info[(*world.route[world.route_index + 1], 0)].command)
         if current in allowed:

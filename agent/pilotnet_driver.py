@@ -1,8 +1,10 @@
 """The ``pilotnet`` driver: PilotNet steers from the camera frame; a PID holds a constant target speed.
 
 It sees only what a real car has: the camera frame, its own speed and the route command (the
-conditional model picks its branch with it). The speed is the seed's assumption: constant, configurable,
-with an optional slow-down while the network asks for a sharp turn. Inference runs through ONNX Runtime
+conditional model picks its branch with it). Its steering changes at most as fast as the autopilot's
+(``STEER_RATE_PER_S``), the rate the labels were recorded with; 0 turns the limit off. The speed is
+the seed's assumption: constant, configurable, with an optional slow-down while the network asks for a
+sharp turn. Inference runs through ONNX Runtime
 (``backend="onnx"``, the default) or torch; both load the same shipped model.
 """
 
@@ -13,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from agent.autopilot import PID
+from agent.autopilot import PID, STEER_RATE_PER_S
 from agent.drivers import register
 from agent.pilotnet import Crop, preprocess, to_tensor
 from sim.ego import EgoVehicle
@@ -70,10 +72,11 @@ class PilotNetDriver:
     privileged = False
 
     def __init__(self, model: str | Path = DEFAULT_MODEL, backend: str = "onnx", target_speed_mps: float = 7.0,
-                 turn_slowdown: float = 0.5, threads: int = 1) -> None:
+                 turn_slowdown: float = 0.5, steer_rate_per_s: float = STEER_RATE_PER_S, threads: int = 1) -> None:
         self.net = PilotNetModel(model, backend, threads)
         self.target_speed = target_speed_mps
         self.turn_slowdown = turn_slowdown
+        self.steer_rate = steer_rate_per_s
         self.speed_pid = PID(0.6, 0.1, 0.0)
         self.dt = 0.05
         self.last_steer = 0.0
@@ -89,6 +92,9 @@ class PilotNetDriver:
 
     def act(self, observation: dict[str, Any]) -> np.ndarray:
         steer = float(np.clip(self.net.steer(observation["image"], int(observation["command"])), -1.0, 1.0))
+        if self.steer_rate > 0:  # the expert's gentle hands: frame-to-frame jitter of the network is not steering
+            step = self.steer_rate * self.dt
+            steer = min(self.last_steer + step, max(self.last_steer - step, steer))
         self.last_steer = steer
         speed = float(observation["speed"][0])
         accel = self.speed_pid(self.target_speed_for(steer) - speed, self.dt) * EgoVehicle.MAX_ACCEL_MPS2

@@ -68,11 +68,12 @@ def edge_command(town: Town, edge: Edge) -> Command:
     return town.lane_info[(edge[0], edge[1], 0)].command
 
 
-def command_at(town: Town, route: list[Edge], index: int, s: float, horizon_m: float = 35.0) -> Command:
+def command_at(town: Town, route: list[Edge], index: int, s: float, horizon_m: float = 50.0) -> Command:
     """The command a driver is given at route position ``index`` (edge) and ``s`` metres along it.
 
     Inside a junction it is that junction's turn; on a road it announces the next junction's turn
-    once the stop line is within ``horizon_m``; otherwise it is FOLLOW.
+    once the stop line is within ``horizon_m`` (early enough to change into the lane the turn starts
+    from); otherwise it is FOLLOW.
     """
     current = edge_command(town, route[index])
     if town.lane_info[(route[index][0], route[index][1], 0)].kind == "connector":
