@@ -1,7 +1,7 @@
 """PilotNet speed: training throughput and inference latency, torch versus ONNX Runtime.
 
 Training: frames per second through the whole training step (balanced sampling, augmentation, forward,
-backward, Adam) on 1 and 2 threads, batch 64, on frames from the simulator. Inference: one frame at a time
+backward, Adam) on 1 and 2 threads, batch 64, on frames from the simulator, in fp32 and with bf16 autocast. Inference: one frame at a time
 as the driver runs it (preprocess, then the network), p50 and p95, with torch and with ONNX Runtime on the
 shipped model, 1 thread each (the other core is the simulator's). The ratio torch / ONNX Runtime is
 measured in the same run.
@@ -46,7 +46,7 @@ def sim_frames(n: int) -> list[np.ndarray]:
     return frames
 
 
-def training_throughput(frames: list[np.ndarray], threads: int, batches: int) -> float:
+def training_throughput(frames: list[np.ndarray], threads: int, batches: int, bf16: bool) -> float:
     torch.set_num_threads(threads)
     images = np.stack([preprocess(f) for f in frames])
     n = len(images)
@@ -60,7 +60,9 @@ def training_throughput(frames: list[np.ndarray], threads: int, batches: int) ->
     for k, (x, cmd, y) in enumerate(it):
         if k == 2:
             t0 = time.perf_counter()
-        loss = torch.nn.functional.mse_loss(model(x, cmd)[:, 0], y)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            pred = model(x, cmd)
+        loss = torch.nn.functional.mse_loss(pred[:, 0].float(), y)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -75,7 +77,9 @@ def main() -> int:
     frames = sim_frames(200)
     print("Training throughput (conditional PilotNet, batch 64, augmentation on):")
     for threads in (1, 2):
-        print(f"  {threads} thread(s): {training_throughput(frames, threads, args.batches):7.0f} frames/s")
+        fp32 = training_throughput(frames, threads, args.batches, bf16=False)
+        bf16 = training_throughput(frames, threads, args.batches, bf16=True)
+        print(f"  {threads} thread(s): fp32 {fp32:6.0f} frames/s, bf16 autocast {bf16:6.0f} frames/s ({bf16 / fp32:.2f}x)")
     print("Inference, one frame at a time, 1 thread:")
     frame = frames[100]
     pre = measure(lambda: preprocess(frame), repeats=300)
