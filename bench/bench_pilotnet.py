@@ -1,10 +1,10 @@
 """PilotNet speed: training throughput and inference latency, torch versus ONNX Runtime.
 
 Training: frames per second through the whole training step (balanced sampling, augmentation, forward,
-backward, Adam) on 1 and 2 threads, batch 64, on frames from the simulator, in fp32 and with bf16 autocast. Inference: one frame at a time
-as the driver runs it (preprocess, then the network), p50 and p95, with torch and with ONNX Runtime on the
-shipped model, 1 thread each (the other core is the simulator's). The ratio torch / ONNX Runtime is
-measured in the same run.
+backward, Adam) on 1 and 2 threads, batch 64, on frames from the simulator, in fp32 and with bf16
+autocast. Inference: one frame at a time as the driver runs it (preprocess, then the network), p50 and
+p95, with torch and with ONNX Runtime on the shipped model, 1 thread each (the other core is the
+simulator's). The ratio torch / ONNX Runtime is measured in the same run.
 
 Run: ``python bench/bench_pilotnet.py [--model data/models/pilotnet.pt]``.
 """
