@@ -423,10 +423,11 @@ class LaneDetector:
         slope = 2 * a * z0 + b
         heading = math.atan(slope)
         offset = -float(np.polyval(centre, z0)) * math.cos(heading)
-        if left is None or right is None:
-            # A lone line may bound the neighbouring lane (the car is crossing the other line): report the
-            # offset from the centre of the lane the car is in, the nearest one.
-            offset -= round(offset / self.lane_width_m) * self.lane_width_m
+        # The lane found need not hold the car: a lone line may bound the neighbouring lane (the car is
+        # crossing the other line), and with the car turned the windows may lock onto the next lane over.
+        # Report the offset from the centre of the lane the car is in, the nearest one, taking the
+        # neighbouring lanes to be as wide as this one.
+        offset -= round(offset / self.lane_width_m) * self.lane_width_m
         radius = math.inf if abs(a) < 1e-6 else (1 + slope ** 2) ** 1.5 / (2 * a)
         return LaneResult(left, right, offset, float(radius), heading, self.lane_width_m, float(confidence), True)
 

@@ -1,6 +1,6 @@
 """Stereo depth measured against the simulator's depth: D1-all and object distance error by range.
 
-    python bench/eval_stereo.py                       # ZED-like 0.12 m baseline, 4 presets x 2 drives x 30 frames
+    python bench/eval_stereo.py                       # ZED-like 0.12 m baseline, 4 presets x 4 drives x 20 frames
     python bench/eval_stereo.py --baseline 0.3        # a wider automotive rig
     python bench/eval_stereo.py --picture docs/stereo_disparity.png
 
@@ -8,7 +8,7 @@ Ground truth: the left camera's metric z-depth (rendered again with the pair), d
 has no ground truth. D1 (KITTI 2015): a pixel is wrong if its disparity is off by more than 3 px and
 more than 5 %. "D1-all" fills pixels without a match by KITTI's background interpolation first, so every
 ground-truth pixel counts; "D1 valid" counts only matched pixels, and "density" is their share.
-Object distances: cars, trucks and pedestrians with at least 100 pixels in the left frame, boxes from
+Object distances: cars, trucks and pedestrians with at least 60 pixels in the left frame, boxes from
 the segmentation map; the estimate is the median stereo depth over the box's centre, the truth the
 median true depth over the object's own pixels.
 """
@@ -37,9 +37,9 @@ RANGES = ((0.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, 40.0))
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--frames", type=int, default=30, help="frames per drive (one every --every steps)")
-    ap.add_argument("--episodes", type=int, default=2, help="drives per preset (seeds seed, seed + 1, ...)")
-    ap.add_argument("--every", type=int, default=4)
+    ap.add_argument("--frames", type=int, default=20, help="frames per drive (one every --every steps)")
+    ap.add_argument("--episodes", type=int, default=4, help="drives per preset (seeds seed, seed + 1, ...)")
+    ap.add_argument("--every", type=int, default=6)
     ap.add_argument("--seed", type=int, default=21)
     ap.add_argument("--baseline", type=float, default=None, help="stereo baseline in metres (default: the camera's)")
     ap.add_argument("--width", type=int, default=None, help="camera width in pixels (height = width / 2; default 320)")
@@ -67,12 +67,12 @@ def main() -> None:
         t0 = time.perf_counter()
         for episode in range(args.episodes):
             driver = Autopilot()
-            obs, _ = env.reset(seed=args.seed + episode, options={"weather": preset, "traffic_density": 2.0})
+            obs, _ = env.reset(seed=args.seed + episode, options={"weather": preset, "traffic_density": 3.0})
             driver.reset(env)
             for k in range(args.frames * args.every):
                 obs, _, terminated, truncated, _ = env.step(driver.act(obs))
                 if terminated or truncated:
-                    obs, _ = env.reset(seed=args.seed + 100 + k, options={"weather": preset, "traffic_density": 2.0})
+                    obs, _ = env.reset(seed=args.seed + 100 + k, options={"weather": preset, "traffic_density": 3.0})
                     driver.reset(env)
                 if k % args.every:
                     continue
@@ -89,7 +89,7 @@ def main() -> None:
                             d1_all(disp, truth.disparity_px, both), float(both.sum()) / max(1, int(valid_gt.sum())),
                             float(err.mean()) if len(err) else np.nan, float((err > 1.0).mean()) if len(err) else np.nan))
                 depth = stereo.depth(disp)
-                boxes, ids, oid = boxes_from_segmentation(truth.segmentation, min_pixels=100)
+                boxes, ids, oid = boxes_from_segmentation(truth.segmentation, min_pixels=60)
                 for box, i in zip(boxes, ids, strict=True):
                     true_m = float(np.median(truth.depth_m[oid == i]))
                     errs.append((true_m, stereo.object_distance(depth, box), (episode, int(i))))
