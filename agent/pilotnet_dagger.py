@@ -94,7 +94,7 @@ def dagger(model: torch.nn.Module, meta: dict[str, Any], frames: FrameSet, args:
         print(f"DAgger round {r}: {stats['interventions']} safety-driver interventions in {stats['steps']} steps",
               flush=True)
         train = concat(train, load_frames([folder], side_cameras=False))
-        epoch0 = int(meta.get("epoch", args.epochs))
+        epoch0 = args.epochs + (r - 1) * args.dagger_epochs  # the log continues after the base training
         round_args = argparse.Namespace(**{**vars(args), "lr": args.lr * 0.3})
         fit(model, train, val, round_args, out, first_epoch=epoch0, epochs=args.dagger_epochs,
             meta={**meta, "dagger_round": r, "dagger_history": history}, best_val=float("inf"))
