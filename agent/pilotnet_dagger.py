@@ -40,7 +40,7 @@ def learner_steer(model: torch.nn.Module, rgb: np.ndarray, command: int) -> floa
     with torch.no_grad():
         x = to_tensor(preprocess(rgb))
         y = model(x, torch.tensor([command])) if model.conditional else model(x)
-    return float(np.clip(y[0, 0], -1.0, 1.0))
+    return min(1.0, max(-1.0, float(y[0, 0])))
 
 
 def collect(model: torch.nn.Module, folder: Path, episodes: int, seed: int, towns: list[int], seconds: float,
@@ -89,7 +89,7 @@ def dagger(model: torch.nn.Module, meta: dict[str, Any], frames: FrameSet, args:
     for r in range(1, args.dagger + 1):
         folder = out / "dagger" / f"round_{r}"
         stats = collect(model, folder, args.dagger_episodes, seed=50_000 + 1000 * r + args.seed, towns=towns,
-                        seconds=60.0)
+                        seconds=args.dagger_seconds)
         history.append(stats)
         print(f"DAgger round {r}: {stats['interventions']} safety-driver interventions in {stats['steps']} steps",
               flush=True)

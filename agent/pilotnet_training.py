@@ -60,6 +60,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dagger", type=int, default=0, metavar="ROUNDS", help="DAgger rounds after training")
     p.add_argument("--dagger-episodes", type=int, default=8, help="learner episodes per DAgger round")
     p.add_argument("--dagger-epochs", type=int, default=4, help="training epochs per DAgger round")
+    p.add_argument("--dagger-seconds", type=float, default=60.0, help="length of each DAgger episode")
 
 
 # --------------------------------------------------------------------------- checkpoints
@@ -136,9 +137,8 @@ def fit(model: torch.nn.Module, train: FrameSet, val: FrameSet, args: argparse.N
     if optimizer_state:
         opt.load_state_dict(optimizer_state)
     total = first_epoch + epochs
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda e: 0.5 * (1 + math.cos(math.pi * min(e, total) / max(total, 1))))
-    for _ in range(first_epoch):
-        sched.step()
+    sched = torch.optim.lr_scheduler.LambdaLR(  # cosine over all epochs, resumed where it stopped
+        opt, lambda e: 0.5 * (1 + math.cos(math.pi * min(e + first_epoch, total) / max(total, 1))))
     weights = balance_weights(train.steer)
     samples = args.samples_per_epoch or len(train)
     augmenter = None if args.no_augment else Augmenter(

@@ -191,6 +191,51 @@ def test_training_is_deterministic_resumable_and_exports(tiny_dataset, tmp_path)
     assert len(rows) == 3  # header + two epochs, across the resume
 
 
+def test_dagger_round_records_learner_episodes_labelled_by_the_autopilot(tiny_dataset, tmp_path):
+    from data.episodes import list_episodes, read_episode
+
+    assert _train(tiny_dataset, tmp_path, "--epochs", "1", "--dagger", "1", "--dagger-episodes", "1",
+                  "--dagger-seconds", "3", "--dagger-epochs", "1") == 0
+    episodes = list_episodes(tmp_path / "dagger" / "round_1")
+    assert len(episodes) == 1
+    ep = read_episode(episodes[0], load_frames=False)
+    assert ep.attrs["driver"] == "dagger" and ep.steps == 60
+    rows = (tmp_path / "log.csv").read_text().strip().splitlines()
+    assert len(rows) == 3  # header, the base epoch, the DAgger epoch
+
+
 def test_training_on_a_missing_folder_is_one_clear_error(tmp_path, capsys):
     assert _train(tmp_path / "nothing", tmp_path / "out", "--epochs", "1") == 2
     assert "no such dataset folder" in capsys.readouterr().err
+
+
+def test_shipped_model_keeps_its_lane_closed_loop_in_an_unseen_town():
+    """The shipped PilotNet drives 25 s of a route in a town never used for training, without the safety driver."""
+    from dataclasses import replace
+
+    from agent.drivers import make_driver
+    from envs.drive_env import DriveConfig, DriveEnv
+    from envs.evaluation import run_episode
+    from envs.metrics import episode_metrics
+    from sim.world import WorldConfig
+
+    world = replace(WorldConfig(), npc_count=0, pedestrian_count=0)
+    env = DriveEnv(DriveConfig(world=world, max_time_s=25.0, terminate_on_infraction=False,
+                               terminate_on_route_deviation=False))
+    try:
+        trace = run_episode(env, make_driver("pilotnet"), seed=512, options={"town_seed": 103, "weather": "dusk"})
+    finally:
+        env.close()
+    m = episode_metrics(trace)
+    assert m["interventions"] == 0, m
+    assert m["mean_abs_lane_offset_m"] < 0.4 and trace.route_progress_m > 100.0, m
+
+
+def test_driver_uses_only_the_camera_speed_and_command():
+    from agent.drivers import make_driver
+
+    driver = make_driver("pilotnet", backend="torch")
+    assert driver.privileged is False
+    frame = np.zeros((160, 320, 3), np.uint8)
+    action = driver.act({"image": frame, "speed": np.array([3.0], np.float32), "command": 1})
+    assert action.shape == (2,) and np.all(np.abs(action) <= 1.0) and action[1] > 0  # below target speed: throttle
