@@ -217,7 +217,8 @@ def run(frames: int, episodes: int, seed: int, sheet: Path | None) -> None:
 
 def _tile(rgb: np.ndarray, res: LaneResult, sl: StopLine | None, gt, st, be: BirdsEye, h_samples: np.ndarray,
           preset: str) -> np.ndarray:
-    """Camera with lanes (green area, red/blue fits, magenta ground-truth points) beside the bird's-eye windows."""
+    """Camera with lanes (green area, red/blue fits, magenta ground-truth points, orange stop line) beside the
+    bird's-eye mask (white / yellow paint) with sliding windows (green) and fits."""
     img = draw_lanes(rgb, res, be)
     for x in gt.lanes_x:
         for xx, yy in zip(x, h_samples, strict=True):
@@ -234,7 +235,10 @@ def _tile(rgb: np.ndarray, res: LaneResult, sl: StopLine | None, gt, st, be: Bir
         stxt = f"stop line {sl.distance_m:.1f} m" if sl is not None else "stop line: none"
         cv2.putText(big, stxt + f" (true {st.distance_m:.1f} m)", (6, 38), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1,
                     cv2.LINE_AA)
-    bev = draw_birdseye(res, be) if res.mask is not None else np.zeros((be.size[1], be.size[0], 3), np.uint8)
+    # The bird's-eye panel shows a fresh search (histogram + sliding windows) on this frame; the running
+    # detector usually searched around its previous fit instead (drawn as a band in draw_birdseye).
+    fresh = LaneDetector(be.camera).detect(rgb, keep_images=True)
+    bev = draw_birdseye(fresh, be)
     bev = cv2.resize(bev, (int(round(bev.shape[1] * 320 / bev.shape[0])), 320), interpolation=cv2.INTER_NEAREST)
     return np.concatenate([big, bev], axis=1)
 
