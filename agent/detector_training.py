@@ -123,10 +123,13 @@ def _sheet(args: argparse.Namespace) -> int:
     detector = OnnxDetector(args.model, score_threshold=0.3)
     tiles = []
     for weather in ("dusk", "night"):
-        cand = [s for s in samples if s.weather == weather]
-        cand.sort(key=lambda s: -int((~s.ignore).sum()))
-        chosen = cand[: args.frames * 3][:: 3][: args.frames // 2]  # busy frames, not all from one stretch
-        for s in chosen:
+        cand = [(k, s) for k, s in enumerate(samples) if s.weather == weather]
+        cand.sort(key=lambda ks: (-int((~ks[1].ignore).sum()), ks[0]))
+        chosen: list[int] = []
+        for k, _ in cand:  # the busiest frames, at least 40 frames apart (other stretches of road)
+            if len(chosen) < args.frames // 2 and all(abs(k - c) >= 40 for c in chosen):
+                chosen.append(k)
+        for s in (samples[k] for k in sorted(chosen)):
             rgb = read_rgb(s.image)
             tile = draw_detections(rgb, detector(rgb))
             cv2.putText(tile, f"{weather} {Path(s.image).stem}", (4, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
