@@ -31,7 +31,8 @@ from sim.world import WorldConfig  # noqa: E402
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--drivers", nargs="+", default=["autopilot", "pilotnet"])
+    ap.add_argument("--drivers", nargs="+", default=["autopilot", "pilotnet"],
+                    help="driver names; NAME@MODEL uses another model file (e.g. pilotnet@out/pilotnet/bc.pt)")
     ap.add_argument("--episodes", type=int, default=10)
     ap.add_argument("--seed", type=int, default=500)
     ap.add_argument("--town-seed", type=int, default=100)
@@ -55,21 +56,24 @@ def main(argv: list[str] | None = None) -> int:
 
     settings = {k: v for k, v in vars(args).items() if k not in ("drivers", "out", "reuse", "video")}
     rows = []
-    for name in args.drivers:
+    for spec in args.drivers:
+        name, _, model = spec.partition("@")
+        label = f"{name} ({Path(model).stem})" if model else name
         t0 = time.perf_counter()
-        folder = args.out / name
+        folder = args.out / (f"{name}_{Path(model).stem}" if model else name)
         earlier = folder / "settings.json"
         if args.reuse and earlier.is_file() and json.loads(earlier.read_text()) == settings:
             metrics = json.loads((folder / "metrics.json").read_text())
             print(f"{name}: reusing {folder / 'metrics.json'}")
         else:
-            metrics = evaluate(make_driver(name), config, args.episodes, args.seed, folder, video=args.video,
+            driver = make_driver(name, model=Path(model)) if model else make_driver(name)
+            metrics = evaluate(driver, config, args.episodes, args.seed, folder, video=args.video,
                                options=options)
             earlier.write_text(json.dumps(settings, indent=2))
             (folder / "wall_s.txt").write_text(f"{time.perf_counter() - t0:.1f}\n")
         m = metrics["mean"]
         inf = ", ".join(f"{k} {v}" for k, v in sorted(m["infractions"].items())) or "none"
-        rows.append(f"| {name} | {m['route_completion']:.1f} | {m['driving_score']:.1f} | {m['autonomy']:.2f} | "
+        rows.append(f"| {label} | {m['route_completion']:.1f} | {m['driving_score']:.1f} | {m['autonomy']:.2f} | "
                     f"{m['interventions']} | {m['mean_abs_lane_offset_m']:.3f} | {m['mean_speed_mps']:.2f} | "
                     f"{m['distance_km']:.2f} | {inf} | {float((folder / 'wall_s.txt').read_text()):.0f} |")
     head = [f"Towns {args.town_seed}-{args.town_seed + args.towns - 1}, seeds {args.seed}-{args.seed + args.episodes - 1}, "
