@@ -1,4 +1,4 @@
-"""Train the project's models and export them: ``python train.py pilotnet|detector ... --help``.
+"""Train the project's models and export them: ``python train.py pilotnet|detector|rl|export ... --help``.
 
 Each subcommand lives in its own module under ``agent/`` and provides ``add_arguments(parser)``
 and ``run(args) -> int``; this file only dispatches, so the modules stay importable and testable.
@@ -15,6 +15,7 @@ SUBCOMMANDS: dict[str, str] = {
     "pilotnet": "agent.pilotnet_training",
     "detector": "agent.detector_training",
     "rl": "agent.rl_training",
+    "export": "agent.export_profile",
 }
 
 

@@ -1,0 +1,460 @@
+"""Deployment: profile validation, ONNX vs torch parity per model (fp32 1e-4, fp16 within its documented
+tolerance), INT8 calibration frames, the engine-build script (with a stand-in trtexec; TensorRT itself cannot
+run here), TensorRT's absence as one clear error, the serial line protocol through a pseudo-terminal, JSON
+lines, and the camera sources (video file, side-by-side stereo, CSI pipeline)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import h5py
+import numpy as np
+import onnx
+import pytest
+import torch
+
+from agent.alerts import AlertFrame, JsonlAlerts, SerialAlerts, parse_line
+from agent.backends import BackendUnavailable, DetectorRunner, PilotNetRunner, open_backend, open_detector, open_pilotnet
+from agent.camera_sources import EpisodeSource, csi_pipeline, fit_frame, gstreamer_available, split_side_by_side, video_source
+from agent.export_profile import FP16_ATOL, FP16_RTOL, export_profile, fp16_check
+from agent.profiles import ProfileError, available_profiles, load_profile, profile_from_dict
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+# ---------------------------------------------------------------------- fixtures: small models, a tiny episode
+@pytest.fixture(scope="module")
+def tiny_models(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A conditional PilotNet and a narrow detector with seeded random weights, in the checkpoint formats."""
+    from agent.autolabel import CLASSES
+    from agent.detector import Detector, DetectorConfig
+    from agent.pilotnet import build
+    from agent.pilotnet_training import save_checkpoint
+
+    folder = tmp_path_factory.mktemp("models")
+    torch.manual_seed(0)
+    pilot = folder / "pilotnet.pt"
+    save_checkpoint(pilot, build(True), {"conditional": True, "crop": {"top": 0.4, "bottom": 1.0}})
+    det = Detector(DetectorConfig(width=8)).eval()
+    for m in det.modules():  # non-trivial BN statistics, so the folded constants are exercised
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.2, 0.2)
+            m.running_var.uniform_(0.5, 1.5)
+    detector = folder / "detector.pt"
+    torch.save({"state_dict": det.state_dict(), "classes": CLASSES, "config": {"width": 8}}, detector)
+    return {"pilotnet": pilot, "detector": detector}
+
+
+def write_episode(path: Path, frames: np.ndarray, speed: float = 5.0) -> Path:
+    """A minimal recorded episode (the datasets data.episodes.read_episode requires)."""
+    n = len(frames)
+    with h5py.File(path, "w") as f:
+        f["frames"] = frames
+        f["actions"] = np.zeros((n, 2), np.float32)
+        f["speed"] = np.full(n, speed, np.float32)
+        f["command"] = (np.arange(n) % 4).astype(np.int8)
+        f.attrs["dt_s"] = 0.05
+    return path
+
+
+def scene_frames(n: int, seed: int = 0) -> np.ndarray:
+    """Frames with road-like structure (sky, asphalt, bright lines, a box) rather than pure noise."""
+    rng = np.random.default_rng(seed)
+    out = np.zeros((n, 160, 320, 3), np.uint8)
+    for k in range(n):
+        img = out[k]
+        img[:70] = (140, 170, 210)
+        img[70:] = (70, 70, 75)
+        cv2.line(img, (60 + k, 159), (150, 75), (240, 240, 240), 3)
+        cv2.line(img, (270 - k, 159), (175, 75), (230, 200, 40), 3)
+        x = 120 + 5 * k
+        cv2.rectangle(img, (x, 90), (x + 30, 112), (200, 30, 30), -1)
+        out[k] = np.clip(img.astype(int) + rng.integers(-6, 7, img.shape), 0, 255).astype(np.uint8)
+    return out
+
+
+@pytest.fixture(scope="module")
+def episode_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("episodes")
+    write_episode(folder / "episode_00000.h5", scene_frames(12, 0))
+    write_episode(folder / "episode_00001.h5", scene_frames(12, 1))
+    return folder
+
+
+def tiny_profile(tmp: Path, models: dict[str, Path], **model_changes: dict) -> object:
+    spec = {name: {"checkpoint": str(path), **model_changes.get(name, {})} for name, path in models.items()}
+    return profile_from_dict({"name": "test", "export_dir": str(tmp / "deploy"), "models": spec}, "test.yaml")
+
+
+# ---------------------------------------------------------------------- profiles
+def test_shipped_profiles_load_with_their_settings() -> None:
+    names = available_profiles()
+    assert {"cpu", "jetson-nano", "jetson-xavier", "jetson-orin"} <= set(names)
+    cpu = load_profile("cpu")
+    assert cpu.models["detector"].backend == "onnxruntime" and cpu.camera.source == "simulator"
+    assert cpu.model_file("detector") == ROOT / "data" / "models" / "detector.onnx"  # runs without an export step
+    xavier = load_profile("jetson-xavier")
+    assert xavier.models["detector"].precision == "int8" and xavier.every("detector") == 2
+    assert xavier.every("stereo") == 2 and xavier.camera.stereo == "side-by-side"
+    assert xavier.model_file("detector").name == "detector.int8.engine"
+    nano = load_profile("jetson-nano")
+    assert nano.every("stereo") == 0 and nano.camera.source == "csi"
+    # 16:9 camera cropped to 2:1 keeps the full width: the field of view stays; a 4:3 one keeps it too
+    assert nano.camera_config().hfov_deg == pytest.approx(62.2)
+    assert profile_from_dict({}, "empty.yaml").models["pilotnet"].input_size == (200, 66)  # an empty file works
+
+
+def test_a_2_to_1_crop_of_a_square_camera_narrows_nothing_but_a_wide_one_does() -> None:
+    p = profile_from_dict({"camera": {"source": "usb", "hfov_deg": 120.0}}, "x.yaml")
+    assert p.camera_config((320, 160)).hfov_deg == pytest.approx(120.0)
+    wide = p.camera_config((640, 160))  # twice too wide: half the columns are kept
+    assert np.tan(np.radians(wide.hfov_deg / 2)) == pytest.approx(0.5 * np.tan(np.radians(60.0)))
+
+
+@pytest.mark.parametrize("data, words", [
+    ({"modles": {}}, ["'modles'", "known keys"]),
+    ({"models": {"detector": {"precison": "int8"}}}, ["'models.detector.precison'"]),
+    ({"models": {"detector": {"precision": "fp8"}}}, ["models.detector.precision", "'fp8'", "fp32, fp16, int8"]),
+    ({"models": {"detector": {"backend": "onnxruntime", "precision": "int8"}}}, ["models.detector.precision", "tensorrt"]),
+    ({"models": {"detector": {"backend": "torch", "precision": "fp16"}}}, ["models.detector.precision", "torch"]),
+    ({"models": {"yolo": {}}}, ["'models.yolo'", "pilotnet, detector"]),
+    ({"models": {"pilotnet": {"input_size": [320, 160]}}}, ["models.pilotnet.input_size", "[200, 66]"]),
+    ({"models": {"detector": {"input_size": [300, 160]}}}, ["models.detector.input_size", "16"]),
+    ({"models": {"detector": {"input_size": "320x160"}}}, ["models.detector.input_size", "[width, height]"]),
+    ({"modules": {"detector": {"every": 0}}}, ["modules.detector.every"]),
+    ({"modules": {"detector": {"every": "three"}}}, ["modules.detector.every", "integer"]),
+    ({"modules": {"radar": {"every": 1}}}, ["'modules.radar'"]),
+    ({"budgets_ms": {"detectr": 5}}, ["'budgets_ms.detectr'"]),
+    ({"budgets_ms": {"detector": -1}}, ["budgets_ms.detector"]),
+    ({"camera": {"source": "webcam"}}, ["camera.source", "'webcam'", "usb"]),
+    ({"camera": {"source": "video"}}, ["camera.path"]),
+    ({"modules": {"stereo": {"enabled": True}}}, ["modules.stereo", "camera.stereo"]),
+    ({"alerts": {"serial": "/dev/ttyACM0"}}, ["'alerts.serial'"]),
+    ({"modules": {"stereo": {"enabled": "yes"}}}, ["modules.stereo.enabled", "true or false"]),
+])
+def test_profile_errors_name_the_file_and_the_key(tmp_path: Path, data: dict, words: list[str]) -> None:
+    import yaml
+
+    path = tmp_path / "car.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ProfileError) as err:
+        load_profile(path)
+    message = str(err.value)
+    assert message.startswith(str(path)) and "\n" not in message
+    for w in words:
+        assert w in message
+
+
+def test_unknown_profile_name_and_bad_yaml(tmp_path: Path) -> None:
+    with pytest.raises(ProfileError, match="Unknown profile 'jetson-tx9'.*cpu"):
+        load_profile("jetson-tx9")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("models: [unclosed\n")
+    with pytest.raises(ProfileError, match="not valid YAML"):
+        load_profile(bad)
+
+
+# ---------------------------------------------------------------------- export, parity, backends
+@pytest.fixture(scope="module")
+def exported(tiny_models: dict[str, Path], episode_dir: Path, tmp_path_factory: pytest.TempPathFactory):
+    tmp = tmp_path_factory.mktemp("export")
+    profile = tiny_profile(tmp, tiny_models)
+    manifest = export_profile(profile, episodes=[episode_dir], calib_frames=10, seed=0)
+    return profile, manifest
+
+
+def test_export_writes_fp32_fp16_calibration_and_manifest(exported) -> None:
+    profile, manifest = exported
+    out = profile.export_path
+    for name in ("pilotnet", "detector"):
+        entry = manifest["models"][name]
+        assert (out / f"{name}.fp32.onnx").is_file() and (out / f"{name}.fp16.onnx").is_file()
+        assert entry["fp32_max_diff"] <= 1e-4
+        assert entry["fp16_tolerance_used"] <= 1.0 and entry["fp16_checked_on"] == "calibration frames"
+        # fp16 weights, fp32 inputs and outputs (callers feed the same arrays)
+        model = onnx.load(str(out / f"{name}.fp16.onnx"))
+        weights = [w for w in model.graph.initializer if w.dims and np.prod(w.dims) > 4]
+        assert weights and all(w.data_type == onnx.TensorProto.FLOAT16 for w in weights)
+        assert model.graph.input[0].type.tensor_type.elem_type == onnx.TensorProto.FLOAT
+        assert model.graph.output[0].type.tensor_type.elem_type == onnx.TensorProto.FLOAT
+        assert entry["calibration"]["frames"] == 10
+    assert manifest["models"]["pilotnet"]["meta"] == {"conditional": True, "crop": {"top": 0.4, "bottom": 1.0}}
+    assert json.loads((out / "manifest.json").read_text())["models"].keys() == {"pilotnet", "detector"}
+
+
+def test_calibration_inputs_are_the_models_inputs(exported, episode_dir: Path) -> None:
+    from agent.backends import detector_feeds, pilotnet_feeds
+
+    profile, manifest = exported
+    out = profile.export_path
+    det = np.load(out / "detector.calib.npy")
+    pil = np.load(out / "pilotnet.calib.npy")
+    cmd = np.load(out / "pilotnet.calib_command.npy")
+    assert det.dtype == np.uint8 and det.shape == (10, 3, 160, 320)
+    assert pil.dtype == np.uint8 and pil.shape == (10, 3, 66, 200) and cmd.shape == (10,)
+    # every calibration image is exactly one recorded frame's input, after the manifest's scale
+    frames = np.concatenate([h5py.File(p, "r")["frames"][()] for p in sorted(episode_dir.glob("*.h5"))])
+    scale = manifest["models"]["detector"]["calibration"]["inputs"]["image"]["scale"]
+    feeds = np.stack([detector_feeds(f)["image"][0] for f in frames])
+    errors = [np.abs(feeds - d.astype(np.float32) * scale).max(axis=(1, 2, 3)).min() for d in det]
+    assert max(errors) < 1e-6
+    pil_feeds = np.stack([pilotnet_feeds(f, 0, False)["image"][0] for f in frames])
+    assert all(np.abs(pil_feeds - p).max(axis=(1, 2, 3)).min() == 0 for p in pil.astype(np.float32))
+    assert 2 <= len(set(cmd.tolist())) <= 4  # drawn from both episodes' varied commands
+
+
+def test_onnx_matches_torch_per_model_fp32_and_fp16(exported) -> None:
+    base, _ = exported
+    frames = scene_frames(4, 7)
+    results: dict[tuple[str, str], list] = {}
+    for backend, precision in (("torch", "fp32"), ("onnxruntime", "fp32"), ("onnxruntime", "fp16")):
+        changes = {"backend": backend, "precision": precision}
+        profile = profile_from_dict({"name": "test", "export_dir": str(base.export_path),
+                                     "models": {n: {"checkpoint": base.models[n].checkpoint, **changes}
+                                                for n in ("pilotnet", "detector")}}, "test.yaml")
+        pilot, det = open_pilotnet(profile), open_detector(profile)
+        assert isinstance(pilot, PilotNetRunner) and isinstance(det, DetectorRunner)
+        assert pilot.backend.name == backend and det.backend.precision == precision
+        results[(backend, precision)] = [(np.array([[pilot.steer(f, c)] for c in range(4)]), det.raw(f)) for f in frames]
+    for (ref_s, ref_d), (s32, d32), (s16, d16) in zip(results[("torch", "fp32")], results[("onnxruntime", "fp32")],
+                                                       results[("onnxruntime", "fp16")], strict=True):
+        assert np.abs(s32 - ref_s).max() <= 1e-4 and np.abs(d32 - ref_d).max() <= 1e-4
+        _, used = fp16_check([s16, d16], [ref_s, ref_d])
+        assert used <= 1.0
+        assert np.abs(s16 - ref_s).max() > 0  # really a different arithmetic, not the fp32 file again
+
+
+def test_shipped_detector_parity_fp32_and_fp16(tmp_path: Path) -> None:
+    """The detector that ships in data/models: exported again and compared with torch on road-like frames."""
+    from agent.detector import DecodedDetector, load_detector
+    from agent.export_profile import prepare, to_fp16
+    from agent.onnx_export import export_onnx, onnx_session
+
+    checkpoint = ROOT / "data" / "models" / "detector.pt"
+    if not checkpoint.is_file():
+        pytest.skip("no shipped detector checkpoint")
+    job = prepare("detector", checkpoint, (320, 160))
+    fp32 = tmp_path / "detector.fp32.onnx"
+    assert export_onnx(job.module, job.examples, fp32, ["image"], ["detections"]) <= 1e-4
+    to_fp16(fp32, tmp_path / "detector.fp16.onnx")
+    x = np.stack([f.transpose(2, 0, 1) for f in scene_frames(2, 3)]).astype(np.float32) / 255.0
+    with torch.no_grad():
+        ref = DecodedDetector(load_detector(checkpoint))(torch.from_numpy(x)).numpy()
+    got32 = onnx_session(fp32, 1).run(None, {"image": x})[0]
+    got16 = onnx_session(tmp_path / "detector.fp16.onnx", 1).run(None, {"image": x})[0]
+    assert np.abs(got32 - ref).max() <= 1e-4
+    diff, used = fp16_check([got16], [ref])
+    assert used <= 1.0 and diff <= FP16_ATOL + FP16_RTOL * np.abs(ref).max()
+
+
+def test_fp16_check_rejects_an_error_beyond_the_tolerance() -> None:
+    ref = np.array([[0.5, 300.0]], np.float32)
+    assert fp16_check([ref + np.array([[0.005, 0.5]], np.float32)], [ref])[1] <= 1.0
+    assert fp16_check([ref + np.array([[0.05, 0.0]], np.float32)], [ref])[1] > 1.0
+
+
+def test_detector_runner_scales_boxes_back_to_the_frame(exported) -> None:
+    profile, _ = exported
+    det = open_detector(profile)
+    small = scene_frames(1, 2)[0]
+    big = cv2.resize(small, (640, 320), interpolation=cv2.INTER_NEAREST)
+    a, b = det.raw(small), det.raw(big)
+    assert np.allclose(b[:, :4], 2 * a[:, :4], atol=1e-3) and np.allclose(b[:, 4:], a[:, 4:], atol=1e-5)
+
+
+def test_tensorrt_absence_is_one_clear_error(exported) -> None:
+    try:
+        import tensorrt  # noqa: F401
+        pytest.skip("TensorRT is installed here")
+    except ImportError:
+        pass
+    base, _ = exported
+    profile = profile_from_dict({"name": "t", "export_dir": str(base.export_path),
+                                 "models": {"detector": {"checkpoint": base.models["detector"].checkpoint,
+                                                         "backend": "tensorrt", "precision": "int8"}}}, "t.yaml")
+    with pytest.raises(BackendUnavailable, match="TensorRT is not installed.*onnxruntime"):
+        open_backend(profile, "detector")
+
+
+def test_missing_onnx_file_says_how_to_export(tiny_models: dict[str, Path], tmp_path: Path) -> None:
+    profile = tiny_profile(tmp_path, tiny_models, detector={"precision": "fp16"})
+    with pytest.raises(FileNotFoundError, match="train.py export --profile test"):
+        open_detector(profile)
+
+
+# ---------------------------------------------------------------------- the engine-build script
+def fake_trtexec(folder: Path) -> Path:
+    """A stand-in trtexec: --help advertises memPoolSize; otherwise it logs its arguments and writes the engine."""
+    log = folder / "trtexec.log"
+    script = folder / "trtexec"
+    script.write_text(f"""#!/usr/bin/env bash
+if [ "$1" = "--help" ]; then echo "  --memPoolSize=poolspec"; exit 0; fi
+echo "$@" >> {log}
+for a in "$@"; do case "$a" in --saveEngine=*) echo engine > "${{a#--saveEngine=}}";; esac; done
+""")
+    script.chmod(0o755)
+    return script
+
+
+def run_script(script: Path, trtexec: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "TRTEXEC": str(trtexec), "PYTHON": sys.executable}
+    return subprocess.run(["bash", str(script)], capture_output=True, text=True, env=env, timeout=60)
+
+
+def test_engine_script_calls_trtexec_with_the_profile_precisions(exported, tiny_models: dict[str, Path],
+                                                                 episode_dir: Path, tmp_path: Path) -> None:
+    profile = tiny_profile(tmp_path, tiny_models, pilotnet={"backend": "tensorrt", "precision": "fp16"},
+                           detector={"backend": "tensorrt", "precision": "fp16", "dla_core": 0, "workspace_mb": 512})
+    export_profile(profile, episodes=[episode_dir], calib_frames=4)
+    script = profile.export_path / "build_engines.sh"
+    assert os.access(script, os.X_OK)
+    done = run_script(script, fake_trtexec(tmp_path))
+    assert done.returncode == 0, done.stderr
+    calls = (tmp_path / "trtexec.log").read_text().splitlines()
+    assert len(calls) == 2
+    pilot, det = calls
+    assert "--fp16" in pilot and "pilotnet.fp32.onnx" in pilot and "--shapes=image:1x3x66x200,command:1" in pilot
+    assert "--memPoolSize=workspace:512" in det and "--useDLACore=0" in det and "--allowGPUFallback" in det
+    assert "--int8" not in pilot + det
+    assert (profile.export_path / "detector.fp16.engine").is_file()
+
+
+def test_int8_script_stops_at_calibration_without_tensorrt(tiny_models: dict[str, Path], episode_dir: Path,
+                                                           tmp_path: Path) -> None:
+    profile = tiny_profile(tmp_path, tiny_models, detector={"backend": "tensorrt", "precision": "int8"})
+    export_profile(profile, models=["detector"], episodes=[episode_dir], calib_frames=4)
+    text = (profile.export_path / "build_engines.sh").read_text()
+    assert "agent.trt_calibrate" in text and "--int8" in text and "--calib=" in text
+    done = run_script(profile.export_path / "build_engines.sh", fake_trtexec(tmp_path))
+    assert done.returncode != 0
+    assert "TensorRT is not installed" in done.stderr
+    assert not (tmp_path / "trtexec.log").exists()  # trtexec never ran with a missing calibration cache
+
+
+def test_cpu_profile_script_has_nothing_to_build(exported, tmp_path: Path) -> None:
+    profile, _ = exported
+    done = run_script(profile.export_path / "build_engines.sh", fake_trtexec(tmp_path))
+    assert done.returncode == 0 and "nothing to build" in done.stdout
+
+
+# ---------------------------------------------------------------------- alerts
+def test_serial_protocol_through_a_pty() -> None:
+    import tty
+
+    master, slave = os.openpty()
+    tty.setraw(master)
+    port = os.ttyname(slave)
+    alerts = SerialAlerts(port, 115200)
+    frames = [AlertFrame(417, 20.85, "red", ("forward_collision", "object_in_lane"), brake=0.62, steer=-0.08,
+                         speed_mps=8.6, light=None),
+              AlertFrame(65537, 1.0, "green", (), brake=0.0, steer=0.5, speed_mps=10.0, light="red"),
+              AlertFrame(3, 0.2, "none", ("lane_departure",), brake=0.9, steer=1.7, speed_mps=float("nan"), light="yellow")]
+    for a in frames:
+        alerts.send(a)
+    data = b""
+    while data.count(b"\n") < len(frames):
+        data += os.read(master, 1024)
+    alerts.close()
+    os.close(master)
+    os.close(slave)
+    lines = data.split(b"\r\n")[:-1]
+    assert lines[0] == b"$TDA,417,R,FOB,62,-8,31,-*68"  # the example in agent/alerts.py's docstring
+    got = [parse_line(line) for line in lines]
+    assert got[0] == {"seq": 417, "lane": "R", "warn": "FOB", "brake_pct": 62, "steer_pct": -8, "speed_kmh": 31,
+                      "light": ""}
+    assert got[1]["seq"] == 1 and got[1]["lane"] == "G" and got[1]["warn"] == "" and got[1]["light"] == "R"
+    assert got[2]["warn"] == "LB" and got[2]["steer_pct"] == 100 and got[2]["speed_kmh"] == 0 and got[2]["light"] == "Y"
+    assert all(len(line) + 2 <= 48 for line in lines)
+    corrupted = lines[0].replace(b",R,", b",G,")
+    with pytest.raises(ValueError, match="checksum"):
+        parse_line(corrupted)
+
+
+def test_serial_port_that_does_not_exist_is_one_clear_error() -> None:
+    with pytest.raises(RuntimeError, match="Cannot open serial port /dev/ttyNOPE"):
+        SerialAlerts("/dev/ttyNOPE")
+
+
+def test_jsonl_alerts(tmp_path: Path) -> None:
+    sink = JsonlAlerts(tmp_path / "alerts.jsonl")
+    sink.send(AlertFrame(0, 0.0, "green", (), timings_ms={"detector": 4.1234}))
+    sink.send(AlertFrame(1, 0.05, "red", ("object_in_lane",), brake=0.3, reason="lead car"))
+    sink.close()
+    rows = [json.loads(line) for line in (tmp_path / "alerts.jsonl").read_text().splitlines()]
+    assert rows[1]["warnings"] == ["object_in_lane"] and rows[1]["reason"] == "lead car" and rows[1]["lane"] == "red"
+    assert rows[0]["timings_ms"] == {"detector": 4.123}
+
+
+# ---------------------------------------------------------------------- camera sources
+def test_fit_frame_crops_to_the_aspect_then_resizes() -> None:
+    hd = np.zeros((720, 1280, 3), np.uint8)
+    hd[:40] = 255  # top rows are cropped away (720 -> 640 rows)
+    hd[360] = 100
+    out = fit_frame(hd, 320, 160)
+    assert out.shape == (160, 320, 3) and out[0].max() == 0 and out[80].max() > 0
+    square = np.zeros((400, 400, 3), np.uint8)
+    square[:, :100] = 255  # left quarter: cropped away (400 -> 200 rows kept, all columns)
+    assert fit_frame(square, 320, 160)[:, :80].min() == 255
+    wide = np.zeros((100, 400, 3), np.uint8)
+    wide[:, :100] = 255  # 4:1 -> 2:1 keeps the middle 200 columns
+    assert fit_frame(wide, 320, 160).max() == 0
+
+
+def test_side_by_side_and_csi_pipeline() -> None:
+    frame = np.zeros((720, 2560, 3), np.uint8)
+    frame[:, 1280:] = 7
+    left, right = split_side_by_side(frame)
+    assert left.shape == right.shape == (720, 1280, 3) and left.max() == 0 and right.min() == 7
+    with pytest.raises(ValueError, match="even width"):
+        split_side_by_side(np.zeros((10, 11, 3), np.uint8))
+    pipe = csi_pipeline(1, 1920, 1080, 30, 2, 640, 360)
+    assert pipe.startswith("nvarguscamerasrc sensor-id=1 ") and "width=1920, height=1080, framerate=30/1" in pipe
+    assert "flip-method=2" in pipe and "width=640, height=360, format=BGRx" in pipe and pipe.endswith("drop=1 max-buffers=1")
+
+
+def test_csi_without_gstreamer_is_one_clear_error() -> None:
+    from agent.camera_sources import csi_source
+
+    if gstreamer_available():
+        pytest.skip("this OpenCV has GStreamer")
+    with pytest.raises(RuntimeError, match="no GStreamer support.*JetPack"):
+        csi_source()
+
+
+def write_video(path: Path, frames: np.ndarray, fps: int = 20) -> Path:
+    import imageio.v2 as imageio
+
+    with imageio.get_writer(path, fps=fps, codec="libx264", quality=8, macro_block_size=8) as w:
+        for f in frames:
+            w.append_data(f)
+    return path
+
+
+def test_video_file_source_and_side_by_side_video(tmp_path: Path) -> None:
+    frames = scene_frames(6, 4)
+    path = write_video(tmp_path / "drive.mp4", frames)
+    with video_source(path) as source:
+        got = list(source)
+    assert len(got) == 6 and got[0].image.shape == (160, 320, 3) and got[0].right is None
+    assert abs(got[5].time_s - 5 / 20) < 1e-6
+    assert np.abs(got[3].image.astype(int) - frames[3]).mean() < 6  # H.264 is lossy, but it is the same picture
+    sbs = np.concatenate([frames, frames[:, :, ::-1]], axis=2)  # left | mirrored right
+    with video_source(write_video(tmp_path / "zed.mp4", sbs), stereo="side-by-side") as source:
+        pair = source.read()
+        assert source.eye_size == (320, 160)
+    assert pair is not None and pair.right is not None
+    assert np.abs(pair.right.astype(int) - frames[0][:, ::-1]).mean() < 6
+    with pytest.raises(FileNotFoundError):
+        video_source(tmp_path / "missing.mp4")
+
+
+def test_episode_source_carries_speed_and_command(episode_dir: Path) -> None:
+    with EpisodeSource(episode_dir / "episode_00000.h5") as source:
+        frames = list(source)
+    assert len(frames) == 12 and frames[5].command == 1 and frames[5].speed_mps == pytest.approx(5.0)
+    assert frames[5].time_s == pytest.approx(0.25)
