@@ -30,7 +30,10 @@ BACKENDS = ("torch", "onnxruntime", "tensorrt")
 PRECISIONS = ("fp32", "fp16", "int8")
 MODELS = ("pilotnet", "detector")
 MODULES = ("detector", "lanes", "stop_line", "stereo")
-STAGES = ("camera", "pilotnet", "detector", "tracking", "lanes", "stop_line", "stereo", "controller", "alerts", "total")
+# The agent driver's stages (agent.agent_driver: distance includes stereo matching, which agent.deploy times
+# apart as "stereo"), plus reading the camera and sending alerts.
+STAGES = ("camera", "pilotnet", "detector", "tracking", "lanes", "stop_line", "stereo", "distance", "control", "adas",
+          "alerts", "total")
 SOURCES = ("simulator", "video", "usb", "csi", "episode")
 STEREO_LAYOUTS = ("none", "side-by-side", "simulator")
 # The precisions each backend can run (torch stays the fp32 reference; int8 needs TensorRT's calibration).

@@ -92,12 +92,14 @@ def tiny_profile(tmp: Path, models: dict[str, Path], **model_changes: dict) -> o
 
 
 # ---------------------------------------------------------------------- profiles
-def test_shipped_profiles_load_with_their_settings() -> None:
+def test_shipped_profiles_load_with_their_settings(tmp_path: Path) -> None:
     names = available_profiles()
     assert {"cpu", "jetson-nano", "jetson-xavier", "jetson-orin"} <= set(names)
     cpu = load_profile("cpu")
     assert cpu.models["detector"].backend == "onnxruntime" and cpu.camera.source == "simulator"
-    assert cpu.model_file("detector") == ROOT / "data" / "models" / "detector.onnx"  # runs without an export step
+    assert cpu.budget_ms("detector") == 15 and cpu.every("lanes") == 1
+    unexported = profile_from_dict({"export_dir": str(tmp_path)}, "x.yaml")  # runs without an export step:
+    assert unexported.model_file("detector") == ROOT / "data" / "models" / "detector.onnx"
     xavier = load_profile("jetson-xavier")
     assert xavier.models["detector"].precision == "int8" and xavier.every("detector") == 2
     assert xavier.every("stereo") == 2 and xavier.camera.stereo == "side-by-side"
@@ -458,3 +460,4 @@ def test_episode_source_carries_speed_and_command(episode_dir: Path) -> None:
         frames = list(source)
     assert len(frames) == 12 and frames[5].command == 1 and frames[5].speed_mps == pytest.approx(5.0)
     assert frames[5].time_s == pytest.approx(0.25)
+
