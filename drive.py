@@ -28,10 +28,10 @@ from sim.render import LIGHTING_PRESETS
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--driver", default="autopilot", help="who drives: autopilot, keyboard, gamepad, pilotnet, rl")
+    p.add_argument("--driver", default="autopilot", help="who drives: autopilot, keyboard, gamepad, pilotnet, agent, rl")
     p.add_argument("--model", type=Path, default=None,
-                   help="pilotnet/rl: model file (default data/models/pilotnet.pt, data/models/rl_ppo.zip)")
-    p.add_argument("--backend", default="onnx", choices=["onnx", "torch"], help="pilotnet: inference backend")
+                   help="pilotnet/agent/rl: model file (default data/models/pilotnet.pt, data/models/rl_ppo.zip)")
+    p.add_argument("--backend", default="onnx", choices=["onnx", "torch"], help="pilotnet/agent: PilotNet's inference backend")
     p.add_argument("--target-speed", type=float, default=None, help="pilotnet: cruise speed in m/s (default 7)")
     p.add_argument("--seed", type=int, default=0, help="first episode seed (traffic, start and route)")
     p.add_argument("--town-seed", type=int, default=0, help="which town to generate")
@@ -101,16 +101,18 @@ def make_named_driver(args: argparse.Namespace) -> Any:
     kwargs: dict[str, Any] = {"noise": True, "noise_seed": args.seed} if args.noise else {}
     if args.noise and args.driver != "autopilot":
         raise ValueError("--noise is for the autopilot only.")
-    if args.driver in ("pilotnet", "rl") and args.model is not None:
+    if args.driver in ("pilotnet", "rl", "agent") and args.model is not None:
         kwargs["model"] = args.model
+    if args.driver == "agent":
+        kwargs["backend"] = args.backend
     if args.driver == "pilotnet":
         kwargs["backend"] = args.backend
         if args.target_speed is not None:
             kwargs["target_speed_mps"] = args.target_speed
     elif args.target_speed is not None:
         raise ValueError(f"--target-speed is for the pilotnet driver, not {args.driver}.")
-    elif args.model is not None and args.driver != "rl":
-        raise ValueError(f"--model is for the pilotnet and rl drivers, not {args.driver}.")
+    elif args.model is not None and args.driver not in ("rl", "agent"):
+        raise ValueError(f"--model is for the pilotnet, agent and rl drivers, not {args.driver}.")
     return make_driver(args.driver, **kwargs)
 
 

@@ -54,6 +54,7 @@ def make_driver(name: str, **kwargs: Any) -> Driver:
 
 def _load_builtin() -> None:
     """Import the modules whose drivers register themselves (lazily: pygame loads only when asked for)."""
+    import agent.agent_driver  # noqa: F401
     import agent.autopilot  # noqa: F401
     import agent.human  # noqa: F401
     import agent.pilotnet_driver  # noqa: F401

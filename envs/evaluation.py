@@ -54,6 +54,20 @@ def draw_hud(image: np.ndarray, info: dict[str, Any], driver: str, extra: str = 
     return img
 
 
+def video_frame(env: DriveEnv, driver: Driver, info: dict[str, Any], extra: str = "") -> np.ndarray:
+    """The HUD picture (camera beside the map); a driver with an ``overlay()`` (the agent) gets its own
+    perception overlay on top, so its videos show what it saw and why it acted."""
+    hud = draw_hud(env.composite(), info, driver.name, extra)
+    overlay = getattr(driver, "overlay", None)
+    picture = overlay() if callable(overlay) else None
+    if picture is None:
+        return hud
+    width = picture.shape[1]
+    below = np.zeros((hud.shape[0], width, 3), np.uint8)
+    below[:, :min(width, hud.shape[1])] = hud[:, :width]
+    return np.concatenate([picture, below], axis=0)
+
+
 def run_episode(env: DriveEnv, driver: Driver, seed: int, video: Any = None, progress: Any = None,
                 options: dict[str, Any] | None = None) -> EpisodeTrace:
     """One evaluation episode; the safety driver intervenes by ``envs.metrics.needs_intervention``."""
@@ -71,7 +85,7 @@ def run_episode(env: DriveEnv, driver: Driver, seed: int, video: Any = None, pro
             trace.interventions.append(info["time_s"])
             world.put_back_on_route()
         if video is not None:
-            video.append_data(draw_hud(env.composite(), info, driver.name))
+            video.append_data(video_frame(env, driver, info))
         if progress is not None:
             progress.update(1)
         done = terminated or truncated
@@ -147,12 +161,18 @@ def evaluate(driver: Driver, config: DriveConfig, episodes: int, seed: int, out:
                     writer = None
                 traces.append(trace)
                 per_episode.append(episode_metrics(trace))
+                adas = getattr(driver, "adas_summary", None)  # ADAS warnings (the agent): counts and events
+                if callable(adas):
+                    per_episode[-1]["adas"] = adas()
         plots = plot_traces(env, traces, out / "plots")
     finally:
         if writer is not None:
             writer.close()
         env.close()
     mean = aggregate(per_episode)
+    if any("adas" in e for e in per_episode):
+        mean["adas_warnings"] = {k: sum(e["adas"]["counts"][k] for e in per_episode if "adas" in e)
+                                 for k in per_episode[0]["adas"]["counts"]}
     metrics = {"driver": driver.name, "privileged": driver.privileged, "town_seed": config.town_seed,
                "weather": config.weather, "seeds": [seed, seed + episodes - 1], "episodes": per_episode,
                "mean": mean, "plots": plots, "video": "video.mp4" if video else None}

@@ -301,9 +301,9 @@ def run_scenario(name: str, driver: Any, config: DriveConfig, out: Path | None =
             log.infractions += [inf["kind"] for inf in info["infractions"]]
             log.edges.append(tuple(info["lane_index"][:2]) if info["lane_index"] else ("", ""))
             if writer is not None:
-                from envs.evaluation import draw_hud
+                from envs.evaluation import video_frame
 
-                writer.append_data(draw_hud(env.composite(), info, driver.name, name))
+                writer.append_data(video_frame(env, driver, info, name))
     finally:
         if writer is not None:
             writer.close()

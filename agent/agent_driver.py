@@ -1,0 +1,378 @@
+"""The ``agent`` driver: PilotNet steers; perception and the rule-based controller decide the speed.
+
+It sees only what a real car has: the camera frame (and the stereo pair when ``distance="stereo"`` and the
+environment renders it), its own speed and the route command. Each frame:
+
+1. **PilotNet** proposes the steering (``agent.pilotnet_driver.PilotNetModel``).
+2. **Detector** (YOLO-style, ONNX Runtime) every ``detect_every`` frames; **SORT** tracks vehicles and
+   pedestrians (Kalman predictions on the frames in between); traffic lights are taken from the latest
+   detections: the largest light box within ``light_max_lateral_m`` of the camera axis is ours.
+3. **Lanes** (sliding windows in the bird's-eye view) and the **stop line** (distance to the bar).
+4. **Distance** to each tracked object from box geometry, or stereo: the ground-plane distance of the box's
+   bottom row through the camera intrinsics and mounting (exact for things standing on the road, but one
+   image row is ``z^2 / (f h)`` metres of road: 4 m at 30 m), fused with the distance a known height
+   gives (``f H / h_px``; a few per cent at any range, but wrong for an unusual size), each weighted by
+   its variance. Closing and lateral speeds come from a least-squares fit over the track's last second.
+5. **Controller** (``agent.controller``) and **ADAS** warnings (``agent.adas``).
+
+Per-stage timings (ms) for every frame are kept in ``timings``; the last frame's whole state in ``view``
+(for overlays, ``agent.agent_overlay``); the episode's ADAS events in ``adas``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from agent.adas import Adas, AdasConfig
+from agent.autolabel import CLASSES, LIGHT_CLASSES
+from agent.controller import Controller, ControllerConfig, Decision, PerceivedObject, Scene
+from agent.detector import Detection, OnnxDetector
+from agent.drivers import register
+from agent.lanes import BirdsEye, LaneDetector, LaneResult
+from agent.pilotnet_driver import DEFAULT_MODEL, PilotNetModel
+from agent.stop_line import StopLine, StopLineDetector
+from agent.tracking import Sort, SortConfig, Track
+from sim.ego import EgoVehicle
+from sim.render import CameraConfig
+
+if TYPE_CHECKING:
+    from envs.drive_env import DriveEnv
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_DETECTOR = ROOT / "data" / "models" / "detector.onnx"
+# Size priors (metres): typical heights, which unlike widths do not change with the viewing angle.
+HEIGHT_PRIOR_M = {"car": 1.5, "truck": 2.8, "pedestrian": 1.75}
+LIGHT_HOUSING_M = 2.1  # a signal head's height (three lamps)
+LIGHT_HEAD_HEIGHT_M = 5.2  # town design: signal heads hang 5.2 m above the road on mast arms
+TRACKED = ("car", "truck", "pedestrian")
+STAGES = ("pilotnet", "detector", "tracking", "lanes", "stop_line", "distance", "control", "adas")
+
+
+@dataclass(frozen=True)
+class AgentConfig:
+    detect_every: int = 1  # run the detector on every k-th frame (SORT predicts in between)
+    distance: str = "geometry"  # "geometry" (box and camera model) or "stereo" (needs DriveConfig.observe_stereo)
+    stereo_max_m: float = 15.0  # beyond this the 0.12 m rig's disparity is under 1.3 px: use geometry
+    score_threshold: float = 0.35
+    light_score_threshold: float = 0.4
+    light_max_lateral_m: float = 4.5  # our light hangs over the lane divider, within a lane of our axis
+    history_s: float = 1.0  # track history used for closing and lateral speeds
+    lost_memory_s: float = 2.0  # an object lost while in our path and near is remembered this long
+    lost_memory_m: float = 15.0  # ... when it was nearer than this (close in, the detector misses people)
+    ldw_min_lane_confidence: float = 0.5  # lane departure is only judged on a well-seen lane
+    light_box_pad_px: float = 1.0  # light boxes come out about a pixel taller than the housing (measured)
+    row_sigma_px: float = 1.0  # box-edge uncertainty, for the geometry fusion
+    prior_sigma: float = 0.12  # relative spread of the height prior
+    controller: ControllerConfig = field(default_factory=ControllerConfig)
+    adas: AdasConfig = field(default_factory=AdasConfig)
+    sort: SortConfig = field(default_factory=SortConfig)
+
+
+@dataclass
+class LightSeen:
+    state: str  # "red", "yellow", "green"
+    box: tuple[float, float, float, float]
+    distance_m: float
+    score: float
+
+
+@dataclass
+class AgentView:
+    """The last frame's perception and decision (what the overlay draws)."""
+
+    image: np.ndarray
+    time_s: float
+    speed_mps: float
+    command: int
+    lanes: LaneResult | None
+    stop_line: StopLine | None
+    objects: list[PerceivedObject]
+    tracks: list[Track]
+    light: LightSeen | None
+    decision: Decision
+    warnings: list[str]
+    lane_centre: np.ndarray | None
+    lane_width_m: float
+
+
+class BoxGeometry:
+    """Where a box's object stands, from the pinhole camera model and the flat road (see module docstring)."""
+
+    def __init__(self, camera: CameraConfig, row_sigma_px: float = 1.0, prior_sigma: float = 0.12) -> None:
+        self.camera = camera
+        self.k = camera.intrinsics()
+        self.f = float(self.k[0, 0])
+        self.birdseye = BirdsEye(camera)
+        self.row_sigma = row_sigma_px
+        self.prior_sigma = prior_sigma
+
+    def distance(self, box: np.ndarray | tuple[float, ...], kind: str) -> float:
+        """Forward ground distance (m) from the camera to the object's near face."""
+        x0, y0, x1, y1 = (float(v) for v in box)
+        h_img = self.camera.height
+        z_ground = float(self.birdseye.ground_z_of_row(np.array([y1]))[0])
+        height_px = y1 - y0
+        z_size = self.f * HEIGHT_PRIOR_M.get(kind, 1.5) / height_px if height_px >= 2 else math.nan
+        if y0 <= 0.5:  # cut off at the top: the height says nothing
+            z_size = math.nan
+        if y1 >= h_img - 1.5 and math.isfinite(z_ground):  # cut off at the bottom: nearer than the last row
+            return min(z_size, z_ground) if math.isfinite(z_size) else z_ground
+        if not math.isfinite(z_ground) or z_ground <= 0:
+            return z_size
+        if not math.isfinite(z_size):
+            return z_ground
+        var_g = (z_ground ** 2 / (self.f * self.camera.mount_height_m) * self.row_sigma) ** 2
+        var_s = (z_size * self.row_sigma / height_px) ** 2 + (self.prior_sigma * z_size) ** 2
+        return (z_ground / var_g + z_size / var_s) / (1.0 / var_g + 1.0 / var_s)
+
+    def lateral(self, u_px: float, z_m: float) -> float:
+        """Metres right of the camera axis of image column ``u_px`` at forward distance ``z_m``."""
+        return (u_px - float(self.k[0, 2])) * z_m / self.f
+
+
+def lane_centre_of(lanes: LaneResult, z0: float) -> np.ndarray | None:
+    """The lane centre (a, b, c) holding the car: the detected lane, or its neighbour when the car is over a line."""
+    if not lanes.detected:
+        return None
+    w = lanes.lane_width_m
+    if lanes.left is not None and lanes.right is not None:
+        centre = 0.5 * (lanes.left.coeffs + lanes.right.coeffs)
+    elif lanes.left is not None:
+        centre = lanes.left.coeffs + np.array([0.0, 0.0, w / 2])
+    else:
+        assert lanes.right is not None
+        centre = lanes.right.coeffs - np.array([0.0, 0.0, w / 2])
+    centre = np.asarray(centre, float).copy()
+    at_car = float(np.polyval(centre, z0))
+    centre[2] -= round(at_car / w) * w
+    return centre
+
+
+@register("agent")
+class AgentDriver:
+    """PilotNet + perception + rule-based controller (see module docstring). Not privileged."""
+
+    name = "agent"
+    privileged = False
+
+    def __init__(self, model: str | Path = DEFAULT_MODEL, detector: str | Path = DEFAULT_DETECTOR,
+                 backend: str = "onnx", config: AgentConfig | None = None, threads: int = 1, **overrides: Any) -> None:
+        from dataclasses import replace
+
+        self.config = replace(config or AgentConfig(), **overrides) if overrides else (config or AgentConfig())
+        if self.config.distance not in ("geometry", "stereo"):
+            raise ValueError(f"Unknown distance method {self.config.distance!r}; use 'geometry' or 'stereo'.")
+        if self.config.detect_every < 1:
+            raise ValueError("detect_every must be at least 1 (1 = detect on every frame).")
+        self.net = PilotNetModel(model, backend, threads)
+        if not Path(detector).is_file():
+            raise FileNotFoundError(f"Detector model {detector} not found; train and export one with "
+                                    "`python train.py detector train` and `python train.py detector export`.")
+        self.detector = OnnxDetector(detector, self.config.score_threshold, threads=threads)
+        self.controller = Controller(self.config.controller, EgoVehicle.MAX_ACCEL_MPS2, EgoVehicle.MAX_BRAKE_MPS2)
+        self.adas = Adas(self.config.adas)
+        self.sort = Sort(self.config.sort)
+        self.timings: list[dict[str, float]] = []
+        self.view: AgentView | None = None
+        self._setup(CameraConfig(), 0.05)
+
+    def _setup(self, camera: CameraConfig, dt: float) -> None:
+        self.camera = camera
+        self.dt = dt
+        self.lanes = LaneDetector(camera)
+        self.stop = StopLineDetector(camera)
+        self.geometry = BoxGeometry(camera, self.config.row_sigma_px, self.config.prior_sigma)
+        self.stereo = None
+        if self.config.distance == "stereo":
+            from agent.stereo import StereoDepth
+
+            self.stereo = StereoDepth(camera)
+
+    def reset(self, env: DriveEnv) -> None:
+        """Start an episode: only the env's configuration (camera, time step) is read, never its world."""
+        cfg = env.config
+        if self.config.distance == "stereo" and not cfg.observe_stereo:
+            raise ValueError("The agent's stereo distance needs the stereo pair: use DriveConfig(observe_stereo=True, "
+                             "camera=CameraConfig(stereo=True)), or distance='geometry'.")
+        self._setup(cfg.camera, cfg.world.dt_s)
+        self.controller.reset()
+        self.adas.reset()
+        self.sort.reset()
+        self.timings = []
+        self.view = None
+        self._frame = 0
+        self._lights: list[Detection] = []
+        self._history: dict[int, deque[tuple[float, float, float]]] = {}
+        self._lost: dict[int, PerceivedObject] = {}  # objects lost in our path, remembered for a while
+        self._in_path: dict[int, PerceivedObject] = {}  # last frame's seen objects in our path
+
+    # ------------------------------------------------------------------ perception helpers
+    def _objects(self, tracks: list[Track], t: float, depth: np.ndarray | None) -> list[PerceivedObject]:
+        out = []
+        alive = set()
+        for tr in tracks:
+            kind = CLASSES[tr.label] if 0 <= tr.label < len(CLASSES) else ""
+            if kind not in TRACKED:
+                continue
+            box = np.asarray(tr.box, float)
+            z = self.geometry.distance(box, kind)
+            if depth is not None and self.stereo is not None:
+                zs = self.stereo.object_distance(depth, box)
+                if math.isfinite(zs) and zs < self.config.stereo_max_m:
+                    z = zs
+            if not math.isfinite(z) or z <= 0:
+                continue
+            xl, xr = self.geometry.lateral(box[0], z), self.geometry.lateral(box[2], z)
+            hist = self._history.setdefault(tr.track_id, deque())
+            hist.append((t, z, 0.5 * (xl + xr)))
+            while hist and hist[0][0] < t - self.config.history_s:
+                hist.popleft()
+            alive.add(tr.track_id)
+            closing, lateral = 0.0, 0.0
+            if len(hist) >= 4 and hist[-1][0] - hist[0][0] >= 0.2:
+                arr = np.array(hist)
+                tt = arr[:, 0] - arr[:, 0].mean()
+                denom = float((tt ** 2).sum())
+                closing = -float((tt * (arr[:, 1] - arr[:, 1].mean())).sum()) / denom
+                lateral = float((tt * (arr[:, 2] - arr[:, 2].mean())).sum()) / denom
+            out.append(PerceivedObject(tr.track_id, kind, float(z), float(xl), float(xr), closing, lateral,
+                                       (float(box[0]), float(box[1]), float(box[2]), float(box[3]))))
+        for tid in list(self._history):
+            if tid not in alive:
+                del self._history[tid]
+        return out
+
+    def _remember(self, objects: list[PerceivedObject], speed: float) -> list[PerceivedObject]:
+        """Add the objects that were in our path and near last frame but are no longer detected.
+
+        Close in, the detector misses what fills much of the frame (a pedestrian a few metres ahead), and a
+        car must not drive on because its detector blinked: such an object stays where it was last seen
+        (relative to the ground: the car's own travel brings it nearer) for ``lost_memory_s``."""
+        cfg, dt = self.config, self.dt
+        seen = {o.track_id for o in objects}
+        for tid, o in self._in_path.items():
+            if tid not in seen and o.distance_m < cfg.lost_memory_m:
+                self._lost[tid] = o
+        out = list(objects)
+        for tid in list(self._lost):
+            o = self._lost[tid]
+            if tid in seen or o.unseen_s + dt > cfg.lost_memory_s:
+                del self._lost[tid]
+                continue
+            along = speed * dt if o.kind == "pedestrian" else o.closing_speed_mps * dt
+            shift = o.lateral_speed_mps * dt if o.kind == "pedestrian" else 0.0
+            ghost = PerceivedObject(tid, o.kind, o.distance_m - along, o.lateral_left_m + shift,
+                                    o.lateral_right_m + shift, o.closing_speed_mps, o.lateral_speed_mps, o.box,
+                                    o.unseen_s + dt)
+            self._lost[tid] = ghost
+            out.append(ghost)
+        return out
+
+    def light_distance(self, box: tuple[float, float, float, float]) -> float:
+        """Ground distance (m) to a signal head from how far above the horizon its box's centre is (the head
+        hangs at a known height), or from its height in pixels when it is too near the horizon for that."""
+        x0, y0, x1, y1 = box
+        k = self.geometry.k
+        above_axis = math.atan((float(k[1, 2]) - 0.5 * (y0 + y1)) / self.geometry.f)
+        elevation = above_axis + math.radians(self.camera.pitch_deg)
+        if elevation > math.radians(2.0):
+            return (LIGHT_HEAD_HEIGHT_M - self.camera.mount_height_m) / math.tan(elevation)
+        return self.geometry.f * LIGHT_HOUSING_M / max(y1 - y0 - self.config.light_box_pad_px, 1.0)
+
+    def _light(self) -> LightSeen | None:
+        """Our light: the nearest confident light box whose head hangs near our lane.
+
+        A box cut by the top of the image is a light beside the car (the cross street's, seen edge-on at
+        night): never ours, which stands across the junction, well inside the picture."""
+        best = None
+        for d in self._lights:
+            x0, y0, x1, y1 = d.box
+            if d.score < self.config.light_score_threshold or y1 - y0 < 2 or y0 <= 1.0:
+                continue
+            z = self.light_distance(d.box)
+            if abs(self.geometry.lateral(0.5 * (x0 + x1), z)) > self.config.light_max_lateral_m:
+                continue
+            if best is None or z < best.distance_m:
+                best = LightSeen(d.name.removeprefix("light_"), d.box, z, d.score)
+        return best
+
+    # ------------------------------------------------------------------ the driver
+    def act(self, observation: dict[str, Any]) -> np.ndarray:
+        t_start = time.perf_counter()
+        times: dict[str, float] = {}
+        clock = t_start
+
+        def lap(stage: str) -> None:
+            nonlocal clock
+            now = time.perf_counter()
+            times[stage] = times.get(stage, 0.0) + (now - clock) * 1000.0
+            clock = now
+
+        image = observation["image"]
+        speed = float(observation["speed"][0])
+        command = int(observation["command"])
+        t = self._frame * self.dt
+        pilot = float(self.net.steer(image, command))
+        lap("pilotnet")
+        run = self._frame % self.config.detect_every == 0
+        self._frame += 1
+        times["detector"] = 0.0
+        if run:
+            dets = self.detector(image)
+            lap("detector")
+            self._lights = [d for d in dets if d.name in LIGHT_CLASSES]
+            movers = [d for d in dets if d.name in TRACKED]
+            boxes = np.array([d.box for d in movers], float).reshape(-1, 4)
+            labels = np.array([d.cls for d in movers], int)
+            tracks = self.sort.update(boxes, labels)
+        else:
+            tracks = self.sort.predict()
+        lap("tracking")
+        lanes = self.lanes.detect(image)
+        lap("lanes")
+        stop = self.stop.detect(image, lanes)
+        lap("stop_line")
+        depth = None
+        if self.stereo is not None and "stereo" in observation:
+            pair = observation["stereo"]
+            depth = self.stereo.depth(self.stereo.disparity(pair[0], pair[1]))
+        objects = self._remember(self._objects(tracks, t, depth), speed)
+        light = self._light()
+        lap("distance")
+        centre = lane_centre_of(lanes, -self.camera.mount_forward_m)
+        lane_range = min(30.0, max((ln.z_range_m[1] for ln in (lanes.left, lanes.right) if ln is not None), default=30.0))
+        scene = Scene(speed, objects, light.state if light else None, light.distance_m if light else None,
+                      stop.distance_m if stop is not None else None, centre, max(lane_range, 8.0))
+        decision = self.controller.step(scene, pilot, self.dt)
+        lap("control")
+        in_path = [o for o in objects if o.track_id in decision.in_path]
+        self._in_path = {o.track_id: o for o in in_path if o.unseen_s == 0.0}
+        offset = lanes.offset_m if lanes.confidence >= self.config.ldw_min_lane_confidence else math.nan
+        warnings = self.adas.update(t, speed, offset, lanes.lane_width_m, in_path, turning=command in (1, 2))
+        lap("adas")
+        times["total"] = (time.perf_counter() - t_start) * 1000.0
+        self.timings.append(times)
+        self.view = AgentView(image, t, speed, command, lanes, stop, objects, tracks, light, decision, warnings,
+                              centre, lanes.lane_width_m)
+        return decision.action()
+
+    # ------------------------------------------------------------------ reports
+    def adas_summary(self) -> dict[str, Any]:
+        """The episode's ADAS events (closes the open ones); the evaluation report stores this per episode."""
+        self.adas.close(self._frame * self.dt)
+        return self.adas.summary()
+
+    def overlay(self, scale: int = 2) -> np.ndarray | None:
+        """The last frame with the agent's overlay (``agent.agent_overlay.draw_agent``), or None before the first."""
+        if self.view is None:
+            return None
+        from agent.agent_overlay import draw_agent
+
+        return draw_agent(self.view, self.lanes.birdseye, scale)

@@ -1,0 +1,363 @@
+"""The rule-based controller: PilotNet steers, and these rules override the speed from what perception sees.
+
+Seed 004's controller "doesn't follow the predictions of the trained model and takes the decision of
+stopping the car"; here every such decision is one rule with a reason string, and the rules are written
+against a small perception interface (``Scene``) so they can be unit-tested on synthetic inputs.
+
+Why it is built this way:
+
+- **One longitudinal law.** Every reason to slow down is a *constraint*: a point ahead to stop short of
+  (a stop line, a car's rear bumper, a pedestrian), its speed, and the gap to keep. Each gives an
+  Intelligent Driver Model acceleration; the car takes the smallest, and the constraint that gave it is
+  the override reason. IDM brakes early and smoothly, and it resumes by itself when a constraint
+  goes away (the light turns green, the car ahead drives off, the pedestrian has crossed).
+- **Gentle limits.** Acceleration is capped (and its rise is jerk-limited), braking is capped at a
+  comfortable level unless a constraint cannot be met that way (then up to the car's full brake, and the
+  reason says "hard brake"), steering changes at most ``steer_rate_per_s`` per second.
+- **Stop lines by odometry.** The camera stops seeing a stop bar about 3 m ahead of it, before the car
+  has stopped; the controller keeps the last measured distance and counts down its own travelled
+  distance (speed x dt), which is exact enough for the last metres. The bar's distance falls back on the
+  light's distance minus where this town's lights stand (across the junction) when no bar has been seen.
+- **Lights are debounced** (a state needs ``light_confirm_frames`` frames; a light unseen for
+  ``light_memory_s`` is forgotten), and the yellow decision is taken once, when the yellow appears:
+  stop if the stop needs no more than the comfortable deceleration, else go on; a red after a "go on"
+  yellow, or a red that could not be stopped for even with the full brake, is driven through
+  (the car is already committed), and the reason says so.
+- **Once past the stop line**, the junction's light is ignored for ``junction_ignore_m`` metres: it stands
+  across the junction, and a light that turns red while the car is inside the junction means clear it.
+- **What is in our path** is decided laterally, at each object's distance, against a corridor: the lane
+  centre from the lane detector when it found one, else the arc the current steering drives. Objects
+  outside the corridor (other lanes) get no reaction; pedestrians get a wider corridor, and a pedestrian
+  whose lateral motion brings them into it within ``entering_horizon_s`` counts as in the path.
+
+Distances in ``Scene`` are measured from the camera along the ground; the controller converts them to
+the gap ahead of the front bumper with ``camera_to_front_m``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+VEHICLE_KINDS = ("car", "truck")
+LIGHT_STATES = ("red", "yellow", "green")
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    speed_limit_mps: float = 8.0  # cruise speed: the town's limit
+    turn_slowdown: float = 0.5  # cruise / (1 + 3 turn_slowdown |steer|) while steering hard
+    max_accel_mps2: float = 2.0  # gentle acceleration
+    jerk_mps3: float = 4.0  # how fast the acceleration may rise
+    comfortable_brake_mps2: float = 3.0  # normal braking limit
+    max_brake_mps2: float = 8.0  # the car's full brake, for constraints comfort cannot meet
+    steer_rate_per_s: float = 1.5  # largest change of the steer command per second (0: off)
+    headway_s: float = 1.2  # time headway to a lead vehicle (IDM T)
+    lead_min_gap_m: float = 3.0  # bumper gap kept to a stopped vehicle
+    pedestrian_min_gap_m: float = 4.0  # ... and to a pedestrian in the path
+    stop_line_min_gap_m: float = 0.3  # IDM s0 before the stop point
+    stop_line_target_m: float = 0.8  # the stop point's distance before the line (the car ends 0.8-1.9 m short)
+    hold_margin_m: float = 0.8  # within this of the stop point at walking pace, brake to a standstill
+    camera_to_front_m: float = 1.3  # camera 1.0 m ahead of the car's centre, bumper 2.3 m ahead
+    path_half_width_m: float = 1.3  # half the car (0.95 m) and a margin: an object overlapping this is in our path
+    pedestrian_margin_m: float = 0.9  # extra corridor width for people (they step out)
+    entering_horizon_s: float = 2.5  # a pedestrian whose motion enters the corridor within this counts
+    min_lateral_speed_mps: float = 0.3  # slower lateral motion is not "entering" (box jitter)
+    lookahead_m: float = 45.0  # objects farther than this are ignored
+    light_confirm_frames: int = 2
+    light_memory_s: float = 1.0
+    red_memory_s: float = 4.0  # a red is kept longer: not seeing the light is no reason to go
+    light_beyond_stop_line_m: float = 21.0  # town design: lights stand across the junction (12.5 + 7 + 1.75 m)
+    light_fallback_margin_m: float = 2.0  # stop this much earlier when the bar was never seen
+    red_no_line_speed_mps: float = 4.0  # approach speed under a red light whose stop line is unknown
+    junction_ignore_m: float = 30.0  # after crossing the stop line, the junction's light no longer applies
+    wheelbase_m: float = 4.6  # highway-env's bicycle model: curvature = tan(delta) / length
+    max_steer_rad: float = 0.6
+    idm_a_mps2: float = 2.0  # IDM a
+    idm_b_mps2: float = 2.5  # IDM b (comfortable deceleration in the dynamic term)
+    idm_delta: float = 4.0
+
+
+@dataclass
+class PerceivedObject:
+    """One tracked object as perception sees it, in the camera's ground frame."""
+
+    track_id: int
+    kind: str  # "car", "truck", "pedestrian"
+    distance_m: float  # forward, camera to the object's nearest point on the ground
+    lateral_left_m: float  # the object's left edge, right of the camera axis (negative: left)
+    lateral_right_m: float  # its right edge
+    closing_speed_mps: float = 0.0  # how fast the distance shrinks (positive: approaching)
+    lateral_speed_mps: float = 0.0  # positive: moving right
+    box: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    unseen_s: float = 0.0  # > 0: no longer detected, remembered where it was last (see agent_driver)
+
+    @property
+    def lateral_m(self) -> float:
+        return 0.5 * (self.lateral_left_m + self.lateral_right_m)
+
+
+@dataclass
+class Scene:
+    """Everything the controller is told about one frame."""
+
+    speed_mps: float
+    objects: list[PerceivedObject] = field(default_factory=list)
+    light: str | None = None  # this frame's light state for our lane, None when none is seen
+    light_distance_m: float | None = None  # camera to the light head, along the ground
+    stop_line_m: float | None = None  # camera to the stop bar's near edge, when seen this frame
+    lane_centre: np.ndarray | None = None  # (a, b, c): lane centre x = a z^2 + b z + c, camera ground frame
+    lane_range_m: float = 30.0  # how far the lane fit is valid; beyond, it is continued straight
+
+
+@dataclass
+class Constraint:
+    """A point ahead to stop short of."""
+
+    reason: str
+    gap_m: float  # bumper to the point
+    speed_mps: float  # the point's own speed along our path
+    min_gap_m: float
+    headway_s: float
+    accel_mps2: float = 0.0
+    hard: bool = False  # comfortable braking cannot meet it
+    hold: bool = False  # at the point at walking pace: brake to a standstill and stay
+
+
+@dataclass
+class Decision:
+    """What the controller did this frame, and why."""
+
+    steer: float
+    throttle_brake: float
+    accel_mps2: float
+    target_speed_mps: float
+    pilot_steer: float
+    reason: str  # "cruise" when nothing overrides PilotNet and the cruise speed
+    constraints: list[Constraint]
+    light: str | None  # the debounced light state that applies, None when none does
+    stop_line_gap_m: float | None  # bumper to the stop line (odometry-tracked), None when unknown
+    in_path: list[int]  # track ids in (or entering) our path
+    lead_id: int | None  # the object the governing constraint comes from
+    holding: bool
+
+    def action(self) -> np.ndarray:
+        return np.array([self.steer, self.throttle_brake], np.float32)
+
+
+class Controller:
+    """The rules (see module docstring). Call ``reset()`` per episode and ``step(scene, steer, dt)`` per frame."""
+
+    def __init__(self, config: ControllerConfig | None = None, max_accel_mps2: float = 3.5,
+                 max_brake_mps2: float = 8.0) -> None:
+        self.config = config or ControllerConfig()
+        self.vehicle_accel = max_accel_mps2  # what throttle 1 gives
+        self.vehicle_brake = max_brake_mps2  # what brake 1 (throttle_brake -1) gives
+        self.reset()
+
+    def reset(self) -> None:
+        self.last_steer = 0.0
+        self.last_accel = 0.0
+        self.stop_line: float | None = None  # bumper to the stop line, metres
+        self.stop_line_measured = False  # True once a bar was seen (not only inferred from the light)
+        self.ignore_light_m = 0.0  # travel left during which lights are ignored (inside a junction)
+        self.light_state: str | None = None
+        self._light_candidate: str | None = None
+        self._light_count = 0
+        self._light_unseen_s = math.inf
+        self._yellow_go: bool | None = None  # the yellow decision, taken once per yellow
+        self.note = ""  # why a seen light does not stop the car (shown as the reason when nothing else acts)
+
+    # ------------------------------------------------------------------ geometry
+    def path_centre(self, scene: Scene, z_m: float, steer: float) -> float:
+        """Lateral position of our path's centre at ``z_m`` ahead of the camera."""
+        cfg = self.config
+        if scene.lane_centre is not None:
+            a, b, c = (float(v) for v in scene.lane_centre)
+            z0 = min(z_m, scene.lane_range_m)
+            x = a * z0 * z0 + b * z0 + c
+            if z_m > z0:  # beyond the fit: straight on along its last direction
+                x += (2 * a * z0 + b) * (z_m - z0)
+            return x
+        curvature = math.tan(steer * cfg.max_steer_rad) / cfg.wheelbase_m
+        return 0.5 * curvature * z_m * z_m
+
+    def overlaps(self, scene: Scene, obj: PerceivedObject, steer: float) -> bool:
+        """Whether the object's lateral extent overlaps the corridor at its distance (people: wider)."""
+        cfg = self.config
+        centre = self.path_centre(scene, obj.distance_m, steer)
+        half = cfg.path_half_width_m + (cfg.pedestrian_margin_m if obj.kind == "pedestrian" else 0.0)
+        return obj.lateral_right_m >= centre - half and obj.lateral_left_m <= centre + half
+
+    def in_path(self, scene: Scene, obj: PerceivedObject, steer: float) -> bool:
+        """Whether the object overlaps (or, a pedestrian, walks into) the corridor at its distance."""
+        cfg = self.config
+        if obj.distance_m <= 0 or obj.distance_m > cfg.lookahead_m:
+            return False
+        centre = self.path_centre(scene, obj.distance_m, steer)
+        half = cfg.path_half_width_m + (cfg.pedestrian_margin_m if obj.kind == "pedestrian" else 0.0)
+        lo, hi = centre - half, centre + half
+        if obj.lateral_right_m >= lo and obj.lateral_left_m <= hi:
+            return True
+        if obj.kind != "pedestrian" or abs(obj.lateral_speed_mps) < cfg.min_lateral_speed_mps:
+            return False
+        # Entering: moving towards the corridor and reaching it within the horizon.
+        shift = obj.lateral_speed_mps * cfg.entering_horizon_s
+        if obj.lateral_right_m < lo and shift > 0:
+            return obj.lateral_right_m + shift >= lo
+        if obj.lateral_left_m > hi and shift < 0:
+            return obj.lateral_left_m + shift <= hi
+        return False
+
+    # ------------------------------------------------------------------ lights and stop lines
+    def _update_light(self, scene: Scene, dt: float) -> None:
+        cfg = self.config
+        seen = scene.light if scene.light in LIGHT_STATES else None
+        if seen is None:
+            self._light_unseen_s += dt
+            self._light_count = 0
+            memory = cfg.red_memory_s if self.light_state == "red" else cfg.light_memory_s
+            if self._light_unseen_s > memory:
+                self.light_state, self._light_candidate, self._yellow_go = None, None, None
+            return
+        self._light_unseen_s = 0.0
+        if seen == self._light_candidate:
+            self._light_count += 1
+        else:
+            self._light_candidate, self._light_count = seen, 1
+        if self._light_count >= cfg.light_confirm_frames:
+            if seen == "green":
+                self._yellow_go = None  # a new cycle: the next yellow is decided afresh
+            self.light_state = seen
+
+    def _update_stop_line(self, scene: Scene, dt: float) -> None:
+        cfg = self.config
+        travelled = scene.speed_mps * dt
+        if self.ignore_light_m > 0:
+            self.ignore_light_m = max(0.0, self.ignore_light_m - travelled)
+        if self.stop_line is not None:
+            self.stop_line -= travelled
+        measured = None if scene.stop_line_m is None else scene.stop_line_m - cfg.camera_to_front_m
+        if (measured is not None and self.stop_line_measured and self.stop_line is not None
+                and self.stop_line < 5.0 and measured > self.stop_line + 1.5):
+            measured = None  # a bar cannot move away: close in, a farther "bar" is the zebra beyond it
+        if measured is not None and self.ignore_light_m <= 0:
+            self.stop_line = measured
+            self.stop_line_measured = True
+        elif (not self.stop_line_measured and scene.light_distance_m is not None and self.ignore_light_m <= 0
+              and scene.light in LIGHT_STATES):
+            inferred = scene.light_distance_m - cfg.light_beyond_stop_line_m - cfg.camera_to_front_m
+            self.stop_line = inferred - cfg.light_fallback_margin_m
+        if self.stop_line is not None and self.stop_line < -1.0:  # the bumper is past the line: in the junction
+            self.stop_line, self.stop_line_measured = None, False
+            self.ignore_light_m = cfg.junction_ignore_m
+            self.light_state, self._light_candidate, self._yellow_go = None, None, None
+
+    def _light_constraint(self, speed: float) -> Constraint | None:
+        """The stop constraint of a red or yellow light, if it applies; ``self.note`` says why not when it does not."""
+        cfg = self.config
+        self.note = ""
+        state = self.light_state if self.ignore_light_m <= 0 else None
+        if state not in ("red", "yellow"):
+            return None
+        if self.stop_line is None:
+            if state == "red":  # a red light but no stop line yet: approach slowly until the bar is found
+                return Constraint("red light, stop line not seen: slow approach", math.inf,
+                                  cfg.red_no_line_speed_mps, 0.0, 0.0)
+            self.note = "yellow light, stop line not seen"
+            return None
+        gap = self.stop_line - cfg.stop_line_target_m
+        need = speed * speed / (2.0 * max(gap, 0.05))  # deceleration to stop at the point
+        if state == "yellow":
+            if self._yellow_go is None:
+                self._yellow_go = need > cfg.comfortable_brake_mps2
+            if self._yellow_go:
+                self.note = "yellow light: too close to stop comfortably, going on"
+                return None
+            return Constraint(f"yellow light: stop {self.stop_line:.1f} m ahead", gap, 0.0, cfg.stop_line_min_gap_m, 0.5)
+        if (self._yellow_go and need > cfg.comfortable_brake_mps2) or need > 0.9 * cfg.max_brake_mps2:
+            self.note = "red light: too close to stop, clearing the junction"  # braking would stop inside it
+            return None
+        return Constraint(f"red light: stop {self.stop_line:.1f} m ahead", gap, 0.0, cfg.stop_line_min_gap_m, 0.5)
+
+    # ------------------------------------------------------------------ the step
+    def step(self, scene: Scene, pilot_steer: float, dt: float) -> Decision:
+        cfg = self.config
+        speed = max(0.0, float(scene.speed_mps))
+        steer = float(np.clip(pilot_steer, -1.0, 1.0))
+        if cfg.steer_rate_per_s > 0:
+            step = cfg.steer_rate_per_s * dt
+            steer = min(self.last_steer + step, max(self.last_steer - step, steer))
+        self.last_steer = steer
+        self._update_light(scene, dt)
+        self._update_stop_line(scene, dt)
+
+        target = min(cfg.speed_limit_mps, cfg.speed_limit_mps / (1.0 + cfg.turn_slowdown * 3.0 * abs(steer)))
+        constraints: list[Constraint] = []
+        in_path: list[int] = []
+        ids: dict[int, int] = {}  # constraint index -> track id
+        light = self._light_constraint(speed)
+        if light is not None:
+            if math.isinf(light.gap_m):  # a speed cap, not a point to stop at
+                light.accel_mps2 = self._idm(speed, min(target, light.speed_mps), None, 0.0, 0.0, 0.0)
+            constraints.append(light)
+        for obj in scene.objects:
+            if not self.in_path(scene, obj, steer):
+                continue
+            in_path.append(obj.track_id)
+            gap = obj.distance_m - cfg.camera_to_front_m
+            if obj.kind == "pedestrian":
+                what = "in our path" if self.overlaps(scene, obj, steer) else "entering our path"
+                c = Constraint(f"pedestrian #{obj.track_id} {what} at {gap:.1f} m: stop", gap, 0.0,
+                               cfg.pedestrian_min_gap_m, 0.5)
+            else:
+                lead_speed = max(0.0, speed - obj.closing_speed_mps)
+                verb = "stopped" if lead_speed < 0.5 else "following"
+                c = Constraint(f"{obj.kind} #{obj.track_id} ahead at {gap:.1f} m: {verb}", gap, lead_speed,
+                               cfg.lead_min_gap_m, cfg.headway_s)
+            ids[len(constraints)] = obj.track_id
+            constraints.append(c)
+
+        accel, reason, governing = self._idm(speed, target, None, 0.0, 0.0, 0.0), "cruise", None
+        holding = False
+        for k, c in enumerate(constraints):
+            if not math.isinf(c.gap_m):
+                c.accel_mps2 = self._idm(speed, target, c.gap_m, speed - c.speed_mps, c.min_gap_m, c.headway_s)
+                room = c.gap_m - c.min_gap_m
+                c.hard = c.speed_mps < speed and speed * speed / (2.0 * max(room, 0.05)) > cfg.comfortable_brake_mps2
+                if room < cfg.hold_margin_m and c.speed_mps < 0.5 and speed < 1.0:
+                    c.hold = True  # IDM creeps towards a standstill: near the point, brake and stay
+                    c.accel_mps2 = min(c.accel_mps2, -cfg.comfortable_brake_mps2)
+            if c.accel_mps2 < accel:
+                accel, reason, governing = c.accel_mps2, c.reason, k
+        hard = governing is not None and constraints[governing].hard
+        holding = governing is not None and constraints[governing].hold
+        if holding:
+            reason += " (holding)"
+        if accel > 0:  # gentle: capped, and rising at most jerk x dt per frame
+            accel = min(accel, cfg.max_accel_mps2, max(self.last_accel, 0.0) + cfg.jerk_mps3 * dt)
+        accel = max(accel, -(cfg.max_brake_mps2 if hard else cfg.comfortable_brake_mps2))
+        if hard and accel < -cfg.comfortable_brake_mps2:
+            reason += " (hard brake)"
+        if reason == "cruise" and self.note:
+            reason = self.note
+        elif reason == "cruise" and target < cfg.speed_limit_mps - 0.5:
+            reason = f"cruise, {target:.1f} m/s in the turn"
+        self.last_accel = accel
+        throttle = accel / self.vehicle_accel if accel >= 0 else accel / self.vehicle_brake
+        return Decision(steer, float(np.clip(throttle, -1.0, 1.0)), float(accel), float(target), float(pilot_steer),
+                        reason, constraints, self.light_state if self.ignore_light_m <= 0 else None,
+                        self.stop_line, in_path, ids.get(governing) if governing is not None else None, holding)
+
+    def _idm(self, speed: float, target: float, gap: float | None, closing: float, min_gap: float,
+             headway: float) -> float:
+        """Intelligent Driver Model acceleration towards ``target`` with an optional bumper ``gap``."""
+        cfg = self.config
+        a, b = cfg.idm_a_mps2, cfg.idm_b_mps2
+        acc = a * (1.0 - (speed / max(target, 0.1)) ** cfg.idm_delta)
+        if gap is not None:
+            desired = min_gap + speed * headway + speed * closing / (2.0 * math.sqrt(a * b))
+            acc -= a * (max(desired, min_gap) / max(gap, 0.1)) ** 2
+        return acc
