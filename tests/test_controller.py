@@ -1,0 +1,229 @@
+"""The controller's rules on synthetic perception: a point-mass car driven by the controller's own
+acceleration, with what the camera would report (stop bar distances only between 3 and 20 m ahead of the
+camera, as the stop-line detector sees them)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import pytest
+
+from agent.controller import Controller, ControllerConfig, Decision, PerceivedObject, Scene
+
+DT = 0.05
+CFG = ControllerConfig()
+CAM = CFG.camera_to_front_m
+
+
+@dataclass
+class Run:
+    """The car's history under the controller."""
+
+    gap: list[float] = field(default_factory=list)  # bumper to the thing we care about
+    speed: list[float] = field(default_factory=list)
+    accel: list[float] = field(default_factory=list)
+    decisions: list[Decision] = field(default_factory=list)
+    travelled: float = 0.0
+
+
+def drive(scene_of: Callable[[float, float, float], Scene], seconds: float, v0: float = 8.0,
+          ctrl: Controller | None = None, steer: float = 0.0) -> Run:
+    """``scene_of(travelled_m, speed, time)`` -> Scene; the car integrates the controller's acceleration."""
+    ctrl = ctrl or Controller(CFG)
+    run, v = Run(), v0
+    for k in range(int(seconds / DT)):
+        d = ctrl.step(scene_of(run.travelled, v, k * DT), steer, DT)
+        v = max(0.0, v + d.accel_mps2 * DT)
+        run.travelled += v * DT
+        run.speed.append(v)
+        run.accel.append(d.accel_mps2)
+        run.decisions.append(d)
+    return run
+
+
+def bar_seen(camera_to_bar: float) -> float | None:
+    return camera_to_bar if 3.0 <= camera_to_bar <= 20.0 else None
+
+
+def light_scene(line_m: float, state: Callable[[float], str]) -> Callable[[float, float, float], Scene]:
+    """A stop line ``line_m`` ahead of the bumper at the start; the light 21 m beyond it."""
+    def scene(s: float, v: float, t: float) -> Scene:
+        bumper_to_line = line_m - s
+        return Scene(v, light=state(t), light_distance_m=bumper_to_line + CAM + 21.0,
+                     stop_line_m=bar_seen(bumper_to_line + CAM))
+    return scene
+
+
+def test_red_light_stops_0_to_2_m_before_the_line_gently() -> None:
+    run = drive(light_scene(45.0, lambda t: "red"), 20.0)
+    final_gap = 45.0 - run.travelled
+    assert run.speed[-1] == 0.0
+    assert 0.0 <= final_gap <= 2.0, final_gap
+    assert min(run.accel) >= -CFG.comfortable_brake_mps2 - 1e-9  # 45 m is room enough for a comfortable stop
+    assert run.decisions[-1].reason.startswith("red light")
+
+
+def test_stop_line_distance_kept_by_odometry_when_the_bar_leaves_the_view() -> None:
+    ctrl = Controller(CFG)
+    ctrl.step(Scene(5.0, light="red", stop_line_m=10.0 + CAM), 0.0, DT)
+    ctrl.step(Scene(5.0, light="red", stop_line_m=9.75 + CAM), 0.0, DT)
+    for _ in range(10):  # the bar below the view: 0.5 s at 4 m/s
+        d = ctrl.step(Scene(4.0, light="red"), 0.0, DT)
+    assert d.stop_line_gap_m == pytest.approx(9.75 - 10 * 4.0 * DT, abs=1e-6)
+
+
+def test_red_then_green_resumes_and_passes_the_line() -> None:
+    run = drive(light_scene(30.0, lambda t: "red" if t < 12.0 else "green"), 22.0)
+    stopped = [g for g, v in zip((30.0 - x for x in _positions(run)), run.speed, strict=True) if v == 0.0]
+    assert stopped and 0.0 <= stopped[-1] <= 2.0
+    assert run.travelled > 40.0  # drove on through the junction after green
+    assert run.speed[-1] > 5.0
+
+
+def _positions(run: Run) -> list[float]:
+    pos, out = 0.0, []
+    for v in run.speed:
+        pos += v * DT
+        out.append(pos)
+    return out
+
+
+def test_yellow_far_enough_stops_and_yellow_too_close_goes_on() -> None:
+    far = drive(light_scene(25.0, lambda t: "yellow"), 15.0, v0=7.0)
+    assert 0.0 <= 25.0 - far.travelled <= 2.0
+    assert far.speed[-1] == 0.0
+    # 8 m/s with the line 6 m ahead: stopping needs more than the comfortable deceleration -> go on, and a red
+    # that follows while the car is committed is driven through
+    close = drive(light_scene(6.0, lambda t: "yellow" if t < 1.0 else "red"), 4.0, v0=8.0)
+    assert close.travelled > 20.0
+    assert min(close.speed) > 6.0
+    assert any("going on" in d.reason for d in close.decisions)
+
+
+def test_red_light_seen_after_the_stop_line_is_ignored() -> None:
+    ctrl = Controller(CFG)
+    # bar seen 4 m ahead of the bumper, then passed; the light across the junction then shows red
+    ctrl.step(Scene(8.0, light="green", stop_line_m=4.0 + CAM), 0.0, DT)
+    for _ in range(20):  # 1 s at 8 m/s: 8 m, past the line
+        ctrl.step(Scene(8.0, light="green"), 0.0, DT)
+    decisions = [ctrl.step(Scene(8.0, light="red", light_distance_m=15.0), 0.0, DT) for _ in range(10)]
+    assert all(d.accel_mps2 > -0.5 for d in decisions)
+    assert all(d.light is None for d in decisions)
+
+
+def lead(distance_m: float, speed: float, lateral: float = 0.0, kind: str = "car", tid: int = 1) -> PerceivedObject:
+    return PerceivedObject(tid, kind, distance_m, lateral - 0.95, lateral + 0.95, 0.0, 0.0)
+
+
+def test_stopped_car_in_lane_stop_behind_then_resume_when_it_drives_away() -> None:
+    def scene(s: float, v: float, t: float) -> Scene:
+        lead_pos = 30.0 + (0.0 if t < 15.0 else 0.5 * 2.0 * (t - 15.0) ** 2)  # drives off at 2 m/s^2 after 15 s
+        lead_v = 0.0 if t < 15.0 else 2.0 * (t - 15.0)
+        obj = lead(lead_pos - s + CAM, lead_v)
+        obj.closing_speed_mps = v - lead_v
+        return Scene(v, objects=[obj])
+
+    run = drive(scene, 25.0)
+    gaps = []
+    pos = 0.0
+    for k, v in enumerate(run.speed):
+        pos += v * DT
+        if v == 0.0 and k * DT < 15.0:
+            gaps.append(30.0 - pos)
+    assert gaps, "never stopped behind the car"
+    assert CFG.lead_min_gap_m - 0.5 <= gaps[-1] <= 8.0
+    assert run.speed[-1] > 3.0  # resumed after the car left
+    assert "car #1" in run.decisions[int(10.0 / DT)].reason
+
+
+def test_following_a_moving_car_keeps_a_time_headway() -> None:
+    def scene(s: float, v: float, t: float) -> Scene:
+        lead_pos = 20.0 + 5.0 * t
+        obj = lead(lead_pos - s + CAM, 5.0)
+        obj.closing_speed_mps = v - 5.0
+        return Scene(v, objects=[obj])
+
+    run = drive(scene, 40.0, v0=8.0)
+    gap = 20.0 + 5.0 * 40.0 - run.travelled
+    assert run.speed[-1] == pytest.approx(5.0, abs=0.3)
+    assert gap >= CFG.lead_min_gap_m + 0.8 * CFG.headway_s * 5.0
+
+
+def test_cars_in_other_lanes_get_no_reaction() -> None:
+    for lateral in (3.5, -3.5):
+        run = drive(lambda s, v, t, lat=lateral: Scene(v, objects=[lead(12.0, 0.0, lat)]), 3.0, v0=6.0)
+        assert min(run.accel) > 0.0
+        assert all(d.in_path == [] and d.reason == "cruise" for d in run.decisions)
+
+
+def test_lane_centre_decides_what_is_in_our_lane() -> None:
+    ctrl = Controller(CFG)
+    # the lane bends right: its centre is 3 m right at 20 m; a car there is in our lane, one straight ahead is not
+    bend = (3.0 / 400.0, 0.0, 0.0)
+    import numpy as np
+
+    scene = Scene(6.0, objects=[lead(20.0, 0.0, 3.0, tid=1), lead(20.0, 0.0, -0.5, tid=2)], lane_centre=np.array(bend))
+    assert ctrl.step(scene, 0.0, DT).in_path == [1]
+
+
+def test_pedestrian_in_path_stop_then_resume_when_clear() -> None:
+    def scene(s: float, v: float, t: float) -> Scene:
+        x = -5.0 + 1.2 * t  # walks from the left kerb across, at 1.2 m/s; ped is 0.5 m wide
+        ped = PerceivedObject(7, "pedestrian", 25.0 - s + CAM, x - 0.25, x + 0.25, v, 1.2)
+        return Scene(v, objects=[ped]) if 25.0 - s > -2.0 else Scene(v)
+
+    run = drive(scene, 16.0)
+    positions = _positions(run)
+    stop_k = run.speed.index(0.0)
+    assert 25.0 - positions[stop_k] >= 2.0  # stopped short of the pedestrian
+    assert run.decisions[stop_k].reason.startswith("pedestrian #7")
+    assert run.speed[-1] > 2.0  # resumed when they had crossed
+
+
+def test_pedestrian_entering_versus_walking_away() -> None:
+    ctrl = Controller(CFG)
+    entering = PerceivedObject(1, "pedestrian", 15.0, 3.0, 3.5, 0.0, -1.2)  # right kerb, walking left
+    leaving = PerceivedObject(2, "pedestrian", 15.0, 3.0, 3.5, 0.0, +1.2)  # same place, walking away
+    still = PerceivedObject(3, "pedestrian", 15.0, 3.0, 3.5, 0.0, 0.0)
+    d = ctrl.step(Scene(6.0, objects=[entering, leaving, still]), 0.0, DT)
+    assert d.in_path == [1]
+    assert "entering our path" in d.reason
+
+
+def test_gentle_limits_acceleration_jerk_and_steering_rate() -> None:
+    ctrl = Controller(CFG)
+    decisions = [ctrl.step(Scene(0.0), 1.0, DT) for _ in range(40)]
+    accel = [d.accel_mps2 for d in decisions]
+    assert max(accel) <= CFG.max_accel_mps2 + 1e-9
+    assert accel[0] <= CFG.jerk_mps3 * DT + 1e-9
+    assert all(b - a <= CFG.jerk_mps3 * DT + 1e-9 for a, b in zip(accel, accel[1:], strict=False))
+    steers = [d.steer for d in decisions]
+    assert steers[0] == pytest.approx(CFG.steer_rate_per_s * DT)
+    assert all(abs(b - a) <= CFG.steer_rate_per_s * DT + 1e-9 for a, b in zip(steers, steers[1:], strict=False))
+    assert decisions[0].pilot_steer == 1.0
+
+
+def test_speed_limit_is_held() -> None:
+    run = drive(lambda s, v, t: Scene(v), 30.0, v0=0.0)
+    assert max(run.speed) <= CFG.speed_limit_mps + 0.05
+    assert run.speed[-1] >= CFG.speed_limit_mps - 0.5
+
+
+def test_emergency_brakes_harder_than_comfort_and_says_so() -> None:
+    ctrl = Controller(CFG)
+    car = lead(6.0 + CAM, 0.0)
+    car.closing_speed_mps = 8.0
+    d = ctrl.step(Scene(8.0, objects=[car]), 0.0, DT)  # a stopped car 6 m ahead at 8 m/s
+    assert d.accel_mps2 < -CFG.comfortable_brake_mps2
+    assert "hard brake" in d.reason
+
+
+def test_light_flicker_is_debounced_and_red_is_remembered() -> None:
+    ctrl = Controller(CFG)
+    ctrl.step(Scene(3.0, light="red", stop_line_m=12.0), 0.0, DT)
+    assert ctrl.step(Scene(3.0, light="red", stop_line_m=11.9), 0.0, DT).light == "red"
+    assert ctrl.step(Scene(3.0, light="green"), 0.0, DT).light == "red"  # one green frame is not a change
+    for _ in range(int(2.0 / DT)):  # the light unseen for 2 s: still red
+        d = ctrl.step(Scene(3.0), 0.0, DT)
+    assert d.light == "red" and d.reason.startswith("red light")
