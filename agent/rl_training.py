@@ -4,7 +4,8 @@
   python train.py rl --algo sac --observation camera --steps ...   # camera variant, a small CNN (slow)
 
 The state variant observes ``agent.rl_features`` (the autopilot's plan as 24 numbers) with the camera off,
-so thousands of steps per second are possible. The reward is Drive-v0's documented one, unchanged. The run
+so thousands of steps per second are possible. The reward is Drive-v0's documented one plus a speed limit and
+red lights that end the episode (``agent.rl_shaping`` says why; ``--no-shaping`` drops them). The run
 folder (``--out``) gets SB3's CSV log (``progress.csv``), evaluation logs (``evaluations.npz``), periodic
 checkpoints, ``best_model.zip`` (best mean evaluation reward) and ``learning_curve.png``. The final model is
 copied to ``--model`` (default ``data/models/rl_<algo>.zip``) together with a JSON of how it was made.
@@ -33,6 +34,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--towns", type=int, default=8)
     p.add_argument("--traffic", type=float, default=0.5, help="NPC and pedestrian density while training")
     p.add_argument("--episode-seconds", type=float, default=60.0)
+    p.add_argument("--no-shaping", action="store_true",
+                   help="train on Drive-v0's plain reward (default: speed limit and red lights added, agent.rl_shaping)")
     p.add_argument("--eval-every", type=int, default=20_000, help="evaluate every this many steps")
     p.add_argument("--out", type=Path, default=None, help="run folder (default out/rl_<algo>)")
     p.add_argument("--model", type=Path, default=None, help="final model (default data/models/rl_<algo>.zip)")
@@ -46,6 +49,7 @@ def make_env(args: argparse.Namespace, rank: int, evaluation: bool = False):
         from stable_baselines3.common.monitor import Monitor
 
         from agent.rl_features import StateObservation
+        from agent.rl_shaping import TrafficRulesShaping
         from envs.drive_env import DriveConfig, DriveEnv
         from sim.render import CameraConfig
         from sim.world import WorldConfig
@@ -57,6 +61,8 @@ def make_env(args: argparse.Namespace, rank: int, evaluation: bool = False):
         config = DriveConfig(world=world, render_camera=camera_on, max_time_s=args.episode_seconds,
                              camera=CameraConfig(width=128, height=64) if camera_on else CameraConfig())
         env: gym.Env = DriveEnv(config)
+        if not args.no_shaping:
+            env = TrafficRulesShaping(env)
         env = _TownPerEpisode(env, args.town_seed, args.towns, offset=rank + (1000 if evaluation else 0))
         env = StateObservation(env) if not camera_on else _CameraObservation(env)
         return Monitor(env)
@@ -177,7 +183,8 @@ def run(args: argparse.Namespace) -> int:
     curve = plot_learning_curve(out)
     record = {"algo": args.algo, "observation": args.observation, "steps": args.steps, "envs": args.envs,
               "seed": args.seed, "towns": [args.town_seed, args.town_seed + args.towns - 1], "traffic": args.traffic,
-              "command": "python train.py " + " ".join(sys.argv[1:]), "wall_s": round(wall, 1),
+              "shaping": not args.no_shaping, "command": "python train.py " + " ".join(sys.argv[1:]),
+              "wall_s": round(wall, 1),
               "steps_per_s": round(args.steps / wall, 1), "learning_curve": str(curve)}
     model_path.with_suffix(".json").write_text(json.dumps(record, indent=2))
     print(json.dumps(record, indent=2))

@@ -58,3 +58,42 @@ def test_rl_driver_without_a_model_is_one_clear_error(tmp_path):
 
     with pytest.raises(FileNotFoundError, match="train one with: python train.py rl"):
         make_driver("rl", model=tmp_path / "none.zip")
+
+
+class _ScriptedEnv:
+    """A stand-in for Drive-v0 that replays given speeds and infractions (the wrapper only reads those)."""
+
+    def __new__(cls, speeds, infractions):
+        import gymnasium as gym
+
+        class Scripted(gym.Env):
+            observation_space = gym.spaces.Dict({"speed": gym.spaces.Box(0.0, 50.0, (1,), np.float32)})
+            action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+
+            def __init__(self):
+                self.k = 0
+
+            def reset(self, *, seed=None, options=None):
+                self.k = 0
+                return {"speed": np.zeros(1, np.float32)}, {}
+
+            def step(self, action):
+                obs = {"speed": np.array([speeds[self.k]], np.float32)}
+                info = {"infractions": [{"kind": kind} for kind in infractions[self.k]]}
+                self.k += 1
+                return obs, 1.0, False, False, info
+
+        return Scripted()
+
+
+def test_shaping_charges_speeding_and_ends_the_episode_on_a_red_light():
+    from agent.rl_shaping import ShapingConfig, TrafficRulesShaping
+
+    cfg = ShapingConfig(speed_limit_mps=10.0, overspeed_penalty=0.02, red_light_penalty=-10.0)
+    env = TrafficRulesShaping(_ScriptedEnv([9.0, 15.0, 9.0], [[], ["wrong_way"], ["red_light"]]), cfg)
+    env.reset()
+    assert env.step(np.zeros(2))[1:3] == (1.0, False)  # under the limit: the reward is untouched
+    reward, terminated = env.step(np.zeros(2))[1:3]
+    assert reward == pytest.approx(1.0 - 0.02 * 5.0) and not terminated
+    reward, terminated = env.step(np.zeros(2))[1:3]
+    assert reward == pytest.approx(1.0 - 10.0) and terminated
