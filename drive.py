@@ -33,6 +33,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="pilotnet/agent/rl: model file (default data/models/pilotnet.pt, data/models/rl_ppo.zip)")
     p.add_argument("--backend", default="onnx", choices=["onnx", "torch"], help="pilotnet/agent: PilotNet's inference backend")
     p.add_argument("--target-speed", type=float, default=None, help="pilotnet: cruise speed in m/s (default 7)")
+    p.add_argument("--profile", default=None, metavar="NAME",
+                   help="run the agent with a deployment profile (agent/profiles/NAME.yaml, or a .yaml path): its "
+                        "backends, module rates, budgets, camera and alerts; a real camera runs without the simulator")
+    p.add_argument("--camera", default=None, metavar="SOURCE",
+                   help="with --profile: real frames instead of the profile's camera: a video file, an episode .h5, "
+                        "usb:N or csi:N")
+    p.add_argument("--speed", type=float, default=8.0, help="real frames: own speed (m/s) when the source has none")
+    p.add_argument("--show", action="store_true", help="real frames: show the overlay in a window")
+    p.add_argument("--alerts", default=None, metavar="PATH", help="with --profile: decisions as JSON lines ('-': stdout)")
+    p.add_argument("--serial", default=None, metavar="PORT", help="with --profile: the alert line protocol to PORT")
     p.add_argument("--seed", type=int, default=0, help="first episode seed (traffic, start and route)")
     p.add_argument("--town-seed", type=int, default=0, help="which town to generate")
     p.add_argument("--weather", default="noon", choices=sorted(LIGHTING_PRESETS), help="lighting preset")
@@ -97,6 +107,14 @@ def make_config(args: argparse.Namespace) -> Any:
 
 def make_named_driver(args: argparse.Namespace) -> Any:
     from agent.drivers import make_driver
+
+    if getattr(args, "profile", None):
+        if args.driver not in ("autopilot", "agent"):  # autopilot: the default, so --driver was not given
+            raise ValueError(f"--profile runs the agent driver, not {args.driver}; drop --driver.")
+        from agent.deploy import ProfiledAgent
+        from agent.profiles import load_profile
+
+        return ProfiledAgent(load_profile(args.profile))
 
     kwargs: dict[str, Any] = {"noise": True, "noise_seed": args.seed} if args.noise else {}
     if args.noise and args.driver != "autopilot":
@@ -258,9 +276,29 @@ def scenarios(args: argparse.Namespace) -> int:
     return 0 if all(r.passed for r in results) else 1
 
 
+def real_frames(args: argparse.Namespace) -> int:
+    """The profile's agent on a real camera, a video file or a recorded episode, without the simulator."""
+    from agent.deploy import run_profile
+
+    out = args.out or Path("out/deploy_run")
+    summary = run_profile(args.profile, args.camera, out, args.speed, args.show, args.alerts, args.serial)
+    lat = summary["latency"]["total"]
+    print(json.dumps({k: summary[k] for k in ("profile", "frames", "fps", "backends", "lane_frames", "warning_frames")}))
+    print(f"total p50 {lat['p50_ms']:.1f} ms, p95 {lat['p95_ms']:.1f} ms (budget {lat['budget_ms']} ms); "
+          f"overlay video and summary.json in {out}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
+        if args.camera and not args.profile:
+            raise ValueError("--camera needs --profile (e.g. --profile cpu --camera drive.mp4).")
+        if args.profile:
+            from agent.profiles import load_profile
+
+            if args.camera or load_profile(args.profile).camera.source != "simulator":
+                return real_frames(args)
         if args.record:
             return record(args)
         if args.evaluate:

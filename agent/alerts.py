@@ -58,10 +58,12 @@ class AlertFrame:
     light: str | None = None  # red, yellow, green
     reason: str = ""
     timings_ms: dict[str, float] = field(default_factory=dict)
+    details: tuple[str, ...] = ()  # the warnings as the agent words them ("COLLISION WARNING: car #4, TTC 1.2 s")
 
     def as_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["warnings"] = list(self.warnings)
+        d["details"] = list(self.details)
         d["timings_ms"] = {k: round(v, 3) for k, v in self.timings_ms.items()}
         return d
 
@@ -186,8 +188,12 @@ def alert_from_view(view: Any, frame: int, timings_ms: dict[str, float] | None =
     """The alert of one frame of the ``agent`` driver (its ``view``: lanes, decision, warnings).
 
     The lane is red when the controller has an object in our path (seed 000's rule), none when no lane line
-    was found, green otherwise.
+    was found, green otherwise. The agent words its warnings for people (``agent.adas.LABELS``: "OBJECT IN
+    LANE: car #4 at 12.0 m"); the alert carries their kinds and keeps the words in ``details``.
     """
+    from agent.adas import LABELS
+
+    kinds = {label: kind for kind, label in LABELS.items()}
     decision = view.decision
     lanes = view.lanes
     if decision.in_path:
@@ -196,7 +202,9 @@ def alert_from_view(view: Any, frame: int, timings_ms: dict[str, float] | None =
         lane = "none"
     else:
         lane = "green"
-    return AlertFrame(frame=frame, time_s=float(view.time_s), lane=lane, warnings=tuple(view.warnings),
+    texts = tuple(str(w) for w in view.warnings)
+    names = tuple(dict.fromkeys(kinds.get(w.split(":")[0].strip(), w) for w in texts))
+    return AlertFrame(frame=frame, time_s=float(view.time_s), lane=lane, warnings=names,
                       brake=max(0.0, -float(decision.throttle_brake)), steer=float(decision.steer),
                       speed_mps=float(view.speed_mps), light=decision.light, reason=str(decision.reason),
-                      timings_ms=dict(timings_ms or {}))
+                      timings_ms=dict(timings_ms or {}), details=texts)

@@ -392,6 +392,23 @@ def test_jsonl_alerts(tmp_path: Path) -> None:
     assert rows[0]["timings_ms"] == {"detector": 4.123}
 
 
+def test_alert_from_the_agents_view_maps_its_worded_warnings() -> None:
+    from types import SimpleNamespace
+
+    from agent.alerts import alert_from_view, encode_line
+
+    decision = SimpleNamespace(in_path=[7], throttle_brake=-0.7, steer=0.1, light="red", reason="pedestrian #7")
+    view = SimpleNamespace(decision=decision, lanes=SimpleNamespace(detected=True), time_s=3.0, speed_mps=5.0,
+                           warnings=["COLLISION WARNING: pedestrian #7, TTC 1.1 s", "OBJECT IN LANE: pedestrian #7 at 9.0 m"])
+    alert = alert_from_view(view, 60, {"total": 9.0})
+    assert alert.warnings == ("forward_collision", "object_in_lane") and alert.lane == "red" and alert.brake == 0.7
+    assert alert.details[0].startswith("COLLISION WARNING")
+    assert parse_line(encode_line(alert))["warn"] == "FOB"
+    clear = SimpleNamespace(decision=SimpleNamespace(in_path=[], throttle_brake=0.2, steer=0.0, light=None, reason="cruise"),
+                            lanes=SimpleNamespace(detected=False), time_s=0.0, speed_mps=5.0, warnings=[])
+    assert alert_from_view(clear, 0).lane == "none" and alert_from_view(clear, 0).brake == 0.0
+
+
 # ---------------------------------------------------------------------- camera sources
 def test_fit_frame_crops_to_the_aspect_then_resizes() -> None:
     hd = np.zeros((720, 1280, 3), np.uint8)
@@ -461,3 +478,74 @@ def test_episode_source_carries_speed_and_command(episode_dir: Path) -> None:
     assert len(frames) == 12 and frames[5].command == 1 and frames[5].speed_mps == pytest.approx(5.0)
     assert frames[5].time_s == pytest.approx(0.25)
 
+
+# ---------------------------------------------------------------------- the agent on a recorded simulator video
+@pytest.fixture(scope="module")
+def sim_video(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """40 frames of the autopilot driving in traffic, rendered by the simulator and encoded as H.264."""
+    from agent.autopilot import Autopilot
+    from envs.drive_env import DriveConfig, DriveEnv
+
+    env = DriveEnv(DriveConfig())
+    driver = Autopilot()
+    obs, _ = env.reset(seed=3, options={"traffic_density": 2.0})
+    driver.reset(env)
+    frames = []
+    for _ in range(40):
+        obs, *_ = env.step(driver.act(obs))
+        frames.append(obs["image"])
+    env.close()
+    return write_video(tmp_path_factory.mktemp("video") / "sim.mp4", np.stack(frames))
+
+
+def test_agent_runs_on_a_recorded_simulator_video(sim_video: Path, tiny_models: dict[str, Path], tmp_path: Path) -> None:
+    """The video-file source end to end: the profile's agent, alerts on a pty and in JSON lines, the overlay video."""
+    import tty
+
+    import imageio.v2 as imageio
+
+    from agent.alerts import Alerts, JsonlAlerts
+    from agent.deploy import ProfiledAgent, run_on_source
+    from agent.pilotnet_training import export, load_model
+
+    detector = ROOT / "data" / "models" / "detector.pt"
+    if not detector.with_suffix(".onnx").is_file():
+        pytest.skip("no shipped detector")
+    model, meta = load_model(tiny_models["pilotnet"])
+    export(model, meta, tmp_path / "pilotnet.pt")  # .pt and its .onnx twin
+    profile = profile_from_dict({"name": "video", "export_dir": str(tmp_path / "deploy"),
+                                 "models": {"pilotnet": {"checkpoint": str(tmp_path / "pilotnet.pt")},
+                                            "detector": {"checkpoint": str(detector)}},
+                                 "modules": {"detector": {"every": 2}, "lanes": {"every": 1}},
+                                 "camera": {"source": "video", "path": str(sim_video)},
+                                 "budgets_ms": {"detector": 15.0, "total": 40.0}}, "video.yaml")
+    master, slave = os.openpty()
+    tty.setraw(master)
+    alerts = Alerts([SerialAlerts(os.ttyname(slave)), JsonlAlerts(tmp_path / "alerts.jsonl")])
+    agent = ProfiledAgent(profile)
+    assert agent.net.backend.name == "onnxruntime" and agent.config.detect_every == 2
+    with video_source(sim_video) as source:
+        summary = run_on_source(profile, source, tmp_path / "run", speed_mps=6.0, alerts=alerts, agent=agent)
+    serial = b""
+    while serial.count(b"\n") < 40:
+        serial += os.read(master, 4096)
+    os.close(master)
+    os.close(slave)
+    assert summary["frames"] == 40 and summary["detector_every"] == 2
+    assert sum(summary["lane_frames"].values()) == 40
+    lat = summary["latency"]
+    assert {"pilotnet", "detector", "tracking", "lanes", "stop_line", "camera", "alerts", "total"} <= set(lat)
+    assert lat["detector"]["budget_ms"] == 15.0 and 0.0 <= lat["total"]["over_budget"] <= 1.0
+    ran = [t["detector"] > 0 for t in agent.timings]
+    assert sum(ran) == 20 and ran[0] and not ran[1]  # every other frame; SORT predicts in between
+    rows = [json.loads(line) for line in (tmp_path / "alerts.jsonl").read_text().splitlines()]
+    assert [r["frame"] for r in rows] == list(range(40)) and all(r["lane"] in ("green", "red", "none") for r in rows)
+    assert all(set(r["warnings"]) <= {"lane_departure", "forward_collision", "object_in_lane"} for r in rows)
+    lines = [parse_line(line) for line in serial.split(b"\r\n") if line]
+    assert [p["seq"] for p in lines] == list(range(40))
+    assert all(p["speed_kmh"] == 22 for p in lines)  # 6 m/s, the speed given for a source without odometry
+    assert [p["lane"] for p in lines] == [{"green": "G", "red": "R", "none": "N"}[r["lane"]] for r in rows]
+    assert rows[0]["timings_ms"]["detector"] > 0
+    video = imageio.get_reader(tmp_path / "run" / "overlay.mp4")
+    assert video.get_data(0).shape[:2] == (320, 640) and video.count_frames() == 40  # the overlay at twice the size
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["frames"] == 40
