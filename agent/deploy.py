@@ -159,7 +159,11 @@ def run_on_source(profile: Profile, source: Any, out: Path | None = None, speed_
                 if show:
                     import cv2
 
-                    cv2.imshow(agent.name, cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
+                    try:
+                        cv2.imshow(agent.name, cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
+                    except cv2.error as exc:
+                        raise RuntimeError("This OpenCV cannot open a window (opencv-python-headless, or no display); "
+                                           "drop --show and watch the overlay video written to --out.") from exc
                     if cv2.waitKey(1) & 0xFF in (27, ord("q")):
                         break
             if max_frames is not None and len(timings) >= max_frames:

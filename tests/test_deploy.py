@@ -231,27 +231,29 @@ def test_onnx_matches_torch_per_model_fp32_and_fp16(exported) -> None:
         assert np.abs(s16 - ref_s).max() > 0  # really a different arithmetic, not the fp32 file again
 
 
-def test_shipped_detector_parity_fp32_and_fp16(tmp_path: Path) -> None:
-    """The detector that ships in data/models: exported again and compared with torch on road-like frames."""
-    from agent.detector import DecodedDetector, load_detector
-    from agent.export_profile import prepare, to_fp16
+@pytest.mark.parametrize("name, size", [("detector", (320, 160)), ("pilotnet", (200, 66))])
+def test_shipped_model_parity_fp32_and_fp16(tmp_path: Path, name: str, size: tuple[int, int]) -> None:
+    """The models that ship in data/models: exported again and compared with torch on road-like frames."""
+    from agent.backends import detector_feeds, pilotnet_feeds
+    from agent.export_profile import prepare, to_fp16, torch_outputs
     from agent.onnx_export import export_onnx, onnx_session
 
-    checkpoint = ROOT / "data" / "models" / "detector.pt"
+    checkpoint = ROOT / "data" / "models" / f"{name}.pt"
     if not checkpoint.is_file():
-        pytest.skip("no shipped detector checkpoint")
-    job = prepare("detector", checkpoint, (320, 160))
-    fp32 = tmp_path / "detector.fp32.onnx"
-    assert export_onnx(job.module, job.examples, fp32, ["image"], ["detections"]) <= 1e-4
-    to_fp16(fp32, tmp_path / "detector.fp16.onnx")
-    x = np.stack([f.transpose(2, 0, 1) for f in scene_frames(2, 3)]).astype(np.float32) / 255.0
-    with torch.no_grad():
-        ref = DecodedDetector(load_detector(checkpoint))(torch.from_numpy(x)).numpy()
-    got32 = onnx_session(fp32, 1).run(None, {"image": x})[0]
-    got16 = onnx_session(tmp_path / "detector.fp16.onnx", 1).run(None, {"image": x})[0]
-    assert np.abs(got32 - ref).max() <= 1e-4
-    diff, used = fp16_check([got16], [ref])
-    assert used <= 1.0 and diff <= FP16_ATOL + FP16_RTOL * np.abs(ref).max()
+        pytest.skip(f"no shipped {name} checkpoint")
+    job = prepare(name, checkpoint, size)
+    fp32 = tmp_path / f"{name}.fp32.onnx"
+    assert export_onnx(job.module, job.examples, fp32, job.input_names, job.output_names) <= 1e-4
+    to_fp16(fp32, tmp_path / f"{name}.fp16.onnx")
+    for k, frame in enumerate(scene_frames(3, 3)):
+        feeds = (detector_feeds(frame) if name == "detector" else
+                 pilotnet_feeds(frame, k, job.meta["conditional"], None))
+        ref = torch_outputs(job.module, feeds, job.input_names)
+        got32 = onnx_session(fp32, 1).run(None, feeds)
+        got16 = onnx_session(tmp_path / f"{name}.fp16.onnx", 1).run(None, feeds)
+        assert max(np.abs(g - r).max() for g, r in zip(got32, ref, strict=True)) <= 1e-4
+        diff, used = fp16_check(got16, ref)
+        assert used <= 1.0 and diff <= FP16_ATOL + FP16_RTOL * max(np.abs(r).max() for r in ref)
 
 
 def test_fp16_check_rejects_an_error_beyond_the_tolerance() -> None:
@@ -549,3 +551,39 @@ def test_agent_runs_on_a_recorded_simulator_video(sim_video: Path, tiny_models: 
     video = imageio.get_reader(tmp_path / "run" / "overlay.mp4")
     assert video.get_data(0).shape[:2] == (320, 640) and video.count_frames() == 40  # the overlay at twice the size
     assert json.loads((tmp_path / "run" / "summary.json").read_text())["frames"] == 40
+
+
+def test_agent_with_side_by_side_stereo_every_second_frame(tmp_path: Path) -> None:
+    """A ZED-style recording (left | right in one frame) from the simulator's stereo pair: the agent splits it,
+    and stereo matching runs on every 2nd frame only, as the profile says."""
+    from agent.alerts import Alerts
+    from agent.autopilot import Autopilot
+    from agent.deploy import ProfiledAgent, run_on_source
+    from envs.drive_env import DriveConfig, DriveEnv
+    from sim.render import CameraConfig
+
+    models = ROOT / "data" / "models"
+    if not (models / "pilotnet.onnx").is_file() or not (models / "detector.onnx").is_file():
+        pytest.skip("no shipped models")
+    env = DriveEnv(DriveConfig(observe_stereo=True, camera=CameraConfig(stereo=True)))
+    driver = Autopilot()
+    obs, _ = env.reset(seed=5, options={"traffic_density": 2.0})
+    driver.reset(env)
+    frames = []
+    for _ in range(12):
+        obs, *_ = env.step(driver.act(obs))
+        frames.append(np.concatenate([obs["stereo"][0], obs["stereo"][1]], axis=1))
+    env.close()
+    video = write_video(tmp_path / "zed.mp4", np.stack(frames))
+    profile = profile_from_dict({"name": "zed", "export_dir": str(tmp_path / "deploy"),
+                                 "modules": {"stereo": {"enabled": True, "every": 2}},
+                                 "camera": {"source": "video", "path": str(video), "stereo": "side-by-side",
+                                            "capture_width": 640, "capture_height": 160}}, "zed.yaml")
+    agent = ProfiledAgent(profile)
+    assert agent.config.distance == "stereo"
+    with video_source(video, stereo="side-by-side") as source:
+        summary = run_on_source(profile, source, None, alerts=Alerts([]), agent=agent)
+    assert summary["frames"] == 12 and summary["stereo_every"] == 2
+    matched = [t["stereo"] > 0 for t in agent.timings]
+    assert matched == [k % 2 == 0 for k in range(12)]
+    assert agent.camera.stereo and agent.camera.hfov_deg == pytest.approx(90.0)
