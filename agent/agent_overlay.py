@@ -52,7 +52,12 @@ def lane_polygon(view: AgentView, birdseye: BirdsEye) -> np.ndarray | None:
 
 
 def _text(img: np.ndarray, text: str, org: tuple[int, int], color: tuple[int, int, int], size: float = 0.45) -> None:
-    cv2.putText(img, text, org, FONT, size, (0, 0, 0), 3, cv2.LINE_AA)
+    """Text on a half-dark band (an outline drawn with a thicker pen drifts from the glyphs on long lines)."""
+    (tw, th), base = cv2.getTextSize(text, FONT, size, 1)
+    x, y = org
+    x0, y0, x1, y1 = max(0, x - 3), max(0, y - th - 3), min(img.shape[1], x + tw + 3), min(img.shape[0], y + base + 1)
+    if x1 > x0 and y1 > y0:
+        img[y0:y1, x0:x1] = (img[y0:y1, x0:x1] * 0.45).astype(np.uint8)
     cv2.putText(img, text, org, FONT, size, color, 1, cv2.LINE_AA)
 
 
@@ -88,6 +93,8 @@ def draw_agent(view: AgentView, birdseye: BirdsEye, scale: int = 2) -> np.ndarra
     _text(out, decision.reason, (8, 38), (255, 220, 60) if override else (220, 220, 220))
     if decision.stop_line_gap_m is not None:
         _text(out, f"stop line {decision.stop_line_gap_m:4.1f} m", (8, 58), (255, 255, 255))
+    if decision.holding:
+        _text(out, "HOLD", (8, 78), (255, 220, 60))
     # Light state, top right.
     state = decision.light
     cx, cy = w - 22, 22

@@ -343,7 +343,7 @@ class Controller:
             reason += " (hard brake)"
         if reason == "cruise" and self.note:
             reason = self.note
-        elif reason == "cruise" and target < cfg.speed_limit_mps - 0.5:
+        elif reason == "cruise" and target < 0.9 * cfg.speed_limit_mps:
             reason = f"cruise, {target:.1f} m/s in the turn"
         self.last_accel = accel
         throttle = accel / self.vehicle_accel if accel >= 0 else accel / self.vehicle_brake

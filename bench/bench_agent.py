@@ -1,0 +1,96 @@
+"""The full agent's closed loop: render + perception + control, frames per second, and per-stage p50/p95.
+
+    python bench/bench_agent.py                       # 600 frames, town 0 with traffic, detector every frame
+    python bench/bench_agent.py --detect-every 2      # detector on every other frame (SORT predicts between)
+    python bench/bench_agent.py --stereo              # distances by stereo matching (renders the pair too)
+
+The agent drives (closed loop, its own actions), in the default town with its default traffic, at 320x160.
+"Whole loop" is the wall time of ``env.step`` (simulation and rendering) plus ``driver.act`` (every
+perception stage and the controller) per frame; the stage rows are the driver's own timings
+(``AgentDriver.timings``). ONNX Runtime and OpenCV run on one thread each (the machine is shared, and it is
+the honest figure for one core of a small board); ``--pin`` also pins the process to one core.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import cv2
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from agent.agent_driver import STAGES  # noqa: E402
+from agent.drivers import make_driver  # noqa: E402
+from bench.timing import latency_of  # noqa: E402
+from envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
+from sim.render import CameraConfig  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--frames", type=int, default=600)
+    ap.add_argument("--warmup", type=int, default=20)
+    ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--weather", default="noon")
+    ap.add_argument("--detect-every", type=int, default=1)
+    ap.add_argument("--stereo", action="store_true", help="distances from the stereo pair (renders it: slower)")
+    ap.add_argument("--pin", action="store_true", help="pin the process to one CPU core")
+    ap.add_argument("--model", type=Path, default=None, help="PilotNet model (default data/models/pilotnet.pt)")
+    args = ap.parse_args(argv)
+    cv2.setNumThreads(1)
+    if args.pin and hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
+    config = DriveConfig(camera=CameraConfig(stereo=args.stereo), observe_stereo=args.stereo, weather=args.weather,
+                         terminate_on_infraction=False, terminate_on_route_deviation=False)
+    kwargs: dict = {"detect_every": args.detect_every, "distance": "stereo" if args.stereo else "geometry"}
+    if args.model is not None:
+        kwargs["model"] = args.model
+    driver = make_driver("agent", **kwargs)
+    env = DriveEnv(config, render_mode="rgb_array")
+    obs, _ = env.reset(seed=args.seed)
+    driver.reset(env)
+    step_s, act_s, loop_s = [], [], []
+    for k in range(args.warmup + args.frames):
+        t0 = time.perf_counter()
+        action = driver.act(obs)
+        t1 = time.perf_counter()
+        obs, _, terminated, truncated, _ = env.step(action)
+        t2 = time.perf_counter()
+        if k >= args.warmup:
+            act_s.append(t1 - t0)
+            step_s.append(t2 - t1)
+            loop_s.append(t2 - t0)
+        if terminated or truncated:
+            obs, _ = env.reset(seed=args.seed + k + 1)
+            driver.reset(env)
+    env.close()
+    timings = driver.timings[-args.frames:] if len(driver.timings) >= args.frames else driver.timings
+    cam = config.camera
+    loop = latency_of(loop_s)
+    print(f"Agent closed loop at {cam.width}x{cam.height}, {args.frames} frames, seed {args.seed}, {args.weather}, "
+          f"detector every {args.detect_every} frame(s), distances by {'stereo' if args.stereo else 'box geometry'}")
+    print(f"whole loop: {len(loop_s) / sum(loop_s):.1f} frames/s (mean), p50 {loop.p50_ms:.1f} ms "
+          f"({1000.0 / loop.p50_ms:.1f} FPS at p50), p95 {loop.p95_ms:.1f} ms")
+    print("")
+    print("| stage | p50 ms | p95 ms | mean ms |")
+    print("|---|---|---|---|")
+    rows = [("env.step (simulation + rendering)", latency_of(step_s)), ("driver.act (all below)", latency_of(act_s))]
+    stages = [s for s in STAGES if any(s in t for t in timings)]
+    for stage in stages:
+        samples = [t[stage] / 1000.0 for t in timings if stage in t]
+        if stage == "detector" and args.detect_every > 1:  # only the frames it ran on
+            samples = [s for s in samples if s > 0] or samples
+            stage = f"detector (every {args.detect_every})"
+        rows.append((f"  {stage}", latency_of(samples)))
+    rows.append(("whole loop", loop))
+    for name, lat in rows:
+        print(f"| {name} | {lat.p50_ms:.2f} | {lat.p95_ms:.2f} | {lat.mean_ms:.2f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
