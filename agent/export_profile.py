@@ -1,4 +1,4 @@
-"""Export a deployment profile's models: ONNX (fp32 and fp16), INT8 calibration frames and the engine-build script.
+"""Export a deployment profile's models: ONNX (fp32, fp16, int8), INT8 calibration frames and the engine-build script.
 
   python train.py export --profile jetson-xavier            # -> out/deploy/jetson-xavier/
   python train.py export --profile cpu --pilotnet out/pilotnet/bc.pt
@@ -9,6 +9,8 @@ For each model of the profile (``pilotnet``, ``detector``) the folder gets:
   <model>.fp16.onnx          the same graph with fp16 weights and arithmetic, fp32 inputs and outputs; it must
                              match torch within the fp16 tolerance (``FP16_ATOL`` + ``FP16_RTOL`` x the
                              output channel's largest |value|)
+  <model>.int8.onnx          statically quantized for ONNX Runtime's CPU (QDQ, calibrated on the frames below);
+                             its accuracy is measured by evaluation (the detector's AP), not by a tolerance
   <model>.calib.npy          INT8 calibration inputs (uint8 N x C x H x W, the model's input before its scale),
                              frames drawn evenly from recorded episodes (``--episodes``), seeded
   pilotnet.calib_command.npy the route command of each calibration frame (conditional PilotNet)
@@ -25,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import shlex
 import stat
@@ -89,7 +92,9 @@ def run(args: argparse.Namespace) -> int:
     for name, entry in manifest["models"].items():
         print(f"{name}: fp32 max |onnx - torch| {entry['fp32_max_diff']:.2e} (<= {FP32_TOLERANCE:.0e}); fp16 max diff "
               f"{entry['fp16_max_diff']:.2e}, worst share of its tolerance {entry['fp16_tolerance_used']:.2f}; "
-              f"{entry['calibration']['frames']} calibration frames")
+              f"{entry['calibration']['frames']} calibration frames"
+              + (f"; int8 max diff {entry['int8_max_diff']:.3g} (judge it by evaluation)" if entry["int8"] else
+                 "; no int8 file (no recorded episodes to calibrate on)"))
     print(f"wrote {out}; on the device run: bash {out / 'build_engines.sh'}")
     return 0
 
@@ -135,6 +140,39 @@ def to_fp16(src: Path, dst: Path) -> None:
         from onnxruntime.transformers.float16 import convert_float_to_float16
     model = convert_float_to_float16(onnx.load(str(src)), keep_io_types=True)
     onnx.save(model, str(dst))
+
+
+def to_int8(src: Path, dst: Path, calib: dict[str, np.ndarray], scales: dict[str, float], frames: int = 100) -> None:
+    """A statically quantized copy for ONNX Runtime's CPU (QDQ: int8 per-channel weights, uint8 activations, the
+    ranges from up to ``frames`` calibration inputs). Only convolutions and matrix products are quantized; the
+    detector's decoding (sigmoid, exp, box arithmetic) stays fp32. Its accuracy is measured, not bounded: there
+    is no tolerance against torch that int8 could be held to, so ``train.py detector evaluate`` reports its AP.
+    """
+    from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
+
+    n = min(frames, len(calib["image"]))
+
+    class Reader(CalibrationDataReader):
+        def __init__(self) -> None:
+            self.k = 0
+
+        def get_next(self) -> dict[str, np.ndarray] | None:
+            if self.k >= n:
+                return None
+            self.k += 1
+            return {name: (arr[self.k - 1:self.k].astype(np.float32) * np.float32(scales[name])
+                           if name == "image" else arr[self.k - 1:self.k].astype(np.int64)) for name, arr in calib.items()}
+
+    # asymmetric uint8 activations: the fast u8s8 kernels of ONNX Runtime on x86 (symmetric int8 ran 2x slower)
+    root = logging.getLogger()
+    level = root.level
+    root.setLevel(logging.ERROR)  # its advice to run symbolic shape pre-processing fails on this graph's decoding
+    try:
+        quantize_static(str(src), str(dst), Reader(), quant_format=QuantFormat.QDQ, per_channel=True,
+                        activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
+                        op_types_to_quantize=["Conv", "Gemm", "MatMul"])
+    finally:
+        root.setLevel(level)
 
 
 def fp16_check(outputs: Sequence[np.ndarray], reference: Sequence[np.ndarray]) -> tuple[float, float]:
@@ -250,6 +288,14 @@ def export_profile(profile: Profile, out: Path | None = None, models: Sequence[s
             fp16.unlink(missing_ok=True)
             raise ValueError(f"{name}: the fp16 ONNX differs from torch by {fp16_diff:.3g}, more than the fp16 tolerance "
                              f"({FP16_ATOL} + {FP16_RTOL} x the channel's largest |value|); not written.")
+        int8_entry: dict[str, Any] = {"int8": None}
+        if len(calib["image"]):
+            int8 = out / f"{name}.int8.onnx"
+            to_int8(fp32, int8, calib, scales)
+            int8_diff = max(max(float(np.abs(g - r).max()) for g, r in zip(
+                OnnxRuntimeBackend(int8, "int8", threads=0).run(f), torch_outputs(job.module, f, job.input_names),
+                strict=True)) for f in feeds_list)
+            int8_entry = {"int8": int8.name, "int8_max_diff": int8_diff}
         calib_files = {}
         for k, arr in calib.items():
             path = out / (f"{name}.calib.npy" if k == "image" else f"{name}.calib_{k}.npy")
@@ -260,7 +306,7 @@ def export_profile(profile: Profile, out: Path | None = None, models: Sequence[s
             "input_size": list(spec.input_size), "inputs": job.input_names, "outputs": job.output_names,
             "input_shapes": {k: list(v) for k, v in job.input_shapes.items()}, "fp32": fp32.name, "fp16": fp16.name,
             "fp32_max_diff": fp32_diff, "fp16_max_diff": fp16_diff, "fp16_tolerance_used": used,
-            "fp16_checked_on": "calibration frames" if len(calib["image"]) else "random inputs",
+            "fp16_checked_on": "calibration frames" if len(calib["image"]) else "random inputs", **int8_entry,
             "engine": f"{name}.{spec.precision}.engine" if spec.backend == "tensorrt" else None,
             "dla_core": spec.dla_core, "workspace_mb": spec.workspace_mb,
             "calibration": {"frames": int(len(calib["image"])), "inputs": calib_files, "cache": f"{name}.calib.cache"},

@@ -36,8 +36,9 @@ STAGES = ("camera", "pilotnet", "detector", "tracking", "lanes", "stop_line", "s
           "alerts", "total")
 SOURCES = ("simulator", "video", "usb", "csi", "episode")
 STEREO_LAYOUTS = ("none", "side-by-side", "simulator")
-# The precisions each backend can run (torch stays the fp32 reference; int8 needs TensorRT's calibration).
-BACKEND_PRECISIONS = {"torch": ("fp32",), "onnxruntime": ("fp32", "fp16"), "tensorrt": ("fp32", "fp16", "int8")}
+# The precisions each backend can run (torch stays the fp32 reference; int8 is calibrated on recorded frames:
+# ONNX Runtime runs a statically quantized QDQ model, TensorRT builds with a calibration cache).
+BACKEND_PRECISIONS = {"torch": ("fp32",), "onnxruntime": ("fp32", "fp16", "int8"), "tensorrt": ("fp32", "fp16", "int8")}
 PILOTNET_INPUT = (200, 66)  # width, height: fixed by the network's flatten layer
 
 
@@ -181,8 +182,7 @@ class Profile:
         for name, m in self.models.items():
             key = f"models.{name}"
             if m.precision not in BACKEND_PRECISIONS[m.backend]:
-                hint = {"int8": "int8 needs the tensorrt backend (an engine built with a calibration cache)",
-                        "fp16": "fp16 runs on onnxruntime or tensorrt; torch is the fp32 reference"}[m.precision]
+                hint = "fp16 and int8 run on onnxruntime or tensorrt; torch is the fp32 reference"
                 raise ProfileError(f"{f}: {key}.precision {m.precision!r} cannot run on backend {m.backend!r}: {hint}.")
             if not m.checkpoint:
                 raise ProfileError(f"{f}: {key}.checkpoint is empty; name the model's .pt file.")
