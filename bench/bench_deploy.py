@@ -11,10 +11,15 @@ inflate; the wall-clock FPS of the same loop is printed beside it. Stereo is off
 not timed here (bench_perception: SGBM).
 
 1. Per stage p50/p95 for the cpu profile with each backend that runs here: torch fp32, ONNX Runtime fp32
-   (the profile's choice) and ONNX Runtime fp16 (runs, but x86 CPUs have no fast fp16 arithmetic).
+   (the profile's choice), ONNX Runtime fp16 (runs, but x86 CPUs have no fast fp16 arithmetic) and ONNX
+   Runtime int8 (the QDQ files of ``train.py export``, calibrated on recorded frames).
 2. Detector every k frames (SORT predicts in between, seed 000's skipping): loop FPS, and tracking MOTA /
    IDF1 / identity switches of the trained detector + SORT against the simulator's ids (motmetrics,
    ``eval_tracking.evaluate``, objects under 25 visible pixels are ignore regions).
+3. The whole agent driver (``agent.deploy.ProfiledAgent``) replayed on a recorded episode, per backend,
+   detector precision and skipping.
+
+The fp16 and int8 files come from ``python train.py export --profile cpu`` (``--export-dir`` elsewhere).
 """
 
 from __future__ import annotations
@@ -43,13 +48,16 @@ STAGES = ("pilotnet", "detector", "tracking", "lanes", "stop_line")
 MOVERS = ("car", "truck", "pedestrian")
 
 
-def variant(base_name: str, backend: str, precision: str, pilotnet: Path | None, export_dir: str | None) -> object:
-    """The base profile with both models on ``backend``/``precision`` (and another PilotNet checkpoint)."""
+def variant(base_name: str, backend: str, precision: str, pilotnet: Path | None, export_dir: str | None,
+            detector_precision: str | None = None) -> object:
+    """The base profile with both models on ``backend``/``precision`` (the detector on ``detector_precision``
+    if given), and another PilotNet checkpoint if given."""
     base = load_profile(base_name)
     models = {}
     for name, spec in base.models.items():
         checkpoint = str(pilotnet) if name == "pilotnet" and pilotnet else spec.checkpoint
-        models[name] = {"checkpoint": checkpoint, "backend": backend, "precision": precision}
+        p = detector_precision if name == "detector" and detector_precision else precision
+        models[name] = {"checkpoint": checkpoint, "backend": backend, "precision": p}
     data = {"name": base.name, "models": models, "export_dir": export_dir or base.export_dir}
     return profile_from_dict(data, f"{base.source_file} ({backend} {precision})")
 
@@ -130,12 +138,14 @@ def agent_section(args: argparse.Namespace, report: dict) -> None:
         frames = [f for f, _ in zip(source, range(args.agent_frames), strict=False)]
         dt = source.dt
     runs = []
-    for backend, precision, every in (("torch", "fp32", 1), ("onnxruntime", "fp32", 1), ("onnxruntime", "fp32", 3)):
-        profile = variant(args.profile, backend, precision, args.pilotnet, args.export_dir)
+    for backend, precision, det_precision, every in (("torch", "fp32", "fp32", 1), ("onnxruntime", "fp32", "fp32", 1),
+                                                     ("onnxruntime", "fp32", "int8", 1), ("onnxruntime", "fp32", "fp32", 3),
+                                                     ("onnxruntime", "fp32", "int8", 3)):
+        profile = variant(args.profile, backend, precision, args.pilotnet, args.export_dir, det_precision)
         profile = replace(profile, modules={**profile.modules, "detector": replace(profile.modules["detector"], every=every)})
         agent = ProfiledAgent(profile)
         agent.reset(frame_env(profile.camera_config(), dt, False))
-        runs.append((f"cpu, {backend} {precision}, detector every {every}", profile, agent, []))
+        runs.append((f"{backend}, detector {det_precision} every {every}", profile, agent, []))
     for start in range(0, len(frames), 50):  # taking turns, 50 frames each (see interleaved)
         for _, _, agent, cpu in runs:
             for frame in frames[start:start + 50]:
@@ -180,7 +190,7 @@ def main() -> None:
     print("| backend | " + " | ".join(STAGES) + " | whole loop | FPS (CPU time) | FPS (wall clock) |")
     print("|---" * (len(STAGES) + 4) + "|")
     runnable = []
-    for backend, precision in (("torch", "fp32"), ("onnxruntime", "fp32"), ("onnxruntime", "fp16")):
+    for backend, precision in (("torch", "fp32"), ("onnxruntime", "fp32"), ("onnxruntime", "fp16"), ("onnxruntime", "int8")):
         profile = variant(args.profile, backend, precision, args.pilotnet, args.export_dir)
         try:
             open_pilotnet(profile), open_detector(profile)
