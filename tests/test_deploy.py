@@ -595,3 +595,26 @@ def test_agent_with_side_by_side_stereo_every_second_frame(tmp_path: Path) -> No
     matched = [t["stereo"] > 0 for t in agent.timings]
     assert matched == [k % 2 == 0 for k in range(12)]
     assert agent.camera.stereo and agent.camera.hfov_deg == pytest.approx(90.0)
+
+
+def test_drive_py_profile_on_a_video_and_its_errors(sim_video: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """``drive.py --profile cpu --camera VIDEO``: the shipped models on real frames, without the simulator."""
+    import drive
+
+    if not (ROOT / "data" / "models" / "pilotnet.onnx").is_file():
+        pytest.skip("no shipped PilotNet")
+    out = tmp_path / "run"
+    assert drive.main(["--profile", "cpu", "--camera", str(sim_video), "--out", str(out), "--speed", "5",
+                       "--alerts", str(tmp_path / "alerts.jsonl")]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"] == 40 and summary["backends"]["detector"] == "onnxruntime fp32"
+    assert summary["latency"]["total"]["budget_ms"] == 17.0 and (out / "overlay.mp4").is_file()
+    assert len((tmp_path / "alerts.jsonl").read_text().splitlines()) == 40
+    capsys.readouterr()
+    for argv, words in ((["--camera", str(sim_video)], "--camera needs --profile"),
+                        (["--profile", "cpu", "--camera", str(tmp_path / "none.mp4")], "no such file"),
+                        (["--profile", "jetson-xavier", "--camera", str(sim_video)], "TensorRT is not installed"),
+                        (["--profile", "cpu", "--driver", "pilotnet"], "--profile runs the agent driver")):
+        assert drive.main(argv) == 2
+        err = capsys.readouterr().err
+        assert words in err and err.count("\n") == 1
