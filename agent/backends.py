@@ -93,6 +93,22 @@ def import_tensorrt() -> Any:
     return tensorrt
 
 
+def import_cudart() -> Any:
+    """cuda-python's runtime API (``cuda.bindings.runtime`` from 12.6 on, ``cuda.cudart`` before), or a clear error."""
+    try:
+        from cuda.bindings import runtime  # type: ignore[import-not-found]
+
+        return runtime
+    except ImportError:
+        pass
+    try:
+        from cuda import cudart  # type: ignore[import-not-found]
+    except ImportError as exc:
+        raise BackendUnavailable("The tensorrt backend needs cuda-python for device memory: pip install cuda-python "
+                                 "(the version of JetPack's CUDA).") from exc
+    return cudart
+
+
 class TensorRTBackend:
     """A serialized TensorRT engine (built on the device by the script ``train.py export`` writes)."""
 
@@ -100,11 +116,7 @@ class TensorRTBackend:
 
     def __init__(self, engine_path: str | Path, precision: str) -> None:
         trt = import_tensorrt()
-        try:
-            from cuda import cudart  # type: ignore[import-not-found]
-        except ImportError as exc:
-            raise BackendUnavailable("The tensorrt backend needs cuda-python for device memory: "
-                                     "pip install cuda-python (match the JetPack CUDA version).") from exc
+        cudart = import_cudart()
         path = Path(engine_path)
         if not path.is_file():
             raise FileNotFoundError(f"TensorRT engine {path} not found; build it on this device with the "

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.backends import BackendUnavailable, import_tensorrt
+from agent.backends import BackendUnavailable, import_cudart, import_tensorrt
 
 
 def calibration_arrays(manifest_path: Path, model: str) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
@@ -41,10 +41,7 @@ def build_cache(onnx_path: Path, arrays: dict[str, np.ndarray], cache_path: Path
                 workspace_mb: int = 1024) -> Path:
     """Calibrate ``onnx_path`` on ``arrays`` with TensorRT's IInt8EntropyCalibrator2; writes ``cache_path``."""
     trt = import_tensorrt()
-    try:
-        from cuda import cudart  # type: ignore[import-not-found]
-    except ImportError as exc:
-        raise BackendUnavailable("Calibration needs cuda-python: pip install cuda-python (match the JetPack CUDA).") from exc
+    cudart = import_cudart()
     logger = trt.Logger(trt.Logger.INFO)
     n = len(next(iter(arrays.values())))
     batch = max(1, min(batch, n))
