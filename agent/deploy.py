@@ -56,7 +56,8 @@ class ProfiledAgent(AgentDriver):
         pilot_ckpt = resolve(profile.models["pilotnet"].checkpoint)
         shipped_detector = resolve(profile.models["detector"].checkpoint).with_suffix(".onnx")
         # The base class opens the shipped ONNX files; the profile's backends then take their place.
-        super().__init__(model=pilot_ckpt, detector=shipped_detector, backend="onnx", config=config,
+        base_backend = "torch" if profile.models["pilotnet"].backend == "torch" else "onnx"
+        super().__init__(model=pilot_ckpt, detector=shipped_detector, backend=base_backend, config=config,
                          threads=profile.models["pilotnet"].threads)
         self.net = open_pilotnet(profile)
         self.detector = open_detector(profile, config.score_threshold)
@@ -219,9 +220,9 @@ def run_profile(name: str, camera: str | None, out: Path, speed_mps: float = 8.0
         profile = replace(profile, alerts=replace(profile.alerts, jsonl=jsonl or profile.alerts.jsonl,
                                                   serial_port=serial_port or profile.alerts.serial_port))
     agent = ProfiledAgent(profile)  # models first: a missing engine is reported before the camera opens
-    alerts = open_alerts(profile.alerts.serial_port, profile.alerts.baud, profile.alerts.jsonl)
     source = open_source(profile)
     try:
-        return run_on_source(profile, source, out, speed_mps, 0, max_frames, show, alerts, agent)
+        alerts = open_alerts(profile.alerts.serial_port, profile.alerts.baud, profile.alerts.jsonl)
+        return run_on_source(profile, source, out, speed_mps, 0, max_frames, show, alerts, agent)  # closes alerts
     finally:
         source.close()
