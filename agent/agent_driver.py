@@ -349,7 +349,8 @@ class AgentDriver:
         centre = lane_centre_of(lanes, -self.camera.mount_forward_m)
         lane_range = min(30.0, max((ln.z_range_m[1] for ln in (lanes.left, lanes.right) if ln is not None), default=30.0))
         scene = Scene(speed, objects, light.state if light else None, light.distance_m if light else None,
-                      stop.distance_m if stop is not None else None, centre, max(lane_range, 8.0))
+                      stop.distance_m if stop is not None else None, centre, max(lane_range, 8.0),
+                      turning=command in (1, 2))
         decision = self.controller.step(scene, pilot, self.dt)
         lap("control")
         in_path = [o for o in objects if o.track_id in decision.in_path]

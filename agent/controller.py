@@ -72,6 +72,9 @@ class ControllerConfig:
     light_beyond_stop_line_m: float = 21.0  # town design: lights stand across the junction (12.5 + 7 + 1.75 m)
     light_fallback_margin_m: float = 2.0  # stop this much earlier when the bar was never seen
     red_no_line_speed_mps: float = 4.0  # approach speed under a red light whose stop line is unknown
+    junction_turn_speed_mps: float = 3.0  # turning at a junction: the 90-degree camera sees the crosswalk of the
+    #                                       arm we turn into only when the car already points at it
+    junction_turn_steer: float = 0.25  # |steer| above which a commanded turn counts as under way
     junction_ignore_m: float = 30.0  # after crossing the stop line, the junction's light no longer applies
     wheelbase_m: float = 4.6  # highway-env's bicycle model: curvature = tan(delta) / length
     max_steer_rad: float = 0.6
@@ -110,6 +113,7 @@ class Scene:
     stop_line_m: float | None = None  # camera to the stop bar's near edge, when seen this frame
     lane_centre: np.ndarray | None = None  # (a, b, c): lane centre x = a z^2 + b z + c, camera ground frame
     lane_range_m: float = 30.0  # how far the lane fit is valid; beyond, it is continued straight
+    turning: bool = False  # the route command asks for a left or right turn at the next junction
 
 
 @dataclass
@@ -298,6 +302,10 @@ class Controller:
         constraints: list[Constraint] = []
         in_path: list[int] = []
         ids: dict[int, int] = {}  # constraint index -> track id
+        if scene.turning and (scene.lane_centre is None or abs(steer) > cfg.junction_turn_steer):
+            constraints.append(Constraint(f"turning at a junction: {cfg.junction_turn_speed_mps:.1f} m/s", math.inf,
+                                          cfg.junction_turn_speed_mps, 0.0, 0.0,
+                                          self._idm(speed, min(target, cfg.junction_turn_speed_mps), None, 0.0, 0.0, 0.0)))
         light = self._light_constraint(speed)
         if light is not None:
             if math.isinf(light.gap_m):  # a speed cap, not a point to stop at

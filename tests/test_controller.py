@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numpy as np
 import pytest
 
 from agent.controller import Controller, ControllerConfig, Decision, PerceivedObject, Scene
@@ -161,8 +162,6 @@ def test_lane_centre_decides_what_is_in_our_lane() -> None:
     ctrl = Controller(CFG)
     # the lane bends right: its centre is 3 m right at 20 m; a car there is in our lane, one straight ahead is not
     bend = (3.0 / 400.0, 0.0, 0.0)
-    import numpy as np
-
     scene = Scene(6.0, objects=[lead(20.0, 0.0, 3.0, tid=1), lead(20.0, 0.0, -0.5, tid=2)], lane_centre=np.array(bend))
     assert ctrl.step(scene, 0.0, DT).in_path == [1]
 
@@ -227,3 +226,12 @@ def test_light_flicker_is_debounced_and_red_is_remembered() -> None:
     for _ in range(int(2.0 / DT)):  # the light unseen for 2 s: still red
         d = ctrl.step(Scene(3.0), 0.0, DT)
     assert d.light == "red" and d.reason.startswith("red light")
+
+
+def test_commanded_turn_inside_a_junction_is_taken_slowly() -> None:
+    run = drive(lambda s, v, t: Scene(v, turning=True), 8.0, v0=8.0, steer=0.6)
+    assert run.speed[-1] == pytest.approx(CFG.junction_turn_speed_mps, abs=0.2)
+    assert run.decisions[-1].reason.startswith("turning at a junction")
+    # announced before the junction, on a lane, steering straight: no cap yet
+    ahead = drive(lambda s, v, t: Scene(v, turning=True, lane_centre=np.zeros(3)), 3.0, v0=8.0)
+    assert min(ahead.speed) > 7.5
