@@ -66,6 +66,7 @@ class AgentConfig:
     history_s: float = 1.0  # track history used for closing and lateral speeds
     lost_memory_s: float = 2.0  # an object lost while in our path and near is remembered this long
     lost_memory_m: float = 15.0  # ... when it was nearer than this (close in, the detector misses people)
+    clock: str = "wall"  # stage timings in wall-clock time, or "cpu": CPU time of this thread (load-independent)
     ldw_min_lane_confidence: float = 0.5  # lane departure is only judged on a well-seen lane
     light_box_pad_px: float = 1.0  # light boxes come out about a pixel taller than the housing (measured)
     row_sigma_px: float = 1.0  # box-edge uncertainty, for the geometry fusion
@@ -169,6 +170,9 @@ class AgentDriver:
         self.config = replace(config or AgentConfig(), **overrides) if overrides else (config or AgentConfig())
         if self.config.distance not in ("geometry", "stereo"):
             raise ValueError(f"Unknown distance method {self.config.distance!r}; use 'geometry' or 'stereo'.")
+        if self.config.clock not in ("wall", "cpu"):
+            raise ValueError(f"Unknown clock {self.config.clock!r}; use 'wall' or 'cpu'.")
+        self._now = time.thread_time if self.config.clock == "cpu" else time.perf_counter
         if self.config.detect_every < 1:
             raise ValueError("detect_every must be at least 1 (1 = detect on every frame).")
         self.net = PilotNetModel(model, backend, threads)
@@ -305,13 +309,13 @@ class AgentDriver:
 
     # ------------------------------------------------------------------ the driver
     def act(self, observation: dict[str, Any]) -> np.ndarray:
-        t_start = time.perf_counter()
+        t_start = self._now()
         times: dict[str, float] = {}
         clock = t_start
 
         def lap(stage: str) -> None:
             nonlocal clock
-            now = time.perf_counter()
+            now = self._now()
             times[stage] = times.get(stage, 0.0) + (now - clock) * 1000.0
             clock = now
 
@@ -358,7 +362,7 @@ class AgentDriver:
         offset = lanes.offset_m if lanes.confidence >= self.config.ldw_min_lane_confidence else math.nan
         warnings = self.adas.update(t, speed, offset, lanes.lane_width_m, in_path, turning=command in (1, 2))
         lap("adas")
-        times["total"] = (time.perf_counter() - t_start) * 1000.0
+        times["total"] = (self._now() - t_start) * 1000.0
         self.timings.append(times)
         self.view = AgentView(image, t, speed, command, lanes, stop, objects, tracks, light, decision, warnings,
                               centre, lanes.lane_width_m)
