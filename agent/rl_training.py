@@ -34,6 +34,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--towns", type=int, default=8)
     p.add_argument("--traffic", type=float, default=0.5, help="NPC and pedestrian density while training")
     p.add_argument("--episode-seconds", type=float, default=60.0)
+    p.add_argument("--init", type=Path, default=None,
+                   help="start from this saved policy (same algorithm), e.g. a plain-reward run to fine-tune with shaping")
     p.add_argument("--no-shaping", action="store_true",
                    help="train on Drive-v0's plain reward (default: speed limit and red lights added, agent.rl_shaping)")
     p.add_argument("--eval-every", type=int, default=20_000, help="evaluate every this many steps")
@@ -161,7 +163,11 @@ def run(args: argparse.Namespace) -> int:
     eval_env = DummyVecEnv([make_env(args, 0, evaluation=True)])
     eval_env.seed(args.seed + 10_000)
     policy = "MlpPolicy" if args.observation == "state" else "MultiInputPolicy"
-    if args.algo == "ppo":
+    if args.init is not None:
+        if not args.init.is_file():
+            raise SystemExit(f"--init: no saved policy at {args.init}")
+        model = (PPO if args.algo == "ppo" else SAC).load(args.init, env=venv, device="cpu", seed=args.seed)
+    elif args.algo == "ppo":
         model = PPO(policy, venv, seed=args.seed, n_steps=512, batch_size=256, learning_rate=3e-4, gamma=0.99,
                     ent_coef=0.0, verbose=0, device="cpu")
     else:
@@ -183,7 +189,8 @@ def run(args: argparse.Namespace) -> int:
     curve = plot_learning_curve(out)
     record = {"algo": args.algo, "observation": args.observation, "steps": args.steps, "envs": args.envs,
               "seed": args.seed, "towns": [args.town_seed, args.town_seed + args.towns - 1], "traffic": args.traffic,
-              "shaping": not args.no_shaping, "command": "python train.py " + " ".join(sys.argv[1:]),
+              "shaping": not args.no_shaping, "init": str(args.init) if args.init else None,
+              "command": "python train.py " + " ".join(sys.argv[1:]),
               "wall_s": round(wall, 1),
               "steps_per_s": round(args.steps / wall, 1), "learning_curve": str(curve)}
     model_path.with_suffix(".json").write_text(json.dumps(record, indent=2))
