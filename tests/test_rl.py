@@ -97,3 +97,19 @@ def test_shaping_charges_speeding_and_ends_the_episode_on_a_red_light():
     assert reward == pytest.approx(1.0 - 0.02 * 5.0) and not terminated
     reward, terminated = env.step(np.zeros(2))[1:3]
     assert reward == pytest.approx(1.0 - 10.0) and terminated
+
+
+def test_train_py_rl_continues_from_a_saved_policy(tmp_path):
+    import json
+
+    import train
+
+    common = ["--algo", "ppo", "--steps", "512", "--envs", "1", "--eval-every", "100000", "--episode-seconds", "5"]
+    first = tmp_path / "first.zip"
+    assert train.main(["rl", *common, "--no-shaping", "--out", str(tmp_path / "a"), "--model", str(first)]) == 0
+    second = tmp_path / "second.zip"
+    assert train.main(["rl", *common, "--init", str(first), "--out", str(tmp_path / "b"), "--model", str(second)]) == 0
+    record = json.loads(second.with_suffix(".json").read_text())
+    assert record["init"] == str(first) and record["shaping"] is True
+    with pytest.raises(SystemExit, match="no saved policy"):
+        train.main(["rl", *common, "--init", str(tmp_path / "none.zip"), "--out", str(tmp_path / "c")])
