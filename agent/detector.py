@@ -3,7 +3,10 @@
 Why this shape: the camera is 320x160 and the CPU must run it in well under 15 ms, so the backbone is a
 plain stack of 3x3 conv-BN-ReLU layers (what ONNX Runtime's CPU kernels run fastest) down to stride 16,
 with a top-down path that brings stride-16 context to the stride-8 map, where the small things live
-(a pedestrian at 40 m is 2x7 pixels, a traffic light 3x8). Two anchor-free grid heads predict per cell:
+(a pedestrian at 40 m is 2x7 pixels, a traffic light 3x8). Optionally (``DetectorConfig.strides`` =
+``(4, 8, 16)``) the top-down path goes on to the stride-4 map with a third head: pedestrians 2-4 px wide
+are placed too coarsely from stride-8 cells to reach IoU 0.5 (their predicted widths were 1.3x too large).
+The anchor-free grid heads predict per cell:
 objectness, one score per class and a box (centre offset in cells as in YOLOv5, ``2 sigmoid - 0.5``, and
 width and height as ``exp`` times the stride). Scores are ``objectness x class probability``. NMS is
 OpenCV's ``NMSBoxesBatched`` within class groups (car and truck share one, the three light states
@@ -24,7 +27,7 @@ from torch import nn
 
 from agent.autolabel import CLASSES
 
-STRIDES = (8, 16)
+STRIDES = (8, 16)  # the default (and every checkpoint without "strides" in its config); (4, 8, 16) adds a stride-4 head
 INPUT_HW = (160, 320)
 # Class groups for NMS: the same object cannot be two classes of one group.
 NMS_GROUP = {"car": 0, "truck": 0, "pedestrian": 1, "light_red": 2, "light_yellow": 2, "light_green": 2}
@@ -51,6 +54,12 @@ class Residual(nn.Module):
 class DetectorConfig:
     width: int = 32  # channels at stride 4; doubled at each stride
     num_classes: int = len(CLASSES)
+    strides: tuple[int, ...] = STRIDES  # (8, 16), or (4, 8, 16) with a head on the stride-4 map for small objects
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "strides", tuple(int(s) for s in self.strides))
+        if self.strides not in ((8, 16), (4, 8, 16)):
+            raise ValueError(f"Detector strides must be (8, 16) or (4, 8, 16), not {self.strides}.")
 
 
 class Detector(nn.Module):
@@ -69,11 +78,20 @@ class Detector(nn.Module):
         self.fuse8 = nn.Sequential(conv(4 * c, 2 * c, k=1), conv(2 * c, 2 * c))
         self.head8 = nn.Conv2d(2 * c, 5 + nc, 1)
         self.head16 = nn.Conv2d(4 * c, 5 + nc, 1)
+        if 4 in self.config.strides:
+            # Stride 4: pedestrians 2-4 px wide need finer cells than stride 8 to be placed within IoU 0.5.
+            self.lateral4 = conv(2 * c, c, k=1)
+            self.fuse4 = conv(c, c)  # on f4 + upsampled p8 (FPN's sum: the stride-4 map is costly per layer)
+            self.head4 = nn.Conv2d(c, 5 + nc, 1)
         self._init_bias()
+
+    def heads(self) -> list[nn.Conv2d]:
+        """The head convolutions in the order of ``config.strides``."""
+        return ([self.head4] if 4 in self.config.strides else []) + [self.head8, self.head16]
 
     def _init_bias(self) -> None:
         """Objectness starts near 0.01 and classes near 0.05 (RetinaNet's prior), so early losses are sane."""
-        for head in (self.head8, self.head16):
+        for head in self.heads():
             with torch.no_grad():
                 head.bias.zero_()
                 head.bias[4] = -4.6
@@ -84,22 +102,27 @@ class Detector(nn.Module):
         f8 = self.s8(f4)
         f16 = self.s16(f8)
         p8 = self.fuse8(torch.cat([f8, self.up(self.lateral(f16))], 1))
-        return [self.head8(p8), self.head16(f16)]
+        out = [self.head8(p8), self.head16(f16)]
+        if 4 in self.config.strides:
+            p4 = self.fuse4(f4 + self.up(self.lateral4(p8)))
+            out.insert(0, self.head4(p4))
+        return out
 
 
-def grids(height: int = INPUT_HW[0], width: int = INPUT_HW[1]) -> list[tuple[np.ndarray, int]]:
+def grids(height: int = INPUT_HW[0], width: int = INPUT_HW[1],
+          strides: tuple[int, ...] = STRIDES) -> list[tuple[np.ndarray, int]]:
     """Per stride: cell (col, row) coordinates, flattened in the head's row-major order."""
     out = []
-    for s in STRIDES:
+    for s in strides:
         gy, gx = np.meshgrid(np.arange(height // s), np.arange(width // s), indexing="ij")
         out.append((np.stack([gx.ravel(), gy.ravel()], 1).astype(np.float32), s))
     return out
 
 
-def decode(maps: list[torch.Tensor]) -> torch.Tensor:
+def decode(maps: list[torch.Tensor], strides: tuple[int, ...] = STRIDES) -> torch.Tensor:
     """Raw head maps -> N x cells x (x0, y0, x1, y1, objectness, class probabilities...), boxes in pixels."""
     outs = []
-    for m, stride in zip(maps, STRIDES, strict=True):
+    for m, stride in zip(maps, strides, strict=True):
         n, ch, h, w = m.shape
         t = m.permute(0, 2, 3, 1).reshape(n, h * w, ch)
         gy, gx = torch.meshgrid(torch.arange(h, dtype=m.dtype), torch.arange(w, dtype=m.dtype), indexing="ij")
@@ -119,7 +142,7 @@ class DecodedDetector(nn.Module):
         self.net = net
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return decode(self.net(x))
+        return decode(self.net(x), self.net.config.strides)
 
 
 # --------------------------------------------------------------------------- post-processing
@@ -200,7 +223,7 @@ def load_detector(path: str | Path) -> Detector:
         raise ValueError(f"{path} is not a detector checkpoint (no state_dict); retrain with train.py detector train.")
     if tuple(ckpt.get("classes", ())) != CLASSES:
         raise ValueError(f"{path} was trained for classes {ckpt.get('classes')}, not {CLASSES}; retrain it.")
-    model = Detector(DetectorConfig(**ckpt.get("config", {})))
+    model = Detector(DetectorConfig(**ckpt.get("config", {})))  # no "strides" in the config: (8, 16)
     model.load_state_dict(ckpt["state_dict"])
     return model.eval()
 

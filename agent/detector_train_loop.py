@@ -1,11 +1,12 @@
 """Training of the YOLO-style detector: augmentation, target assignment, the YOLO loss, EMA, best checkpoint.
 
 Target assignment follows YOLOv5: a ground-truth box is given to the cell holding its centre and to the
-two neighbouring cells nearest to the centre (the ``2 sigmoid - 0.5`` offsets reach them), on the stride-8
-map when its longer side is at most 64 px and on the stride-16 map when it is at least 32 px (both in
-between). Smaller boxes overwrite larger ones in shared cells. Cells whose centre lies in an ignore
-region get no objectness loss. Loss: ``1 - GIoU`` for boxes, BCE for objectness (stride-8 weighted 4x, as
-YOLOv5 weights P3) and BCE for classes, in YOLOv5's proportions.
+two neighbouring cells nearest to the centre (the ``2 sigmoid - 0.5`` offsets reach them), on each map whose
+size range holds its longer side (``size_range``: stride 8 up to 64 px, stride 16 from 32 px; with a
+stride-4 head, stride 4 up to 32 px and stride 8 from 16 to 64 px). Smaller boxes overwrite larger ones
+in shared cells. Cells whose centre lies in an ignore region get no objectness loss. Loss: ``1 - GIoU`` for
+boxes, BCE for objectness (weighted by each map's cell count relative to stride 16, as YOLOv5 weights P3 4x)
+and BCE for classes, in YOLOv5's proportions.
 """
 
 from __future__ import annotations
@@ -27,7 +28,17 @@ from agent.detector import INPUT_HW, STRIDES, DecodedDetector, Detector, Detecto
 from agent.detector_eval import Sample, detection_report, load_split, read_rgb
 
 LOSS_WEIGHTS = {"box": 0.05, "obj": 0.2, "cls": 0.04}
-OBJ_BALANCE = (4.0, 1.0)
+# Objectness weight per stride, proportional to the number of cells (YOLOv5's P3:P4 = 4:1), so every cell weighs
+# the same whichever heads the model has.
+OBJ_BALANCE = {4: 16.0, 8: 4.0, 16: 1.0}
+
+
+def size_range(stride: int, strides: tuple[int, ...]) -> tuple[float, float]:
+    """Longer box sides (px) assigned to a stride's map: 2x to 8x the stride; no lower bound on the finest map
+    and no upper bound on the coarsest. With (8, 16): <= 64 and >= 32; with (4, 8, 16): <= 32, 16-64, >= 32."""
+    lo = 0.0 if stride == min(strides) else 2.0 * stride
+    hi = float("inf") if stride == max(strides) else 8.0 * stride
+    return lo, hi
 
 
 # --------------------------------------------------------------------------- augmentation
@@ -65,11 +76,12 @@ def augment(img: np.ndarray, boxes: np.ndarray, rng: np.random.Generator) -> tup
 
 
 # --------------------------------------------------------------------------- targets and loss
-def build_targets(boxes: np.ndarray, cls: np.ndarray, ignore: np.ndarray) -> list[dict[str, np.ndarray]]:
+def build_targets(boxes: np.ndarray, cls: np.ndarray, ignore: np.ndarray,
+                  strides: tuple[int, ...] = STRIDES) -> list[dict[str, np.ndarray]]:
     """Per stride: positive cells with their box and class, and the objectness weight of every cell."""
     h, w = INPUT_HW
     out = []
-    for level, s in enumerate(STRIDES):
+    for s in strides:
         gh, gw = h // s, w // s
         weight = np.ones((gh, gw), np.float32)
         owner = -np.ones((gh, gw), np.int64)
@@ -81,7 +93,8 @@ def build_targets(boxes: np.ndarray, cls: np.ndarray, ignore: np.ndarray) -> lis
             weight[min(cy, gh - 1), min(cx, gw - 1)] = 0.0
         keep = np.flatnonzero(~ignore)
         sides = np.max(boxes[keep, 2:] - boxes[keep, :2], axis=1) if len(keep) else np.zeros(0)
-        take = keep[(sides <= 64) if level == 0 else (sides >= 32)]
+        lo, hi = size_range(s, strides)
+        take = keep[(sides >= lo) & (sides <= hi)]
         areas = np.prod(boxes[take, 2:] - boxes[take, :2], axis=1)
         for k in take[np.argsort(-areas)]:  # large first, so small ones overwrite shared cells
             b = boxes[k]
@@ -109,13 +122,14 @@ def giou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return iou - (hull - union) / hull.clamp(min=1e-9)
 
 
-def yolo_loss(maps: list[torch.Tensor], targets: list[list[dict[str, np.ndarray]]]) -> tuple[torch.Tensor, dict]:
+def yolo_loss(maps: list[torch.Tensor], targets: list[list[dict[str, np.ndarray]]],
+              strides: tuple[int, ...] = STRIDES) -> tuple[torch.Tensor, dict]:
     """The YOLO loss family over a batch; ``targets[image][level]`` from ``build_targets``."""
     bce = torch.nn.functional.binary_cross_entropy_with_logits
     nc = len(CLASSES)
     lbox, lcls, lobj = maps[0].new_zeros(()), maps[0].new_zeros(()), maps[0].new_zeros(())
     n_pos = 0
-    for level, (m, s) in enumerate(zip(maps, STRIDES, strict=True)):
+    for level, (m, s) in enumerate(zip(maps, strides, strict=True)):
         n, ch, gh, gw = m.shape
         t = m.permute(0, 2, 3, 1).reshape(n, gh * gw, ch)
         weight = torch.from_numpy(np.stack([tg[level]["weight"] for tg in targets]))
@@ -136,7 +150,7 @@ def yolo_loss(maps: list[torch.Tensor], targets: list[list[dict[str, np.ndarray]
             lcls = lcls + bce(p[:, 5:], onehot, reduction="sum") / nc
             obj_target[ii, pp] = 1.0
             n_pos += len(pos)
-        lobj = lobj + OBJ_BALANCE[level] * (bce(t[..., 4], obj_target, reduction="none") * weight).mean()
+        lobj = lobj + OBJ_BALANCE[s] * (bce(t[..., 4], obj_target, reduction="none") * weight).mean()
     n_pos = max(n_pos, 1)
     parts = {"box": lbox / n_pos, "obj": lobj, "cls": lcls / n_pos}
     total = sum(LOSS_WEIGHTS[k] * v for k, v in parts.items()) * len(targets)
@@ -148,7 +162,8 @@ def load_images(samples: list[Sample], desc: str) -> np.ndarray:
     return np.stack([read_rgb(s.image) for s in tqdm(samples, desc=f"load {desc}", unit="frame", leave=False)])
 
 
-def make_batch(images: np.ndarray, samples: list[Sample], idx: np.ndarray, rng: np.random.Generator | None):
+def make_batch(images: np.ndarray, samples: list[Sample], idx: np.ndarray, rng: np.random.Generator | None,
+               strides: tuple[int, ...] = STRIDES):
     """Images as a float tensor and per-image targets, augmented when ``rng`` is given."""
     xs, tgs = [], []
     for k in idx:
@@ -158,7 +173,7 @@ def make_batch(images: np.ndarray, samples: list[Sample], idx: np.ndarray, rng: 
             img, boxes, ok = augment(img, boxes, rng)
             ignore = ignore | ~ok
         xs.append(img.transpose(2, 0, 1))
-        tgs.append(build_targets(boxes, s.cls, ignore))
+        tgs.append(build_targets(boxes, s.cls, ignore, strides))
     x = torch.from_numpy(np.ascontiguousarray(np.stack(xs))).float().div_(255.0)
     return x, tgs
 
@@ -200,7 +215,8 @@ def save_checkpoint(path: Path, model: Detector, meta: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.clone() for k, v in model.state_dict().items()}
     tmp = path.with_suffix(".tmp")
-    torch.save({"state_dict": state, "config": {"width": model.config.width, "num_classes": model.config.num_classes},
+    config = {"width": model.config.width, "num_classes": model.config.num_classes, "strides": list(model.config.strides)}
+    torch.save({"state_dict": state, "config": config,
                 "classes": CLASSES, "input_hw": INPUT_HW, **meta}, tmp)
     tmp.replace(path)
 
@@ -213,9 +229,15 @@ def train(args: argparse.Namespace) -> int:
     rng = np.random.default_rng(args.seed)
     train_s, val_s = load_split(args.data, "train"), load_split(args.data, "val")
     train_x, val_x = load_images(train_s, "train"), load_images(val_s, "val")
-    model = Detector(DetectorConfig())
+    strides = tuple(int(v) for v in str(getattr(args, "strides", "8,16")).split(","))
+    model = Detector(DetectorConfig(width=getattr(args, "width", 32), strides=strides))
     if args.resume:
-        model.load_state_dict(torch.load(args.resume, map_location="cpu", weights_only=False)["state_dict"])
+        ckpt = torch.load(args.resume, map_location="cpu", weights_only=False)
+        cfg = ckpt.get("config", {})
+        if tuple(cfg.get("strides", STRIDES)) != strides or cfg.get("width", 32) != model.config.width:
+            raise ValueError(f"--resume {args.resume} has strides {tuple(cfg.get('strides', STRIDES))} and width "
+                             f"{cfg.get('width', 32)}; pass the same --strides and --width.")
+        model.load_state_dict(ckpt["state_dict"])
     ema = EMA(model)
     decay, no_decay = [], []
     for name, p in model.named_parameters():
@@ -243,8 +265,8 @@ def train(args: argparse.Namespace) -> int:
                             else 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * (step - warmup) / max(total - warmup, 1))))
             for g in opt.param_groups:
                 g["lr"] = lr
-            x, tgs = make_batch(train_x, train_s, order[b * args.batch:(b + 1) * args.batch], rng)
-            loss, parts = yolo_loss(model(x), tgs)
+            x, tgs = make_batch(train_x, train_s, order[b * args.batch:(b + 1) * args.batch], rng, strides)
+            loss, parts = yolo_loss(model(x), tgs, strides)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)

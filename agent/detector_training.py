@@ -42,6 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     p.add_argument("--time-limit-min", type=float, default=0.0, help="stop after this many minutes (0: no limit)")
     p.add_argument("--resume", default="", help="continue from this checkpoint's weights")
+    p.add_argument("--strides", default="4,8,16", help="head strides: 4,8,16 (the shipped model) or 8,16 (no stride-4 head)")
+    p.add_argument("--width", type=int, default=32, help="backbone channels at stride 4 (doubled at each stride)")
 
     p = sub.add_parser("evaluate", help="AP per class, light state vs HSV baseline, on the held-out split")
     p.add_argument("--data", default=DEFAULT_DATA)

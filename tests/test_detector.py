@@ -126,6 +126,34 @@ def test_onnx_export_matches_torch_and_runs_in_onnx_runtime(tmp_path):
     assert np.max(np.abs(a - b)) < 1e-3
 
 
+def test_stride_4_head_targets_export_and_checkpoints_without_strides(tmp_path):
+    from agent.detector import export_detector, load_detector
+    from agent.detector_train_loop import save_checkpoint
+
+    strides = (4, 8, 16)
+    boxes = np.array([[100.0, 60.0, 103.0, 72.0], [40.0, 40.0, 60.0, 80.0], [150, 20, 250, 120]], np.float32)
+    tg = build_targets(boxes, np.array([2, 2, 0]), np.array([False, False, False]), strides)
+    # 3x12 px pedestrian: only the stride-4 map (centre (101.5, 66) -> cell (25, 16)); 20x40 (longer side
+    # 40, over 32): strides 8 and 16; 100x100 car: stride 16 only.
+    assert {(int(p % 80), int(p // 80)) for p in tg[0]["pos"]} >= {(25, 16)}
+    assert set(tg[0]["cls"].tolist()) == {2} and len(tg[0]["pos"]) == 3 and len(tg[1]["pos"]) == 3
+    assert set(tg[1]["cls"].tolist()) == {2} and set(tg[2]["cls"].tolist()) == {0, 2}
+    torch.manual_seed(1)
+    model = Detector(DetectorConfig(strides=strides))
+    assert [m.shape[2] for m in model(torch.zeros(1, 3, 160, 320))] == [40, 20, 10]
+    save_checkpoint(tmp_path / "s4.pt", model, {})
+    assert load_detector(tmp_path / "s4.pt").config.strides == strides
+    assert export_detector(tmp_path / "s4.pt", tmp_path / "s4.onnx") < 1e-4
+    frame = np.random.default_rng(0).integers(0, 255, (160, 320, 3), dtype=np.uint8)
+    assert OnnxDetector(tmp_path / "s4.onnx", threads=1).raw(frame).shape == (40 * 80 + 20 * 40 + 10 * 20, 11)
+    # A checkpoint written before strides were configurable (no "strides" key) is the (8, 16) model.
+    old = torch.load(tmp_path / "s4.pt", weights_only=False)
+    old["config"].pop("strides")
+    old["state_dict"] = Detector(DetectorConfig()).state_dict()
+    torch.save(old, tmp_path / "old.pt")
+    assert load_detector(tmp_path / "old.pt").config.strides == (8, 16)
+
+
 def test_overlay_draws_boxes_labels_ids_and_distances():
     frame = np.zeros((160, 320, 3), np.uint8)
     dets = [Detection((100, 60, 160, 100), 0, 0.9), Detection((10, 10, 20, 40), 3, 0.8)]
