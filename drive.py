@@ -1,6 +1,6 @@
 """Run a driver in the simulator: a demo drive, recording, closed-loop evaluation, or scenarios.
 
-  python drive.py                                         # autopilot demo: video, frames, summary in out/drive
+  python drive.py                                         # the agent (shipped models) drives: video, frames, summary
   python drive.py --driver autopilot --record data/episodes --episodes 5 [--noise]
   python drive.py --driver keyboard --record data/mine --episodes 3     # a window; arrows/WASD, P, R, Esc
   python drive.py --driver autopilot --evaluate --episodes 20 --seed 100 --out out/eval
@@ -28,7 +28,8 @@ from sim.render import LIGHTING_PRESETS
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--driver", default="autopilot", help="who drives: autopilot, keyboard, gamepad, pilotnet, agent, rl")
+    p.add_argument("--driver", default="agent",
+                   help="who drives: agent (default; shipped models, camera only), autopilot, keyboard, gamepad, pilotnet, rl")
     p.add_argument("--model", type=Path, default=None,
                    help="pilotnet/agent/rl: model file (default data/models/pilotnet.pt, data/models/rl_ppo.zip)")
     p.add_argument("--backend", default="onnx", choices=["onnx", "torch"], help="pilotnet/agent: PilotNet's inference backend")
@@ -140,7 +141,7 @@ def demo(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from envs.drive_env import DriveEnv
-    from envs.evaluation import draw_hud, video_writer
+    from envs.evaluation import video_frame, video_writer
 
     out = args.out or Path("out/drive")
     config = make_config(args)
@@ -159,7 +160,7 @@ def demo(args: argparse.Namespace) -> int:
             obs, reward, terminated, truncated, info = env.step(driver.act(obs))
             total_reward += reward
             if writer is not None:
-                writer.append_data(draw_hud(env.composite(), info, driver.name))
+                writer.append_data(video_frame(env, driver, info))
             if k in save_at:
                 path = out / f"frame_{k:05d}.png"
                 cv2.imwrite(str(path), cv2.cvtColor(obs["image"], cv2.COLOR_RGB2BGR))

@@ -152,7 +152,8 @@ def tiny_dataset(tmp_path_factory):
     import drive
 
     folder = tmp_path_factory.mktemp("episodes")
-    assert drive.main(["--record", str(folder), "--episodes", "2", "--seconds", "4", "--side-cameras", "--noise",
+    assert drive.main(["--driver", "autopilot", "--record", str(folder), "--episodes", "2", "--seconds", "4",
+                       "--side-cameras", "--noise",
                        "--traffic", "0", "--width", "160", "--height", "80"]) == 0
     return folder
 

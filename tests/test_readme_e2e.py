@@ -19,13 +19,14 @@ def test_drive_py_writes_video_frames_and_summary(tmp_path):
     assert done.returncode == 0, done.stderr[-2000:]
     summary = json.loads((out / "summary.json").read_text())
     assert summary["steps"] == 80 and summary["weather"] == "dusk"
+    assert summary["driver"] == "agent"  # the main command runs the full agent on the shipped models
     assert len(summary["frames"]) == 2
     for name in summary["frames"]:
         frame = imageio.imread(out / name)
         assert frame.shape == (160, 320, 3) and frame.std() > 10
     reader = imageio.get_reader(out / "video.mp4")
     first = reader.get_data(0)
-    assert first.shape[0] >= 160 and first.shape[1] >= 480  # camera beside the top-down map
+    assert first.shape[0] >= 160 + 320 and first.shape[1] >= 480  # the agent's overlay above camera and map
     assert sum(1 for _ in reader) >= 70
     reader.close()
 

@@ -147,7 +147,8 @@ def test_evaluate_writes_metrics_table_plots_and_video(tmp_path):
 
 
 def test_scenario_cli_prints_a_table_and_rejects_unknown_names(tmp_path):
-    done = subprocess.run([sys.executable, "drive.py", "--scenario", "red_light", "--no-video", "--out", str(tmp_path)],
+    done = subprocess.run([sys.executable, "drive.py", "--driver", "autopilot", "--scenario", "red_light", "--no-video",
+                           "--out", str(tmp_path)],
                           cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "| red_light | PASS |" in done.stdout and "1 passed, 0 failed" in done.stdout
