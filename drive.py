@@ -184,6 +184,29 @@ def demo(args: argparse.Namespace) -> int:
     return 0
 
 
+class _StopOnSigint:
+    """Ctrl-C during recording sets a flag that the step loop turns into KeyboardInterrupt.
+
+    Why: Python raises a SIGINT's KeyboardInterrupt wherever the main thread happens to be, and when that
+    is a garbage-collection or weakref callback the exception is printed and swallowed, so the recording
+    would go on. A second Ctrl-C raises at once, as usual."""
+
+    def __init__(self) -> None:
+        import signal
+
+        self.requested = False
+        self._previous = signal.signal(signal.SIGINT, self._handle)
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        self.requested = True
+        self.restore()
+
+    def restore(self) -> None:
+        import signal
+
+        signal.signal(signal.SIGINT, self._previous)
+
+
 def record(args: argparse.Namespace) -> int:
     """Record episodes; each finished one is renamed into place, so Ctrl-C loses only the current one."""
     from tqdm import tqdm
@@ -199,6 +222,7 @@ def record(args: argparse.Namespace) -> int:
     writer: EpisodeWriter | None = None
     t0 = time.perf_counter()
     frames = 0
+    stop = _StopOnSigint()
     try:
         for k in tqdm(range(args.episodes), desc="recording", unit="episode", disable=human, mininterval=2.0):
             seed = args.seed + k
@@ -216,7 +240,7 @@ def record(args: argparse.Namespace) -> int:
             done = False
             while not done:
                 action = np.asarray(driver.act(obs), np.float32)
-                if getattr(driver, "quit_requested", False):
+                if getattr(driver, "quit_requested", False) or stop.requested:
                     raise KeyboardInterrupt
                 if getattr(driver, "paused", False):
                     continue
@@ -231,9 +255,11 @@ def record(args: argparse.Namespace) -> int:
                                       "infractions": info["infraction_counts"], "steps_done": writer.steps}))
             writer = None
     except KeyboardInterrupt:
+        stop.restore()
         print(f"\nInterrupted: kept {len(kept)} finished episode(s) in {args.record}; dropped the one in progress.",
               file=sys.stderr)
     finally:
+        stop.restore()
         if writer is not None:
             writer.discard()
         env.close()
