@@ -27,7 +27,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agent.autopilot import Autopilot  # noqa: E402
-from agent.tracking import SkipTracker, Sort, SortConfig, Track  # noqa: E402
+from agent.tracking import SkipTracker, Sort, SortConfig, Track, iou_matrix  # noqa: E402
 from envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
 from envs.perception_truth import object_boxes  # noqa: E402
 
@@ -115,18 +115,12 @@ def evaluate(sequences, make_dets, every: int, config: SortConfig, name: str) ->
 def iou_distance(gt: np.ndarray, hyp: np.ndarray, max_distance: float = 0.5) -> np.ndarray:
     """motmetrics' IoU distance (1 - IoU, NaN when 1 - IoU > ``max_distance``) for x0, y0, x1, y1 boxes.
 
-    ``mm.distances.iou_matrix`` calls ``np.asfarray``, which NumPy 2 removed, so it is written out here.
+    ``mm.distances.iou_matrix`` calls ``np.asfarray``, which NumPy 2 removed, so the tracker's own IoU is used.
     """
     a, b = np.asarray(gt, float).reshape(-1, 4), np.asarray(hyp, float).reshape(-1, 4)
     if len(a) == 0 or len(b) == 0:
         return np.empty((len(a), len(b)))
-    x0 = np.maximum(a[:, None, 0], b[None, :, 0])
-    y0 = np.maximum(a[:, None, 1], b[None, :, 1])
-    x1 = np.minimum(a[:, None, 2], b[None, :, 2])
-    y1 = np.minimum(a[:, None, 3], b[None, :, 3])
-    inter = np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)
-    union = ((a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1]))[:, None] + ((b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1]))[None] - inter
-    d = 1.0 - inter / np.maximum(union, 1e-9)
+    d = 1.0 - iou_matrix(a, b)
     d[d > max_distance] = np.nan
     return d
 
