@@ -41,6 +41,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from sim.traffic import idm_acceleration
+
 VEHICLE_KINDS = ("car", "truck")
 LIGHT_STATES = ("red", "yellow", "green")
 
@@ -363,9 +365,5 @@ class Controller:
              headway: float) -> float:
         """Intelligent Driver Model acceleration towards ``target`` with an optional bumper ``gap``."""
         cfg = self.config
-        a, b = cfg.idm_a_mps2, cfg.idm_b_mps2
-        acc = a * (1.0 - (speed / max(target, 0.1)) ** cfg.idm_delta)
-        if gap is not None:
-            desired = min_gap + speed * headway + speed * closing / (2.0 * math.sqrt(a * b))
-            acc -= a * (max(desired, min_gap) / max(gap, 0.1)) ** 2
-        return acc
+        return idm_acceleration(speed, target, gap, closing, a_max=cfg.idm_a_mps2, b=cfg.idm_b_mps2,
+                                min_gap_m=min_gap, headway_s=headway, delta=cfg.idm_delta)

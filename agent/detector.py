@@ -26,6 +26,7 @@ import torch
 from torch import nn
 
 from agent.autolabel import CLASSES
+from agent.tracking import iou_matrix as box_iou  # one IoU for NMS, evaluation and tracking
 
 STRIDES = (8, 16)  # the default (and every checkpoint without "strides" in its config); (4, 8, 16) adds a stride-4 head
 INPUT_HW = (160, 320)
@@ -192,16 +193,6 @@ def nms_numpy(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float) -> np
         iou = box_iou(boxes[i:i + 1], boxes[rest])[0]
         order = rest[iou <= iou_threshold]
     return np.array(keep, dtype=np.int64)
-
-
-def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU matrix of two box arrays (x0, y0, x1, y1)."""
-    lt = np.maximum(a[:, None, :2], b[None, :, :2])
-    rb = np.minimum(a[:, None, 2:], b[None, :, 2:])
-    inter = np.prod(np.clip(rb - lt, 0, None), axis=2)
-    area_a = np.prod(a[:, 2:] - a[:, :2], axis=1)
-    area_b = np.prod(b[:, 2:] - b[:, :2], axis=1)
-    return inter / np.maximum(area_a[:, None] + area_b[None, :] - inter, 1e-9)
 
 
 def to_input(rgb: np.ndarray) -> np.ndarray:

@@ -10,6 +10,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import cv2
 import h5py
@@ -493,19 +494,27 @@ def test_episode_source_carries_speed_and_command(episode_dir: Path) -> None:
 @pytest.fixture(scope="module")
 def sim_video(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """40 frames of the autopilot driving in traffic, rendered by the simulator and encoded as H.264."""
-    from agent.autopilot import Autopilot
-    from envs.drive_env import DriveConfig, DriveEnv
+    from envs.drive_env import DriveConfig
 
-    env = DriveEnv(DriveConfig())
+    frames = autopilot_frames(DriveConfig(), seed=3, steps=40, frame=lambda obs: obs["image"])
+    return write_video(tmp_path_factory.mktemp("video") / "sim.mp4", frames)
+
+
+def autopilot_frames(config: Any, seed: int, steps: int, frame: Any) -> np.ndarray:
+    """``frame(observation)`` for each of ``steps`` steps of the autopilot driving in dense traffic."""
+    from agent.autopilot import Autopilot
+    from envs.drive_env import DriveEnv
+
+    env = DriveEnv(config)
     driver = Autopilot()
-    obs, _ = env.reset(seed=3, options={"traffic_density": 2.0})
+    obs, _ = env.reset(seed=seed, options={"traffic_density": 2.0})
     driver.reset(env)
     frames = []
-    for _ in range(40):
+    for _ in range(steps):
         obs, *_ = env.step(driver.act(obs))
-        frames.append(obs["image"])
+        frames.append(frame(obs))
     env.close()
-    return write_video(tmp_path_factory.mktemp("video") / "sim.mp4", np.stack(frames))
+    return np.stack(frames)
 
 
 def test_agent_runs_on_a_recorded_simulator_video(sim_video: Path, tiny_models: dict[str, Path], tmp_path: Path) -> None:
@@ -565,24 +574,16 @@ def test_agent_with_side_by_side_stereo_every_second_frame(tmp_path: Path) -> No
     """A ZED-style recording (left | right in one frame) from the simulator's stereo pair: the agent splits it,
     and stereo matching runs on every 2nd frame only, as the profile says."""
     from agent.alerts import Alerts
-    from agent.autopilot import Autopilot
     from agent.deploy import ProfiledAgent, run_on_source
-    from envs.drive_env import DriveConfig, DriveEnv
+    from envs.drive_env import DriveConfig
     from sim.render import CameraConfig
 
     models = ROOT / "data" / "models"
     if not (models / "pilotnet.onnx").is_file() or not (models / "detector.onnx").is_file():
         pytest.skip("no shipped models")
-    env = DriveEnv(DriveConfig(observe_stereo=True, camera=CameraConfig(stereo=True)))
-    driver = Autopilot()
-    obs, _ = env.reset(seed=5, options={"traffic_density": 2.0})
-    driver.reset(env)
-    frames = []
-    for _ in range(12):
-        obs, *_ = env.step(driver.act(obs))
-        frames.append(np.concatenate([obs["stereo"][0], obs["stereo"][1]], axis=1))
-    env.close()
-    video = write_video(tmp_path / "zed.mp4", np.stack(frames))
+    frames = autopilot_frames(DriveConfig(observe_stereo=True, camera=CameraConfig(stereo=True)), seed=5, steps=12,
+                              frame=lambda obs: np.concatenate([obs["stereo"][0], obs["stereo"][1]], axis=1))
+    video = write_video(tmp_path / "zed.mp4", frames)
     profile = profile_from_dict({"name": "zed", "export_dir": str(tmp_path / "deploy"),
                                  "modules": {"stereo": {"enabled": True, "every": 2}},
                                  "camera": {"source": "video", "path": str(video), "stereo": "side-by-side",
