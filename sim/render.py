@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 import pybullet as p
 
+from sim import render_kernels as kernels
 from sim.objects import LIGHT_ID_BASE, LightState, ObjectSnapshot, SemanticClass
 from sim.scene_meshes import (
     HOUSING_HALF,
@@ -164,6 +165,21 @@ class _Body:
     shown: bool = True  # False: alpha 0 on every link, so TinyRenderer skips the body
 
 
+@dataclass(frozen=True)
+class _FrameSetup:
+    """What a frame needs that depends only on the camera and the lighting preset (see ``SceneRenderer._setup``)."""
+
+    camera_args: dict  # getCameraImage's keyword arguments other than the view matrix
+    palette: np.ndarray  # ground surfaces' shaded RGB
+    grade: np.ndarray  # float32 constants of the shading kernel
+    flags: np.ndarray
+    cone: np.ndarray  # headlight footprint (1x1 zeros without headlights)
+    sky: np.ndarray  # sky gradient image
+    geo_tail: tuple[float, ...]  # the pose-independent end of the kernel's ``geo`` vector
+    glow_sigma: float  # bloom blur (0: no bloom)
+    intrinsics: np.ndarray
+
+
 TILE_M = 120.0  # static meshes are split into tiles of this size for view culling (few bodies: resets stay cheap)
 
 
@@ -257,6 +273,7 @@ class SceneRenderer:
                                          normals=tn.tolist(), rgbaColor=list(g.rgba), specularColor=[0.0, 0.0, 0.0],
                                          **self._cid)
                 uid = p.createMultiBody(baseMass=0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=vs, **self._cid)
+                self._no_collisions(uid)
                 self._label(uid, [-1], g.semantic, 0)
                 if g.emissive_at_night is not None:
                     self._set_emissive(uid, -1, g.emissive_at_night, night_only=True)
@@ -300,8 +317,9 @@ class SceneRenderer:
         v, idx, nrm = mesh.arrays()
         vs = p.createVisualShape(p.GEOM_MESH, vertices=v, indices=idx, normals=nrm, rgbaColor=[0.5, 0.5, 0.5, 1.0],
                                  specularColor=[0.0, 0.0, 0.0], **self._cid)
-        p.createMultiBody(baseMass=0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=vs, **self._cid)
+        self._no_collisions(p.createMultiBody(baseMass=0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=vs, **self._cid))
         self._ground_palette: dict[str, np.ndarray] = {}
+        self._setups: dict[tuple[str, CameraConfig], _FrameSetup] = {}
 
     def _surface_palette(self, lighting: str, preset: LightingPreset) -> np.ndarray:
         """RGB (float, 0..255) of each ``Surface`` as TinyRenderer would shade it flat under a preset.
@@ -341,6 +359,7 @@ class SceneRenderer:
                 linkOrientations=[[0, 0, 0, 1]] * 3, linkInertialFramePositions=[[0, 0, 0]] * 3,
                 linkInertialFrameOrientations=[[0, 0, 0, 1]] * 3, linkParentIndices=[0] * 3,
                 linkJointTypes=[p.JOINT_FIXED] * 3, linkJointAxis=[[0, 0, 1]] * 3, **self._cid)
+            self._no_collisions(uid)
             self._label(uid, [-1], SemanticClass.TRAFFIC_LIGHT, LIGHT_ID_BASE + ap.index)
             self._label(uid, [0, 1, 2], SemanticClass.TRAFFIC_LAMP, LIGHT_ID_BASE + ap.index)
             self._light_bodies.append(uid)
@@ -401,12 +420,25 @@ class SceneRenderer:
 
     def _multibody(self, base: int, links: list[int]) -> int:
         n = len(links)
-        return p.createMultiBody(
+        uid = p.createMultiBody(
             baseMass=0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=base, basePosition=[0, 0, HIDDEN_Z],
             linkMasses=[0.0] * n, linkCollisionShapeIndices=[-1] * n, linkVisualShapeIndices=links,
             linkPositions=[[0, 0, 0]] * n, linkOrientations=[[0, 0, 0, 1]] * n,
             linkInertialFramePositions=[[0, 0, 0]] * n, linkInertialFrameOrientations=[[0, 0, 0, 1]] * n,
             linkParentIndices=[0] * n, linkJointTypes=[p.JOINT_FIXED] * n, linkJointAxis=[[0, 0, 1]] * n, **self._cid)
+        self._no_collisions(uid)
+        return uid
+
+    def _no_collisions(self, uid: int) -> None:
+        """Take a body's links out of collision pairing (group and mask 0).
+
+        pybullet gives every link a shapeless collider in its broadphase even without collision shapes,
+        and each pose reset re-inserts the body's colliders and pairs them with every overlapping one
+        (all links of a body share one point, and so do all static bodies). Nothing here uses
+        collisions; unpaired, a reset of a moving object costs about half as much.
+        """
+        for link in range(-1, p.getNumJoints(uid, **self._cid)):
+            p.setCollisionFilterGroupMask(uid, link, 0, 0, **self._cid)
 
     def _new_body(self, kind: SemanticClass, dims: tuple[float, float, float]) -> _Body:
         """Build the multibody of one object kind and size (colours are set on use)."""
@@ -550,7 +582,7 @@ class SceneRenderer:
         x, y, h = camera_pose
         cx = x + camera.mount_forward_m * math.cos(h) - lateral_m * math.sin(h)
         cy = y + camera.mount_forward_m * math.sin(h) + lateral_m * math.cos(h)
-        eye = to_world(cx, cy, camera.mount_height_m)
+        eye = np.array(world_point(cx, cy, camera.mount_height_m))
         yaw, pitch = yaw_of(h), math.radians(camera.pitch_deg)
         forward = np.array([math.cos(yaw) * math.cos(pitch), math.sin(yaw) * math.cos(pitch), math.sin(pitch)])
         return eye, forward
@@ -570,7 +602,6 @@ class SceneRenderer:
 
     def _render(self, camera_pose: tuple[float, float, float], camera: CameraConfig, lighting: str,
                 lateral_m: float) -> CameraFrame:
-        preset = LIGHTING_PRESETS[lighting]
         eye, forward = self.camera_position(camera_pose, camera, lateral_m)
         eye_xy = np.array([eye[0], -eye[1]])
         cull_key = (camera.hfov_deg, camera.far_m)
@@ -581,111 +612,56 @@ class SceneRenderer:
             self._cull(eye_xy, camera_pose[2], camera)
             self._cull_lights(eye_xy, camera_pose[2], camera)
             self._last_cull = (eye_xy, camera_pose[2], cull_key)
-        view = p.computeViewMatrix(eye.tolist(), (eye + forward).tolist(), [0.0, 0.0, 1.0], **self._cid)
-        proj = _projection(camera)
-        _, _, rgba, buf, seg = p.getCameraImage(
-            camera.width, camera.height, viewMatrix=view, projectionMatrix=proj, renderer=p.ER_TINY_RENDERER,
-            flags=p.ER_SEGMENTATION_MASK_OBJECT_AND_LINKINDEX, lightDirection=list(_sun(preset)),
-            lightColor=list(preset.light_color), lightAmbientCoeff=preset.ambient,
-            lightDiffuseCoeff=preset.diffuse, lightSpecularCoeff=preset.specular, shadow=0, **self._cid)
-        rgba = np.asarray(rgba, np.uint8).reshape(camera.height, camera.width, 4)
-        buf = np.asarray(buf, np.float32).reshape(camera.height, camera.width)
-        seg = np.asarray(seg, np.int32).reshape(camera.height, camera.width)
-        near, far = camera.near_m, camera.far_m
-        depth = (far * near / (far - (far - near) * buf)).astype(np.float32)
-        sky_key = len(self._class_lut) - 1
-        empty = seg < 0
-        key = np.where(empty, sky_key, (seg & 0xFFFFFF) * (MAX_LINKS + 1) + (seg >> 24))
-        cls, oid = self._class_lut[key], self._id_lut[key]
-        img = rgba[..., :3].astype(np.float32)
-        # Flat ground: ray-cast the rows below the horizon to the slab and road planes.
-        r0, g_depth, surface = self._ground(eye, forward, camera, depth)
-        if r0 < camera.height:
-            use = g_depth < depth[r0:]
-            depth[r0:][use] = g_depth[use]
-            cls[r0:][use] = SURFACE_CLASS[surface[use]]
-            oid[r0:][use] = 0
-            img[r0:][use] = self._surface_palette(lighting, preset)[surface[use]]
-            empty[r0:] &= ~use
-        semantic = np.stack([cls, oid], axis=-1)
-        rgb = self._post_process(img, depth, empty, key, camera, preset)
-        return CameraFrame(rgb, depth, semantic, camera.intrinsics())
-
-    def _ground(self, eye: np.ndarray, forward: np.ndarray, camera: CameraConfig,
-                mesh_depth: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
-        """First image row that sees the ground, then per pixel below it: z-depth and ``Surface``.
-
-        Each pixel's ray meets the slab plane first; if the surface there is not raised, the ray
-        continues to the road plane. Points beyond the far plane get infinite depth.
-        """
+        fx, fy, fz = forward.tolist()
+        ex, ey, ez = eye.tolist()
+        view = p.computeViewMatrix([ex, ey, ez], [ex + fx, ey + fy, ez + fz], [0.0, 0.0, 1.0], **self._cid)
+        setup = self._setup(lighting, camera)
+        _, _, rgba, buf, seg = p.getCameraImage(camera.width, camera.height, viewMatrix=view, **setup.camera_args)
+        h, w = camera.height, camera.width
+        img = np.empty((h, w, 3), np.float32)
+        depth = np.empty((h, w), np.float32)
+        semantic = np.empty((h, w, 2), np.int32)
+        sky = np.empty((h, w), np.bool_)
+        glow_src = np.zeros((h, w, 3), np.float32)
         # right = forward x up, down = forward x right (written out: np.cross is slow on 3-vectors)
-        fx, fy, fz = (float(c) for c in forward)
         norm = math.hypot(fx, fy)
-        right = np.array([fy / norm, -fx / norm, 0.0])
-        down = np.array([fy * right[2] - fz * right[1], fz * right[0] - fx * right[2], fx * right[1] - fy * right[0]])
-        f = camera.focal_px
-        k = camera.intrinsics()  # same principal point as TinyRenderer's own pixels (see intrinsics())
-        t = (np.arange(camera.height, dtype=np.float32) - k[1, 2]) / f
-        dir_z = forward[2] + t * down[2]
-        rows = np.nonzero(dir_z < -1e-4)[0]
-        if len(rows) == 0:
-            return camera.height, np.zeros((0, camera.width), np.float32), np.zeros((0, camera.width), np.uint8)
-        r0 = int(rows[0])
-        t, dir_z = t[r0:, None], dir_z[r0:, None]
-        s = ((np.arange(camera.width, dtype=np.float32) - k[0, 2]) / f)[None, :]
-        gm = self.ground_map
-        z_hi_row = (Z_SLAB - eye[2]) / dir_z  # H'x1 z-depth of the slab plane on each row
-        z_lo_row = (Z_GROUND - eye[2]) / dir_z
-        depth = np.full((len(t), camera.width), np.inf, np.float32)
-        surface = np.zeros((len(t), camera.width), np.uint8)
-        # Only pixels where no mesh is nearer than the slab plane can show the ground: look those up.
-        rr, cc = np.nonzero(np.broadcast_to(z_hi_row, depth.shape) < mesh_depth[r0:])
-        if len(rr) == 0:
-            return r0, depth, surface
-        tt, ss = t[rr, 0], s[0, cc]
-        ray_x = forward[0] + tt * down[0] + ss * right[0]
-        ray_y = forward[1] + tt * down[1] + ss * right[1]
-        z_hi, z_lo = z_hi_row[rr, 0], z_lo_row[rr, 0]
-        s_hi = gm.lookup(eye[0] + z_hi * ray_x, -(eye[1] + z_hi * ray_y))  # world (x, y) -> map (x, -y)
-        raised = SURFACE_RAISED[s_hi]
-        low = ~raised
-        s_lo = gm.lookup(eye[0] + z_lo[low] * ray_x[low], -(eye[1] + z_lo[low] * ray_y[low]))
-        surf = s_hi.copy()
-        surf[low] = s_lo
-        dep = np.where(raised, z_hi, z_lo).astype(np.float32)
-        dep[dep > camera.far_m] = np.inf
-        depth[rr, cc] = dep
-        surface[rr, cc] = surf
-        return r0, depth, surface
-
-    def _post_process(self, img: np.ndarray, depth: np.ndarray, sky: np.ndarray, key: np.ndarray,
-                      camera: CameraConfig, preset: LightingPreset) -> np.ndarray:
-        """Sky gradient, fog, colour grade, night headlights and emissive lamps, all vectorised (img: float HxWx3)."""
-        gain = np.asarray(preset.gain, np.float32)
-        if preset.fog_distance_m > 0:
-            fog = (depth / (depth + preset.fog_distance_m))[..., None]  # rational haze curve: cheaper than exp per pixel
-            img *= (1.0 - fog) * gain
-            img += fog * (np.asarray(preset.sky_horizon, np.float32) * gain)
+        rx, ry, rz = fy / norm, -fx / norm, 0.0
+        geo = np.array([ex, ey, ez, fx, fy, fz, rx, ry, fy * rz - fz * ry, fz * rx - fx * rz, fx * ry - fy * rx,
+                        *setup.geo_tail])
+        any_emit = kernels.shade_frame(
+            np.asarray(rgba, np.uint8).reshape(h, w, 4), np.asarray(buf, np.float32).reshape(h, w),
+            np.asarray(seg, np.int32).reshape(h, w), self._class_lut, self._id_lut, self._emit_mask, self._night_emit,
+            self._emissive, setup.palette, SURFACE_CLASS, SURFACE_RAISED, self.ground_map.texels, geo, setup.grade,
+            setup.flags, setup.cone, img, depth, semantic, sky, glow_src)
+        rgb = np.empty((h, w, 3), np.uint8)
+        if any_emit and setup.glow_sigma > 0:
+            kernels.finish_frame(img, sky, setup.sky, cv2.GaussianBlur(glow_src, (0, 0), setup.glow_sigma),
+                                 setup.grade[kernels.P_GLOW:kernels.P_GLOW + 1], rgb)
         else:
-            img *= gain
-        if any(preset.lift):
-            img += np.asarray(preset.lift, np.float32)
-        if preset.headlights:
-            cone = _headlight_cone(camera)
-            illum = preset.headlight_ambient + preset.headlight_gain * cone / (1.0 + (depth / 15.0) ** 2)
-            img *= illum[..., None]
-        emit = self._emit_mask[key]
-        if not preset.emissive_windows:
-            emit &= ~self._night_emit[key]
-        if emit.any():
-            glow_src = np.zeros_like(img)
-            glow_src[emit] = self._emissive[key[emit]] * 255.0
-            img[emit] = glow_src[emit]
-            if preset.glow > 0:
-                sigma = max(0.8, camera.width / 220.0)
-                img += preset.glow * cv2.GaussianBlur(glow_src, (0, 0), sigma)
-        img[sky] = _sky_image(camera, preset)[sky]
-        return np.clip(img, 0, 255).astype(np.uint8)
+            kernels.finish_frame(img, sky, setup.sky, glow_src, _NO_GLOW, rgb)
+        return CameraFrame(rgb, depth, semantic, setup.intrinsics.copy())
+
+    def _setup(self, lighting: str, camera: CameraConfig) -> _FrameSetup:
+        """Everything of a frame that depends only on the camera and the lighting, built once per pair."""
+        key = (lighting, camera)
+        hit = self._setups.get(key)
+        if hit is None:
+            preset = LIGHTING_PRESETS[lighting]
+            grade, flags = _grade(preset, camera)
+            k = camera.intrinsics()  # the ray-cast uses TinyRenderer's own principal point (see intrinsics())
+            gm = self.ground_map
+            hit = self._setups[key] = _FrameSetup(
+                camera_args=dict(
+                    projectionMatrix=_projection(camera), renderer=p.ER_TINY_RENDERER,
+                    flags=p.ER_SEGMENTATION_MASK_OBJECT_AND_LINKINDEX, lightDirection=list(_sun(preset)),
+                    lightColor=list(preset.light_color), lightAmbientCoeff=preset.ambient,
+                    lightDiffuseCoeff=preset.diffuse, lightSpecularCoeff=preset.specular, shadow=0, **self._cid),
+                palette=self._surface_palette(lighting, preset), grade=grade, flags=flags,
+                cone=_headlight_cone(camera) if preset.headlights else _NO_CONE, sky=_sky_image(camera, preset),
+                geo_tail=(camera.focal_px, float(k[0, 2]), float(k[1, 2]), float(gm.origin[0]), float(gm.origin[1]),
+                          gm.texels_per_m, Z_SLAB, Z_GROUND),
+                glow_sigma=max(0.8, camera.width / 220.0) if preset.glow > 0 else 0.0, intrinsics=k)
+        return hit
 
     def close(self) -> None:
         """Disconnect this renderer's pybullet client."""
@@ -699,6 +675,29 @@ class SceneRenderer:
 
 
 _GROUND_MAPS: dict[tuple[int, int], tuple[Town, GroundMap]] = {}
+_NO_CONE = np.zeros((1, 1), np.float32)  # the kernel's headlight cone when the preset has no headlights
+_NO_CONE.setflags(write=False)  # read-only like the cached cones: one compiled kernel signature, not two
+_NO_GLOW = np.zeros(1, np.float32)  # bloom gain 0: no blurred glow to add
+
+
+def _grade(preset: LightingPreset, camera: CameraConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The shading kernel's float32 grading constants and int flags for a preset and camera.
+
+    Each constant is rounded to float32 exactly where NumPy rounded it when it mixed a Python
+    float with a float32 image, so the kernel reproduces its pixels bit for bit.
+    """
+    near, far = camera.near_m, camera.far_m
+    gain = np.asarray(preset.gain, np.float32)
+    grade = np.zeros(kernels.GRADE_SIZE, np.float32)
+    grade[kernels.P_NEAR_FAR], grade[kernels.P_FAR], grade[kernels.P_FAR_MINUS_NEAR] = far * near, far, far - near
+    grade[kernels.P_GAIN:kernels.P_GAIN + 3] = gain
+    grade[kernels.P_FOG] = preset.fog_distance_m
+    grade[kernels.P_FOG_RGB:kernels.P_FOG_RGB + 3] = np.asarray(preset.sky_horizon, np.float32) * gain
+    grade[kernels.P_LIFT:kernels.P_LIFT + 3] = np.asarray(preset.lift, np.float32)
+    grade[kernels.P_HL_AMBIENT], grade[kernels.P_HL_GAIN] = preset.headlight_ambient, preset.headlight_gain
+    grade[kernels.P_GLOW] = preset.glow
+    flags = np.array([preset.fog_distance_m > 0, any(preset.lift), preset.headlights, preset.emissive_windows], np.int64)
+    return grade, flags
 
 
 def _in_view(objects: Sequence[ObjectSnapshot], view: tuple[float, float, float, float, float] | None) -> np.ndarray:
