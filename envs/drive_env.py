@@ -33,6 +33,7 @@ from gymnasium import spaces
 
 from sim.objects import LIGHT_ID_BASE, LightState, SemanticClass
 from sim.render import LIGHTING_PRESETS, CameraConfig, CameraFrame, SceneRenderer
+from sim.render_kernels import object_boxes
 from sim.topdown import TopDownMap
 from sim.town import Command
 from sim.world import TERMINAL_INFRACTIONS, World, WorldConfig, cached_town
@@ -273,20 +274,9 @@ class DriveEnv(gym.Env):
         world = self._require_world()
         if self.frame is None:
             return []
-        ids = self.frame.segmentation[..., 1].ravel()
-        flat = np.flatnonzero(ids > 0)
-        if len(flat) == 0:
+        uniq, x0, y0, x1, y1, counts = object_boxes(self.frame.segmentation[..., 1])
+        if len(uniq) == 0:
             return []
-        vals = ids[flat]
-        order = np.argsort(vals, kind="stable")
-        flat, vals = flat[order], vals[order]
-        starts = np.flatnonzero(np.r_[True, vals[1:] != vals[:-1]])
-        width = self.frame.segmentation.shape[1]
-        rows, cols = flat // width, flat % width
-        uniq = vals[starts]
-        x0, x1 = np.minimum.reduceat(cols, starts), np.maximum.reduceat(cols, starts)
-        y0, y1 = np.minimum.reduceat(rows, starts), np.maximum.reduceat(rows, starts)
-        counts = np.diff(np.r_[starts, len(vals)])
         snaps = {s.object_id: s for s in world.object_snapshots()}
         ego = world.ego
         out = []

@@ -215,6 +215,7 @@ class SceneRenderer:
         self._light_bodies: list[int] = []
         self._light_states: list[LightState | None] = []
         self._light_shown: list[bool] = []
+        self._light_input: tuple = ()  # the states last passed to set_light_states
         self._last_cull: tuple[np.ndarray, float, tuple[float, float]] | None = None
         self._build_lights()
         self._light_xy = np.array([ap.light_head for ap in town.approaches]).reshape(-1, 2)
@@ -369,7 +370,11 @@ class SceneRenderer:
 
     def set_light_states(self, states: Sequence[LightState]) -> None:
         """Recolour lamps, touching pybullet only for lights whose state changed."""
-        for k, state in enumerate(states[:len(self._light_bodies)]):
+        states = tuple(states[:len(self._light_bodies)])
+        if states == self._light_input:
+            return  # most steps: no light changed (one tuple compare instead of an enum per light)
+        self._light_input = states
+        for k, state in enumerate(states):
             state = LightState(state)
             if self._light_states[k] == state:
                 continue
