@@ -623,11 +623,13 @@ class SceneRenderer:
         setup = self._setup(lighting, camera)
         _, _, rgba, buf, seg = p.getCameraImage(camera.width, camera.height, viewMatrix=view, **setup.camera_args)
         h, w = camera.height, camera.width
-        img = np.empty((h, w, 3), np.float32)
         depth = np.empty((h, w), np.float32)
         semantic = np.empty((h, w, 2), np.int32)
-        sky = np.empty((h, w), np.bool_)
-        glow_src = np.zeros((h, w, 3), np.float32)
+        rgb = np.empty((h, w, 3), np.uint8)
+        bloom = setup.glow_sigma > 0  # the blur needs the whole graded image first; else one pass writes rgb
+        img = np.empty((h, w, 3), np.float32) if bloom else _UNUSED_RGB
+        glow_src = np.empty((h, w, 3), np.float32) if bloom else _UNUSED_RGB
+        sky = np.empty((h, w), np.bool_) if bloom else _UNUSED_MASK
         # right = forward x up, down = forward x right (written out: np.cross is slow on 3-vectors)
         norm = math.hypot(fx, fy)
         rx, ry, rz = fy / norm, -fx / norm, 0.0
@@ -637,13 +639,11 @@ class SceneRenderer:
             np.asarray(rgba, np.uint8).reshape(h, w, 4), np.asarray(buf, np.float32).reshape(h, w),
             np.asarray(seg, np.int32).reshape(h, w), self._class_lut, self._id_lut, self._emit_mask, self._night_emit,
             self._emissive, setup.palette, SURFACE_CLASS, SURFACE_RAISED, self.ground_map.texels, geo, setup.grade,
-            setup.flags, setup.cone, img, depth, semantic, sky, glow_src)
-        rgb = np.empty((h, w, 3), np.uint8)
-        if any_emit and setup.glow_sigma > 0:
-            kernels.finish_frame(img, sky, setup.sky, cv2.GaussianBlur(glow_src, (0, 0), setup.glow_sigma),
-                                 setup.grade[kernels.P_GLOW:kernels.P_GLOW + 1], rgb)
-        else:
-            kernels.finish_frame(img, sky, setup.sky, glow_src, _NO_GLOW, rgb)
+            setup.flags, setup.cone, setup.sky, img, depth, semantic, sky, glow_src, rgb)
+        if bloom:
+            glow = cv2.GaussianBlur(glow_src, (0, 0), setup.glow_sigma) if any_emit else glow_src
+            gain = setup.grade[kernels.P_GLOW:kernels.P_GLOW + 1] if any_emit else _NO_GLOW
+            kernels.finish_frame(img, sky, setup.sky, glow, gain, rgb)
         return CameraFrame(rgb, depth, semantic, setup.intrinsics.copy())
 
     def _setup(self, lighting: str, camera: CameraConfig) -> _FrameSetup:
@@ -683,6 +683,8 @@ _GROUND_MAPS: dict[tuple[int, int], tuple[Town, GroundMap]] = {}
 _NO_CONE = np.zeros((1, 1), np.float32)  # the kernel's headlight cone when the preset has no headlights
 _NO_CONE.setflags(write=False)  # read-only like the cached cones: one compiled kernel signature, not two
 _NO_GLOW = np.zeros(1, np.float32)  # bloom gain 0: no blurred glow to add
+_UNUSED_RGB = np.zeros((1, 1, 3), np.float32)  # the kernel's scratch images when a preset has no bloom
+_UNUSED_MASK = np.zeros((1, 1), np.bool_)
 
 
 def _grade(preset: LightingPreset, camera: CameraConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -701,7 +703,8 @@ def _grade(preset: LightingPreset, camera: CameraConfig) -> tuple[np.ndarray, np
     grade[kernels.P_LIFT:kernels.P_LIFT + 3] = np.asarray(preset.lift, np.float32)
     grade[kernels.P_HL_AMBIENT], grade[kernels.P_HL_GAIN] = preset.headlight_ambient, preset.headlight_gain
     grade[kernels.P_GLOW] = preset.glow
-    flags = np.array([preset.fog_distance_m > 0, any(preset.lift), preset.headlights, preset.emissive_windows], np.int64)
+    flags = np.array([preset.fog_distance_m > 0, any(preset.lift), preset.headlights, preset.emissive_windows,
+                      preset.glow > 0], np.int64)
     return grade, flags
 
 

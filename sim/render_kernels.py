@@ -11,7 +11,7 @@ Parameter vectors (built by ``sim.render``; indices named below):
   ground-map origin xy, texels per metre, slab and road plane heights.
   ``grade`` float32: depth-buffer constants, gain rgb, fog distance, fog colour rgb (already
   times gain), lift rgb, headlight ambient and gain, glow.
-  ``flags`` int64: fog, lift, headlights, emissive windows.
+  ``flags`` int64: fog, lift, headlights, emissive windows, bloom.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ P_NEAR_FAR, P_FAR, P_FAR_MINUS_NEAR, P_GAIN, P_FOG, P_FOG_RGB, P_LIFT, P_HL_AMBI
     0, 1, 2, 3, 6, 7, 10, 13, 14, 15)
 GRADE_SIZE = 16
 # flags
-F_FOG, F_LIFT, F_HEADLIGHTS, F_WINDOWS = 0, 1, 2, 3
+F_FOG, F_LIFT, F_HEADLIGHTS, F_WINDOWS, F_BLOOM = 0, 1, 2, 3, 4
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -45,15 +45,18 @@ def _texel(texels: np.ndarray, x: float, y: float, x0: float, y0: float, per_m: 
 def shade_frame(rgba: np.ndarray, buf: np.ndarray, seg: np.ndarray, class_lut: np.ndarray, id_lut: np.ndarray,
                 emit_mask: np.ndarray, night_emit: np.ndarray, emissive: np.ndarray, palette: np.ndarray,
                 surface_class: np.ndarray, surface_raised: np.ndarray, texels: np.ndarray, geo: np.ndarray,
-                grade: np.ndarray, flags: np.ndarray, cone: np.ndarray, img: np.ndarray, depth: np.ndarray,
-                semantic: np.ndarray, sky: np.ndarray, glow_src: np.ndarray) -> bool:
+                grade: np.ndarray, flags: np.ndarray, cone: np.ndarray, sky_img: np.ndarray, img: np.ndarray,
+                depth: np.ndarray, semantic: np.ndarray, sky: np.ndarray, glow_src: np.ndarray, out: np.ndarray) -> bool:
     """TinyRenderer's buffers to a graded float image, metric depth, (class, id) and the sky mask.
 
     Per pixel: z-depth from the depth buffer; (class, id) from the (body, link) lookup tables;
     below the horizon, the ray to the slab plane (then the road plane where the slab surface is
     not raised) replaces the mesh where it is nearer; then fog, gain, lift and headlights; lit
-    emissive pixels take their own colour and go into ``glow_src`` for the bloom. Returns whether
-    any pixel was emissive. The sky itself is filled in by ``finish_frame``.
+    emissive pixels take their own colour. Without bloom (``flags[F_BLOOM]`` 0) the finished uint8
+    pixel (sky painted, clipped) goes straight to ``out`` and ``img``, ``sky`` and ``glow_src`` are
+    left alone; with bloom the graded pixel goes to ``img``, emissive ones also to ``glow_src`` (all
+    other pixels there are set to 0), and ``finish_frame`` completes the frame after the blur.
+    Returns whether any pixel was emissive.
     """
     h, w = buf.shape
     sky_key = class_lut.shape[0] - 1
@@ -67,6 +70,7 @@ def shade_frame(rgba: np.ndarray, buf: np.ndarray, seg: np.ndarray, class_lut: n
     focal, cx, cy = geo[G_FOCAL], geo[G_CX], geo[G_CY]
     ox, oy, per_m = geo[G_ORIGIN], geo[G_ORIGIN + 1], geo[G_TEXELS]
     fog_on, lift_on, headlights, windows = flags[F_FOG] != 0, flags[F_LIFT] != 0, flags[F_HEADLIGHTS] != 0, flags[F_WINDOWS] != 0
+    bloom = flags[F_BLOOM] != 0
     # The first row whose ray points down (rays fall monotonically with the row).
     r0 = h
     for r in range(h):
@@ -112,7 +116,9 @@ def shade_frame(rgba: np.ndarray, buf: np.ndarray, seg: np.ndarray, class_lut: n
             depth[r, c] = d
             semantic[r, c, 0] = cls
             semantic[r, c, 1] = oid
-            sky[r, c] = empty
+            if empty and not bloom:
+                out[r, c, 0], out[r, c, 1], out[r, c, 2] = _u8(sky_img[r, c, 0]), _u8(sky_img[r, c, 1]), _u8(sky_img[r, c, 2])
+                continue  # the sky replaces whatever the grade would make of this pixel
             if fog_on:
                 fog = d / (d + grade[P_FOG])
                 keep = one - fog
@@ -127,21 +133,40 @@ def shade_frame(rgba: np.ndarray, buf: np.ndarray, seg: np.ndarray, class_lut: n
                 q = d / fifteen
                 illum = grade[P_HL_AMBIENT] + grade[P_HL_GAIN] * cone[r, c] / (one + q * q)
                 v0, v1, v2 = v0 * illum, v1 * illum, v2 * illum
-            if emit_mask[key] and (windows or not night_emit[key]):
+            lit = emit_mask[key] and (windows or not night_emit[key])
+            if lit:
                 any_emit = True
                 v0, v1, v2 = emissive[key, 0] * c255, emissive[key, 1] * c255, emissive[key, 2] * c255
-                glow_src[r, c, 0], glow_src[r, c, 1], glow_src[r, c, 2] = v0, v1, v2
-            img[r, c, 0], img[r, c, 1], img[r, c, 2] = v0, v1, v2
+            if bloom:
+                sky[r, c] = empty
+                img[r, c, 0], img[r, c, 1], img[r, c, 2] = v0, v1, v2
+                if lit:
+                    glow_src[r, c, 0], glow_src[r, c, 1], glow_src[r, c, 2] = v0, v1, v2
+                else:
+                    glow_src[r, c, 0], glow_src[r, c, 1], glow_src[r, c, 2] = 0.0, 0.0, 0.0
+            else:
+                out[r, c, 0], out[r, c, 1], out[r, c, 2] = _u8(v0), _u8(v1), _u8(v2)
     return any_emit
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _u8(v: np.float32) -> np.uint8:
+    """np.clip(v, 0, 255).astype(np.uint8) for one float32."""
+    if v < np.float32(0.0):
+        return np.uint8(0)
+    if v > np.float32(255.0):
+        return np.uint8(255)
+    return np.uint8(v)
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def finish_frame(img: np.ndarray, sky: np.ndarray, sky_img: np.ndarray, glow: np.ndarray, glow_gain: np.ndarray,
                  out: np.ndarray) -> None:
-    """Add the bloom (``glow_gain[0]`` times the blurred glow; skipped when 0), paint the sky, clip to uint8."""
+    """After ``shade_frame`` with bloom: add ``glow_gain[0]`` times the blurred glow (skipped when 0), paint
+    the sky, clip to uint8."""
     h, w = sky.shape
     g = glow_gain[0]
-    zero, top = np.float32(0.0), np.float32(255.0)
+    zero = np.float32(0.0)
     for r in range(h):
         for c in range(w):
             for k in range(3):
@@ -151,11 +176,7 @@ def finish_frame(img: np.ndarray, sky: np.ndarray, sky_img: np.ndarray, glow: np
                     v = img[r, c, k] + g * glow[r, c, k]
                 else:
                     v = img[r, c, k]
-                if v < zero:
-                    v = zero
-                elif v > top:
-                    v = top
-                out[r, c, k] = np.uint8(v)
+                out[r, c, k] = _u8(v)
 
 
 @nb.njit(cache=True, nogil=True)
