@@ -15,7 +15,7 @@ import numpy as np
 
 from sim.lights import TrafficLights
 from sim.objects import ObjectSnapshot, SemanticClass
-from sim.town import Crosswalk, Town
+from sim.town import ARM_VEC, Crosswalk, Town
 
 SHIRT_COLORS = [(0.80, 0.15, 0.15), (0.15, 0.35, 0.75), (0.95, 0.85, 0.20), (0.20, 0.60, 0.30),
                 (0.90, 0.90, 0.90), (0.25, 0.25, 0.28), (0.85, 0.45, 0.10), (0.55, 0.25, 0.60)]
@@ -62,10 +62,17 @@ class PedestrianCrowd:
         for k in range(count if crosswalks else 0):
             cw = crosswalks[int(rng.integers(len(crosswalks)))]
             at_start = bool(rng.random() < 0.5)
-            base = cw.start if at_start else cw.end
-            pos = base + rng.uniform(-0.8, 0.8, 2)
+            pos = self._waiting_spot(cw, at_start, rng.uniform(0.0, 1.0, 2))
             self.peds.append(Pedestrian(first_id + k, pos, 0.0, float(rng.uniform(1.1, 1.6)),
                                         SHIRT_COLORS[int(rng.integers(len(SHIRT_COLORS)))], cw.index, at_start))
+
+    @staticmethod
+    def _waiting_spot(cw: Crosswalk, at_start: bool, jitter: np.ndarray) -> np.ndarray:
+        """Where a newly placed pedestrian stands: at the crossing's kerb end, spread up to 0.6 m further
+        onto the pavement and 0.8 m away from the junction, never towards the corner that turning cars cut."""
+        here, there = (cw.start, cw.end) if at_start else (cw.end, cw.start)
+        outward = (here - there) / max(float(np.linalg.norm(here - there)), 1e-6)
+        return here + outward * 0.6 * jitter[0] + ARM_VEC[cw.arm] * 0.8 * jitter[1]
 
     def _link_corners(self) -> dict[tuple[int, bool], tuple[int, bool]]:
         """For each kerb end of a crossing, the end of the crossing round the same corner."""

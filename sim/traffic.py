@@ -93,11 +93,16 @@ def path_gap(path: list[tuple[AbstractLane, float]], my_s: float, my_half: float
     best_speed = 0.0
     for k in near:
         ped = bool(agents.is_pedestrian[k])
-        points = [agents.positions[k]]
+        half_k = float(agents.half_lengths[k])
+        points = [(agents.positions[k], half_k)]
+        h = float(agents.headings[k])
+        ahead = np.array([math.cos(h), math.sin(h)])
         if ped and agents.speeds[k] > 0.1:  # a walking pedestrian counts where it will be soon, too
-            h = float(agents.headings[k])
-            step = PEDESTRIAN_LOOKAHEAD_S * float(agents.speeds[k])
-            points.append(agents.positions[k] + step * np.array([math.cos(h), math.sin(h)]))
+            points.append((agents.positions[k] + PEDESTRIAN_LOOKAHEAD_S * float(agents.speeds[k]) * ahead, half_k))
+        elif not ped and abs(wrap_to_pi(h - path[0][0].heading_at(my_s - path[0][1]))) > 0.5:
+            # A vehicle at an angle to the path (turning, crossing) can poke its bumper into the lane
+            # while its centre is a lane away: its two bumpers count as well.
+            points += [(agents.positions[k] + half_k * ahead, 0.0), (agents.positions[k] - half_k * ahead, 0.0)]
         # A standing pedestrian (waiting at a kerb) blocks only what would brush it; a walking one
         # blocks the whole lane it is in or stepping into.
         walking = agents.speeds[k] > 0.1 or bool(agents.on_crossing[k])
@@ -108,12 +113,13 @@ def path_gap(path: list[tuple[AbstractLane, float]], my_s: float, my_half: float
     return best, best_speed
 
 
-def _gap_on_path(path: list[tuple[AbstractLane, float]], points: list[np.ndarray], ped: bool, k: int, agents: Agents,
-                 my_s: float, my_half: float, tol: float) -> tuple[float | None, float]:
-    """Bumper gap to agent ``k`` (at any of ``points``) along the path, and its speed along the path."""
+def _gap_on_path(path: list[tuple[AbstractLane, float]], points: list[tuple[np.ndarray, float]], ped: bool, k: int,
+                 agents: Agents, my_s: float, my_half: float, tol: float) -> tuple[float | None, float]:
+    """Bumper gap to agent ``k`` (at any of ``points``, each with its distance to the agent's bumper)
+    along the path, and its speed along the path."""
     best: float | None = None
     best_speed = 0.0
-    for pos in points:
+    for pos, half in points:
         for lane, offset in path:
             s, lat = lane.local_coordinates(pos)
             if abs(lat) > tol or s < -agents.half_lengths[k] or s > lane.length + agents.half_lengths[k]:
@@ -121,7 +127,7 @@ def _gap_on_path(path: list[tuple[AbstractLane, float]], points: list[np.ndarray
             along = offset + s
             if along <= my_s:
                 break
-            gap = along - my_s - my_half - float(agents.half_lengths[k])
+            gap = along - my_s - my_half - half
             # Crossing traffic on the move further ahead is not a leader (it will be gone); one standing
             # across the path, or still crossing it close ahead, is in the way.
             crossing = abs(wrap_to_pi(float(agents.headings[k]) - lane.heading_at(s))) > 1.0

@@ -72,6 +72,36 @@ def drive_until(world: World, action, seconds: float) -> list[str]:
     return kinds
 
 
+def test_npc_brakes_for_a_car_poking_its_nose_into_the_lane(town):
+    """A car standing at an angle (mid-turn) with its centre a lane away but its bumper in the NPC's lane."""
+    lane_index = max((k for k in town.road_lanes() if k[2] == 1), key=lambda k: town.lane(k).length)
+    lane = town.lane(lane_index)
+    world = quiet_world(town, start=far_lane(town, town.approaches[0]))
+    npc = world.spawn_npc(lane_index, 5.0, SemanticClass.CAR, target_speed=8.0)
+    side = lane.position(32.0, 2.5) - lane.position(32.0, 0.0)
+    world.ego.position = lane.position(32.0, 2.5)
+    world.ego.heading = math.atan2(-side[1], -side[0]) + 0.7  # pointing across, into the lane
+    world.ego.speed = 0.0
+    kinds = drive_until(world, [0.0, -1.0], 10.0)
+    assert "collision_vehicle" not in kinds
+    assert npc.speed < 0.1 and lane.local_coordinates(npc.position)[0] < 32.0  # stopped short of it
+
+
+def test_waiting_pedestrians_stand_on_the_pavement_away_from_the_corner(town):
+    """Cars turning right cut the kerb corner: nobody is placed between the zebra and the junction."""
+    crowd = PedestrianCrowd(town, 200, np.random.default_rng(3), 1000)
+    for ped in crowd.peds:
+        cw = town.crosswalks[ped.crosswalk]
+        here, there = (cw.start, cw.end) if ped.at_start else (cw.end, cw.start)
+        outward = (here - there) / np.linalg.norm(here - there)
+        away = ped.position - here
+        assert -1e-9 <= away @ outward <= 0.6 + 1e-9  # on the pavement, not towards the road
+        along = away - (away @ outward) * outward
+        junction = town.node_position(cw.node)
+        assert np.linalg.norm(along) <= 0.8 + 1e-9
+        assert np.linalg.norm(here + along - junction) >= np.linalg.norm(here - junction) - 1e-9  # away from it
+
+
 def test_collision_with_a_vehicle(town):
     start = town.road_lanes()[0]
     world = quiet_world(town, start=start)
