@@ -42,6 +42,7 @@ class TrafficLights:
         self._forced: dict[int, tuple[LightState, float]] = {}
         self.time_s = 0.0
         self._states = np.zeros(len(town.approaches), dtype=np.int64)
+        self._state_list: list[LightState] = []  # the same states as enum members, rebuilt only on a change
         self._phase = np.zeros(len(town.approaches))
         self.update(0.0)
 
@@ -55,18 +56,21 @@ class TrafficLights:
         for index, (state, until) in self._forced.items():
             if time_s < until:
                 states[index] = int(state)
+        if not self._state_list or not np.array_equal(states, self._states):
+            self._state_list = [LightState(int(s)) for s in states]
         self._states = states
 
     def state(self, approach: int) -> LightState:
-        return LightState(int(self._states[approach]))
+        return self._state_list[approach]
 
     @property
     def states(self) -> list[LightState]:
-        return [LightState(int(s)) for s in self._states]
+        """Every approach's state (a fresh list; lights change every few seconds, so the members are kept)."""
+        return list(self._state_list)
 
     def red_remaining_s(self, approach: int) -> float:
         """Seconds until this approach turns green again (0 when it is not red)."""
-        if self._states[approach] != LightState.RED:
+        if self._state_list[approach] != LightState.RED:
             return 0.0
         return float(self.timing.cycle_s - self._phase[approach])
 

@@ -23,8 +23,10 @@ from highway_env.road.lane import AbstractLane, CircularLane, LineType, Straight
 from highway_env.road.road import RoadNetwork
 
 from sim.geometry import right_of, wrap_to_pi
+from sim.path_filter import ROW_SIZE, lane_row, lanes_may_hold
 
 LaneIndex = tuple[str, str, int]
+LaneLocation = tuple[LaneIndex, float, float]  # lane index, longitudinal s, lateral offset
 Edge = tuple[str, str]
 
 
@@ -162,6 +164,10 @@ class Town:
     _grid: dict[tuple[int, int], list[LaneIndex]] = field(default_factory=dict, repr=False)
     _approach_by_edge: dict[Edge, Approach] = field(default_factory=dict, repr=False)
     _lane_crosswalks: dict[LaneIndex, list[tuple[int, float, float]]] | None = field(default=None, repr=False)
+    _cell_rows: dict[tuple[int, int], tuple[list[LaneIndex], list[AbstractLane], np.ndarray]] = field(
+        default_factory=dict, repr=False, compare=False)
+    _crosswalk_frames: list[tuple[np.ndarray, np.ndarray, float, float, np.ndarray]] | None = field(
+        default=None, repr=False, compare=False)
 
     GRID_CELL_M = 8.0
     POLE_RADIUS_M = 0.15
@@ -181,27 +187,53 @@ class Town:
         key = (int(math.floor(position[0] / self.GRID_CELL_M)), int(math.floor(position[1] / self.GRID_CELL_M)))
         return self._grid.get(key, [])
 
-    def locate(self, position: np.ndarray, heading: float | None = None) -> tuple[LaneIndex, float, float] | None:
+    def locate(self, position: np.ndarray, heading: float | None = None) -> LaneLocation | None:
         """The lane a pose is on: (lane index, longitudinal s, lateral offset), or None off road.
 
         Among overlapping lanes (junctions), prefer the one whose direction best matches the
         heading, then the smallest lateral offset.
         """
+        if heading is None:
+            return self.locate_both(position, 0.0)[1]
+        return self.locate_both(position, heading)[0]
+
+    def locate_both(self, position: np.ndarray, heading: float) -> tuple[LaneLocation | None, LaneLocation | None]:
+        """``locate`` with the heading and without it, in one pass over the nearby lanes (the world
+        needs both for the ego every step). Lanes the point is clearly not on are skipped by a
+        conservative compiled test first; the rest go through highway-env's exact geometry."""
         best: tuple[float, LaneIndex, float, float] | None = None
+        nearest: tuple[float, LaneIndex, float, float] | None = None
         half = self.lane_width / 2
-        for index in self.lanes_near(position):
-            lane = self.lane(index)
+        indices, lanes, rows = self._cell_lanes(position)
+        if not indices:
+            return None, None
+        keep = lanes_may_hold(float(position[0]), float(position[1]), rows, half + 0.05, 0.5)
+        for index, lane, ok in zip(indices, lanes, keep, strict=True):
+            if not ok:
+                continue
             s, lat = lane.local_coordinates(position)
             if not (-0.5 <= s <= lane.length + 0.5) or abs(lat) > half + 0.05:
                 continue
             cost = abs(lat)
-            if heading is not None:
-                cost += 4.0 * abs(wrap_to_pi(lane.heading_at(s) - heading))
+            if nearest is None or cost < nearest[0]:
+                nearest = (cost, index, float(s), float(lat))
+            cost += 4.0 * abs(wrap_to_pi(lane.heading_at(s) - heading))
             if best is None or cost < best[0]:
                 best = (cost, index, float(s), float(lat))
-        if best is None:
-            return None
-        return best[1], best[2], best[3]
+        return (None if best is None else best[1:]), (None if nearest is None else nearest[1:])
+
+    def _cell_lanes(self, position: np.ndarray) -> tuple[list[LaneIndex], list[AbstractLane], np.ndarray]:
+        """The spatial hash's lanes for a point's cell (as ``lanes_near``), the lane objects and their
+        flat parameters, built once per cell."""
+        key = (int(math.floor(position[0] / self.GRID_CELL_M)), int(math.floor(position[1] / self.GRID_CELL_M)))
+        hit = self._cell_rows.get(key)
+        if hit is None:
+            indices = self._grid.get(key, [])
+            lanes = [self.lane(i) for i in indices]
+            rows = np.stack([lane_row(lane) for lane in lanes]) if lanes else np.zeros((0, ROW_SIZE))
+            hit = (indices, lanes, rows)
+            self._cell_rows[key] = hit
+        return hit
 
     def on_road(self, position: np.ndarray, margin_m: float = 0.0) -> bool:
         """Whether a point is on asphalt: within some lane's width (plus a margin)."""
@@ -229,6 +261,14 @@ class Town:
         if self._lane_crosswalks is None:
             self._lane_crosswalks = _lane_crosswalks(self)
         return self._lane_crosswalks.get(index, [])
+
+    def crosswalk_frames(self) -> list[tuple[np.ndarray, np.ndarray, float, float, np.ndarray]]:
+        """``crosswalk_frame`` of every crossing plus the unit vector across it, built once: NPCs
+        look at crossings every decision, and the frames never change."""
+        if self._crosswalk_frames is None:
+            frames = [crosswalk_frame(cw) for cw in self.crosswalks]
+            self._crosswalk_frames = [(c, u, d, w, np.array([-u[1], u[0]])) for c, u, d, w in frames]
+        return self._crosswalk_frames
 
     def road_lanes(self) -> list[LaneIndex]:
         """Lanes on plain road segments (spawn places)."""

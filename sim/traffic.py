@@ -12,17 +12,21 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from highway_env.road.lane import AbstractLane, CircularLane
 from highway_env.road.road import Road
+from highway_env.utils import not_zero
+from highway_env.utils import wrap_to_pi as hwe_wrap_to_pi
 from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
 from sim.geometry import wrap_to_pi
 from sim.objects import LightState, ObjectSnapshot, SemanticClass
+from sim.path_filter import path_candidates, path_rows
 from sim.routes import random_next_edge
-from sim.town import OPPOSITE, Approach, Command, Town, crosswalk_frame, lanes_for
+from sim.town import OPPOSITE, Approach, Command, Town, lanes_for
 
 CAR_COLORS = [
     (0.75, 0.08, 0.08), (0.08, 0.20, 0.60), (0.92, 0.92, 0.90), (0.10, 0.10, 0.11), (0.55, 0.56, 0.58),
@@ -42,6 +46,11 @@ class Agents:
     ids: np.ndarray
     on_crossing: np.ndarray  # pedestrians out on the road (crossing), even while they stand still
 
+    @cached_property
+    def crossing_positions(self) -> np.ndarray:
+        """Positions of the pedestrians out on a crossing (every NPC's crosswalk check reads them)."""
+        return self.positions[np.nonzero(self.is_pedestrian & self.on_crossing)[0]]
+
 
 PEDESTRIAN_LOOKAHEAD_S = 1.5  # a walking pedestrian blocks a path it will step into within this time
 CROSSING_CLEAR_M = 10.0  # a vehicle crossing the path nearer than this still blocks it
@@ -50,6 +59,11 @@ STANDING_PEDESTRIAN_LATERAL_M = 1.45  # on the sidewalk: car half width 0.95 + p
 
 CURVE_LATERAL_ACCEL_MPS2 = 2.0  # comfortable lateral acceleration in turns
 CURVE_BRAKE_MPS2 = 2.5  # how hard one slows down ahead of a turn
+
+
+def _clip(x: float, low: float, high: float) -> float:
+    """``np.clip`` for one number: the same value (no arithmetic, NaN passes through), without the call overhead."""
+    return min(max(x, low), high)
 
 
 def curve_speed_limit(path: list[tuple[AbstractLane, float]], my_s: float) -> float:
@@ -87,8 +101,11 @@ def path_gap(path: list[tuple[AbstractLane, float]], my_s: float, my_half: float
     """
     if len(agents.positions) == 0:
         return None, 0.0
-    d2 = np.sum((agents.positions - origin) ** 2, axis=1)
-    near = np.nonzero((d2 < (lookahead_m + 8.0) ** 2) & (agents.ids != skip_id))[0]
+    # Only agents near the origin that could touch the path go on to the exact (slow) test below.
+    lateral = max(vehicle_lateral_m, pedestrian_lateral_m, STANDING_PEDESTRIAN_LATERAL_M)
+    near = path_candidates(agents.positions, agents.ids, skip_id, float(origin[0]), float(origin[1]),
+                           (lookahead_m + 8.0) ** 2, agents.speeds, agents.half_lengths, agents.is_pedestrian,
+                           path_rows([lane for lane, _ in path]), lateral, PEDESTRIAN_LOOKAHEAD_S)
     best: float | None = None
     best_speed = 0.0
     for k in near:
@@ -145,9 +162,10 @@ def crosswalk_gap(town: Town, path: list[tuple[AbstractLane, float]], path_lanes
                   my_s: float, my_half: float, agents: Agents, lookahead_m: float) -> float | None:
     """Gap from the front bumper to the first crosswalk ahead on the path that someone is crossing
     (or stepping onto): yield there, before the zebra, not next to the pedestrian."""
-    peds = np.nonzero(agents.is_pedestrian & agents.on_crossing)[0]
-    if len(peds) == 0:
+    crossing = agents.crossing_positions
+    if len(crossing) == 0:
         return None
+    frames = town.crosswalk_frames()
     for (_, offset), index in zip(path, path_lanes, strict=False):
         for cw, s_in, s_out in town.crosswalks_on(index):
             enter, leave = offset + s_in, offset + s_out
@@ -155,9 +173,9 @@ def crosswalk_gap(town: Town, path: list[tuple[AbstractLane, float]], path_lanes
                 continue
             if enter < my_s + my_half:
                 continue  # already on it: clear it rather than stop on it
-            centre, u, half_depth, half_width = crosswalk_frame(town.crosswalks[cw])
-            d = agents.positions[peds] - centre
-            on = (np.abs(d @ u) <= half_depth + 1.0) & (np.abs(d @ np.array([-u[1], u[0]])) <= half_width + 1.0)
+            centre, u, half_depth, half_width, across = frames[cw]
+            d = crossing - centre
+            on = (np.abs(d @ u) <= half_depth + 1.0) & (np.abs(d @ across) <= half_width + 1.0)
             if on.any():
                 return enter - my_s - my_half
     return None
@@ -205,6 +223,7 @@ class TownVehicle(IDMVehicle):
             self.LENGTH, self.WIDTH, self.HEIGHT = 6.8, 2.3, 2.8
         else:
             self.LENGTH, self.WIDTH, self.HEIGHT = 4.5, 1.9, 1.5
+        self._coords: dict[int, tuple[float, float]] | None = None
         super().__init__(road, lane.position(s, 0.0), lane.heading_at(s), speed=target_speed * 0.5,
                          target_lane_index=lane_index, target_speed=target_speed,
                          route=[(lane_index[0], lane_index[1], None)])
@@ -216,10 +235,21 @@ class TownVehicle(IDMVehicle):
     def on_state_update(self) -> None:
         """Nothing per integration step; see ``_locate``."""
 
+    def _lane_coords(self, lane: AbstractLane) -> tuple[float, float]:
+        """``lane.local_coordinates`` of the vehicle's position. During ``decide`` the vehicle does not
+        move, and one decision asks for the same lane up to six times, so the answers are kept."""
+        if self._coords is None:
+            return lane.local_coordinates(self.position)
+        hit = self._coords.get(id(lane))
+        if hit is None:
+            hit = lane.local_coordinates(self.position)
+            self._coords[id(lane)] = hit
+        return hit
+
     def _locate(self) -> None:
         frm, to, _ = self.target_lane_index
         lanes = self.town.network.graph[frm][to]
-        lats = [abs(lane.local_coordinates(self.position)[1]) for lane in lanes]
+        lats = [abs(self._lane_coords(lane)[1]) for lane in lanes]
         k = lats.index(min(lats))
         self.lane_index = (frm, to, k)
         self.lane = lanes[k]
@@ -238,7 +268,7 @@ class TownVehicle(IDMVehicle):
     def path_with_indices(self, lookahead_m: float) -> tuple[list[tuple[AbstractLane, float, tuple[str, str, int]]], float]:
         frm, to, k = self.target_lane_index
         lane = self.town.lane(self.target_lane_index)
-        s0 = float(lane.local_coordinates(self.position)[0])
+        s0 = float(self._lane_coords(lane)[0])
         path = [(lane, 0.0, (frm, to, k))]
         total = lane.length
         started = False
@@ -270,7 +300,7 @@ class TownVehicle(IDMVehicle):
         if self.town.lane_info[self.target_lane_index].kind != "road":
             return
         lane = self.town.lane(self.target_lane_index)
-        remaining = lane.length - lane.local_coordinates(self.position)[0]
+        remaining = lane.length - self._lane_coords(lane)[0]
         move = self._next_move()
         allowed = lanes_for(move[1]) if move is not None else (0, 1)
         if k in allowed:
@@ -292,7 +322,7 @@ class TownVehicle(IDMVehicle):
     def _lane_clear(self, lane_index: tuple[str, str, int]) -> bool:
         """No vehicle within 9 m along a lane of where this one would be."""
         lane = self.town.lane(lane_index)
-        s0 = lane.local_coordinates(self.position)[0]
+        s0 = self._lane_coords(lane)[0]
         for v in self.road.vehicles:
             if v is self or math.hypot(*(v.position - self.position)) > 15.0:
                 continue
@@ -301,10 +331,41 @@ class TownVehicle(IDMVehicle):
                 return False
         return True
 
+    def follow_road(self) -> None:
+        """highway-env's ``follow_road``, with the lane coordinates of ``_lane_coords``."""
+        lane = self.road.network.get_lane(self.target_lane_index)
+        if lane.after_end(self.position, self._lane_coords(lane)[0]):
+            self.target_lane_index = self.road.network.next_lane(self.target_lane_index, route=self.route,
+                                                                 position=self.position,
+                                                                 np_random=self.road.np_random)
+
+    def steering_control(self, target_lane_index: tuple[str, str, int]) -> float:
+        """highway-env's lane-following steering (same operations, same order), with the lane
+        coordinates of ``_lane_coords`` and scalar clips (``np.clip`` on one number costs microseconds)."""
+        target_lane = self.road.network.get_lane(target_lane_index)
+        lane_coords = self._lane_coords(target_lane)
+        lane_next_coords = lane_coords[0] + self.speed * self.TAU_PURSUIT
+        lane_future_heading = target_lane.heading_at(lane_next_coords)
+        lateral_speed_command = -self.KP_LATERAL * lane_coords[1]
+        heading_command = np.arcsin(_clip(lateral_speed_command / not_zero(self.speed), -1, 1))
+        heading_ref = lane_future_heading + _clip(heading_command, -np.pi / 4, np.pi / 4)
+        heading_rate_command = self.KP_HEADING * hwe_wrap_to_pi(heading_ref - self.heading)
+        slip_angle = np.arcsin(_clip(self.LENGTH / 2 / not_zero(self.speed) * heading_rate_command, -1, 1))
+        steering_angle = np.arctan(2 * np.tan(slip_angle))
+        steering_angle = _clip(steering_angle, -self.MAX_STEERING_ANGLE, self.MAX_STEERING_ANGLE)
+        return float(steering_angle)
+
     def decide(self, agents: Agents, lights_state: list[LightState], enable_lane_change: bool) -> None:
         """Set this step's steering and acceleration (highway-env action dict)."""
         if self.crashed:
             return
+        self._coords = {}
+        try:
+            self._decide(agents, lights_state, enable_lane_change)
+        finally:
+            self._coords = None
+
+    def _decide(self, agents: Agents, lights_state: list[LightState], enable_lane_change: bool) -> None:
         self._locate()
         self.follow_road()
         self._extend_route()
@@ -361,3 +422,32 @@ class TownVehicle(IDMVehicle):
     def snapshot(self) -> ObjectSnapshot:
         return ObjectSnapshot(self.object_id, self.kind, float(self.position[0]), float(self.position[1]),
                               float(self.heading), self.LENGTH, self.WIDTH, self.HEIGHT, self.color)
+
+
+def step_town_vehicles(vehicles: list[TownVehicle], dt: float) -> None:
+    """``TownVehicle.step`` for many vehicles in one go (highway-env's bicycle model).
+
+    The per-vehicle NumPy calls on single numbers cost more than the arithmetic, so the trigonometry
+    runs once over all vehicles. Each value goes through the same operations in the same order as
+    in ``Vehicle.step``, and NumPy's ufuncs give an element of an array what they give one number,
+    so every state stays bit for bit what the one-by-one step gave; the types stay too (heading a
+    NumPy float, speed a Python float, the position array updated in place).
+    """
+    if not vehicles:
+        return
+    for v in vehicles:
+        v.clip_actions()
+    speed = np.array([v.speed for v in vehicles], dtype=float)
+    heading = np.array([v.heading for v in vehicles], dtype=float)
+    steering = np.array([v.action["steering"] for v in vehicles], dtype=float)
+    half_length = np.array([v.LENGTH / 2 for v in vehicles], dtype=float)
+    beta = np.arctan(1 / 2 * np.tan(steering))
+    course = heading + beta
+    position = np.array([v.position for v in vehicles], dtype=float)
+    position += np.stack([speed * np.cos(course), speed * np.sin(course)], axis=1) * dt
+    heading += speed * np.sin(beta) / half_length * dt
+    for k, v in enumerate(vehicles):
+        v.timer += dt
+        v.position[:] = position[k]
+        v.heading = heading[k]
+        v.speed = max(v.speed + v.action["acceleration"] * dt, 0.0)

@@ -20,8 +20,8 @@ from sim.lights import LightTiming, TrafficLights
 from sim.objects import LightState, ObjectSnapshot, SemanticClass
 from sim.pedestrians import PedestrianCrowd
 from sim.routes import command_at, edge_length, random_route, route_length, shortest_route
-from sim.town import Command, Edge, Town, TownConfig, generate_town
-from sim.traffic import CAR_COLORS, Agents, TownVehicle
+from sim.town import Command, Edge, LaneLocation, Town, TownConfig, generate_town
+from sim.traffic import CAR_COLORS, Agents, TownVehicle, step_town_vehicles
 
 PEDESTRIAN_ID_BASE = 1000
 EGO_ID = 999
@@ -116,6 +116,16 @@ class StaticObstacles:
         return False
 
 
+def _maybe_within(items: list, centre: np.ndarray, radii: list[float]) -> list:
+    """The items (anything with a ``position``) that may lie within their radius of a point, in order:
+    a squared-distance test with 1 cm to spare, so that only the exact test that follows decides."""
+    if not items:
+        return []
+    d = np.array([item.position for item in items], dtype=float) - centre
+    keep = d[:, 0] ** 2 + d[:, 1] ** 2 < (np.asarray(radii, dtype=float) + 0.01) ** 2
+    return [item for item, k in zip(items, keep.tolist(), strict=True) if k]
+
+
 class World:
     """One episode's world. Build it with a town, a config and a seed; step it with ego actions."""
 
@@ -196,19 +206,13 @@ class World:
         vehicles = [self.ego] + self.npcs
         peds = self.crowd.peds
         n = len(vehicles) + len(peds)
-        pos = np.zeros((n, 2))
-        head = np.zeros(n)
-        spd = np.zeros(n)
-        half = np.zeros(n)
-        is_ped = np.zeros(n, dtype=bool)
-        crossing = np.zeros(n, dtype=bool)
-        ids = np.zeros(n, dtype=np.int64)
-        for k, v in enumerate(vehicles):
-            pos[k], head[k], spd[k], half[k] = v.position, v.heading, v.speed, v.LENGTH / 2
-            ids[k] = EGO_ID if v is self.ego else v.object_id
-        for k, p in enumerate(peds, start=len(vehicles)):
-            pos[k], head[k], spd[k], half[k] = p.position, p.heading, p.speed_mps if p.moving else 0.0, p.RADIUS
-            is_ped[k], ids[k], crossing[k] = True, p.object_id, p.state == "crossing"
+        pos = np.array([v.position for v in vehicles] + [p.position for p in peds], dtype=float).reshape(n, 2)
+        head = np.array([v.heading for v in vehicles] + [p.heading for p in peds], dtype=float)
+        spd = np.array([v.speed for v in vehicles] + [p.speed_mps if p.moving else 0.0 for p in peds], dtype=float)
+        half = np.array([v.LENGTH / 2 for v in vehicles] + [p.RADIUS for p in peds], dtype=float)
+        is_ped = np.arange(n) >= len(vehicles)
+        crossing = np.array([False] * len(vehicles) + [p.state == "crossing" for p in peds], dtype=bool)
+        ids = np.array([EGO_ID] + [v.object_id for v in self.npcs] + [p.object_id for p in peds], dtype=np.int64)
         return Agents(pos, head, spd, half, is_ped, ids, crossing)
 
     def step(self, action: np.ndarray) -> list[Infraction]:
@@ -228,8 +232,13 @@ class World:
                 npc.decide(agents, states, self.config.enable_lane_change)
         self.ego.apply(action)
         before = self.ego.position.copy()
+        batch: list[TownVehicle] = []
         for v in self.road.vehicles:
-            v.step(dt)
+            if type(v) is TownVehicle and v.impact is None:
+                batch.append(v)  # integrated together below
+            else:
+                v.step(dt)
+        step_town_vehicles(batch, dt)
         self.distance_m += math.hypot(*(self.ego.position - before))
         vehicles = [self.ego] + self.npcs
         vpos = np.array([v.position for v in vehicles])
@@ -251,25 +260,26 @@ class World:
         out: list[Infraction] = []
         contacts: set[tuple[str, int]] = set()
         poly = rect_corners(ego.position, ego.heading, ego.LENGTH, ego.WIDTH)
-        for npc in self.npcs:
+        for npc in _maybe_within(self.npcs, ego.position, [(v.LENGTH + ego.LENGTH) / 2 + 1.0 for v in self.npcs]):
             near = math.hypot(*(npc.position - ego.position)) < (npc.LENGTH + ego.LENGTH) / 2 + 1.0
             if near and polygons_intersect(poly, rect_corners(npc.position, npc.heading, npc.LENGTH, npc.WIDTH)):
                 npc.crashed = True
                 contacts.add(("collision_vehicle", npc.object_id))
-        for ped in self.crowd.peds:
+        peds = self.crowd.peds
+        for ped in _maybe_within(peds, ego.position, [ego.LENGTH] * len(peds)):
             if math.hypot(*(ped.position - ego.position)) < ego.LENGTH and circle_polygon_intersect(
                     ped.position, ped.RADIUS, poly):
                 contacts.add(("collision_pedestrian", ped.object_id))
         if self.static.hits(poly):
             contacts.add(("collision_static", 0))
-        self.ego_lane = self.town.locate(ego.position, ego.heading)
+        self.ego_lane, nearest = self.town.locate_both(ego.position, ego.heading)
         if self.ego_lane is None:
             contacts.add(("off_road", 0))
         for kind, other in sorted(contacts - self._contacts):
             out.append(self._record(kind, other))
         self._contacts = contacts
         if self.ego_lane is not None:
-            out += self._check_direction_and_route()
+            out += self._check_direction_and_route(nearest)
         out += self._check_red_light()
         return out
 
@@ -314,10 +324,10 @@ class World:
         self.ego_lane = self.town.locate(self.ego.position, self.ego.heading)
         self._contacts = set()
 
-    def _check_direction_and_route(self) -> list[Infraction]:
+    def _check_direction_and_route(self, nearest: LaneLocation | None) -> list[Infraction]:
+        """Wrong-way driving (against the lane ``nearest`` the ego, whatever its heading) and route progress."""
         out: list[Infraction] = []
         assert self.ego_lane is not None
-        nearest = self.town.locate(self.ego.position)
         wrong = False
         if nearest is not None and self.town.lane_info[nearest[0]].kind != "connector":
             lane = self.town.lane(nearest[0])

@@ -1,0 +1,129 @@
+"""A cheap, conservative test of which agents could lie on a path of lanes, before the exact one.
+
+``sim.traffic.path_gap`` asks highway-env's ``lane.local_coordinates`` for every nearby agent and
+every lane of the path (a few microseconds of Python each), yet most nearby agents are nowhere near
+the path. This module rules those out in one compiled loop over flat lane parameters. It only ever
+drops an agent that the exact test would reject anyway: the bounds it checks are the exact test's
+bounds widened by the agent's reach (bumpers, a walking pedestrian's look-ahead) and a margin far
+larger than any rounding difference. So which agents reach the exact test changes, never the answer.
+"""
+
+from __future__ import annotations
+
+import weakref
+
+import numba as nb
+import numpy as np
+from highway_env.road.lane import AbstractLane, CircularLane, StraightLane
+
+KIND_STRAIGHT, KIND_CIRCULAR, KIND_OTHER = 0.0, 1.0, 2.0
+ROW_SIZE = 7  # kind, x, y (start or centre), ux, uy (direction), length, radius
+MARGIN_M = 0.5  # widening of every bound: rounding is at most a few nanometres here
+
+_ROWS: weakref.WeakKeyDictionary[AbstractLane, np.ndarray] = weakref.WeakKeyDictionary()
+
+
+def lane_row(lane: AbstractLane) -> np.ndarray:
+    """A lane's flat parameters (built once per lane: lanes never change after the town is made)."""
+    row = _ROWS.get(lane)
+    if row is None:
+        if type(lane) is StraightLane:
+            row = np.array([KIND_STRAIGHT, lane.start[0], lane.start[1], lane.direction[0], lane.direction[1],
+                            lane.length, 0.0])
+        elif type(lane) is CircularLane:
+            row = np.array([KIND_CIRCULAR, lane.center[0], lane.center[1], 0.0, 0.0, lane.length, lane.radius])
+        else:  # no shortcut known: every agent goes on to the exact test
+            row = np.array([KIND_OTHER, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+        _ROWS[lane] = row
+    return row
+
+
+_PATHS: dict[tuple[int, ...], tuple[tuple[AbstractLane, ...], np.ndarray]] = {}
+
+
+def path_rows(lanes: list[AbstractLane]) -> np.ndarray:
+    """Flat parameters of the lanes of a path, one row each. NPCs ask for the same few paths step
+    after step, so they are kept; the cache holds the lanes themselves, so no id in a key is reused."""
+    key = tuple(map(id, lanes))
+    hit = _PATHS.get(key)
+    if hit is None:
+        if len(_PATHS) > 4096:
+            _PATHS.clear()
+        hit = (tuple(lanes), np.stack([lane_row(lane) for lane in lanes]))
+        _PATHS[key] = hit
+    return hit[1]
+
+
+@nb.njit(cache=True, nogil=True)
+def may_touch_path(positions: np.ndarray, speeds: np.ndarray, half_lengths: np.ndarray, is_pedestrian: np.ndarray,
+                   candidates: np.ndarray, rows: np.ndarray, lateral_m: float, lookahead_s: float) -> np.ndarray:
+    """For each candidate agent, whether any point the exact test tries (centre, bumpers, a walking
+    pedestrian's place ``lookahead_s`` ahead) could be within ``lateral_m`` of a path lane, between its
+    ends widened by the agent's half length. False means the exact test would skip the agent."""
+    out = np.zeros(len(candidates), dtype=np.bool_)
+    for i in range(len(candidates)):
+        k = candidates[i]
+        half = half_lengths[k]
+        reach = lookahead_s * abs(speeds[k]) if is_pedestrian[k] else half
+        lat_max = lateral_m + reach + MARGIN_M
+        s_pad = half + reach + MARGIN_M
+        px, py = positions[k, 0], positions[k, 1]
+        for j in range(rows.shape[0]):
+            kind = rows[j, 0]
+            dx, dy = px - rows[j, 1], py - rows[j, 2]
+            if kind == KIND_STRAIGHT:
+                ux, uy = rows[j, 3], rows[j, 4]
+                s = dx * ux + dy * uy
+                lat = dy * ux - dx * uy
+                if abs(lat) <= lat_max and -s_pad <= s <= rows[j, 5] + s_pad:
+                    out[i] = True
+                    break
+            elif kind == KIND_CIRCULAR:
+                if abs(np.sqrt(dx * dx + dy * dy) - rows[j, 6]) <= lat_max:
+                    out[i] = True
+                    break
+            else:
+                out[i] = True
+                break
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
+def path_candidates(positions: np.ndarray, ids: np.ndarray, skip_id: int, ox: float, oy: float, radius2: float,
+                    speeds: np.ndarray, half_lengths: np.ndarray, is_pedestrian: np.ndarray, rows: np.ndarray,
+                    lateral_m: float, lookahead_s: float) -> np.ndarray:
+    """Indices (ascending) of the agents other than ``skip_id`` whose squared distance from the origin
+    is below ``radius2`` (the same subtraction, squares and sum as NumPy's, so the same agents) and
+    that ``may_touch_path``."""
+    near = np.empty(len(ids), dtype=np.int64)
+    n = 0
+    for k in range(len(ids)):
+        dx = positions[k, 0] - ox
+        dy = positions[k, 1] - oy
+        if dx * dx + dy * dy < radius2 and ids[k] != skip_id:
+            near[n] = k
+            n += 1
+    near = near[:n]
+    return near[may_touch_path(positions, speeds, half_lengths, is_pedestrian, near, rows, lateral_m, lookahead_s)]
+
+
+@nb.njit(cache=True, nogil=True)
+def lanes_may_hold(px: float, py: float, rows: np.ndarray, lateral_m: float, s_pad: float) -> np.ndarray:
+    """For each lane row, whether the point could be within ``lateral_m`` of it, between its ends
+    widened by ``s_pad`` (bounds widened by ``MARGIN_M``). False means the exact test would reject it."""
+    out = np.zeros(rows.shape[0], dtype=np.bool_)
+    lat_max = lateral_m + MARGIN_M
+    pad = s_pad + MARGIN_M
+    for j in range(rows.shape[0]):
+        kind = rows[j, 0]
+        dx, dy = px - rows[j, 1], py - rows[j, 2]
+        if kind == KIND_STRAIGHT:
+            ux, uy = rows[j, 3], rows[j, 4]
+            s = dx * ux + dy * uy
+            lat = dy * ux - dx * uy
+            out[j] = abs(lat) <= lat_max and -pad <= s <= rows[j, 5] + pad
+        elif kind == KIND_CIRCULAR:
+            out[j] = abs(np.sqrt(dx * dx + dy * dy) - rows[j, 6]) <= lat_max
+        else:
+            out[j] = True
+    return out
