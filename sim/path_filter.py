@@ -127,3 +127,15 @@ def lanes_may_hold(px: float, py: float, rows: np.ndarray, lateral_m: float, s_p
         else:
             out[j] = True
     return out
+
+
+@nb.njit(cache=True, nogil=True)
+def any_within(points: np.ndarray, cx: float, cy: float, radius_m: float) -> bool:
+    """Whether any point could be within ``radius_m`` of (cx, cy) (widened by ``MARGIN_M``): a quick
+    no before an exact test over the same points."""
+    r2 = (radius_m + MARGIN_M) ** 2
+    for i in range(points.shape[0]):
+        dx, dy = points[i, 0] - cx, points[i, 1] - cy
+        if dx * dx + dy * dy <= r2:
+            return True
+    return False

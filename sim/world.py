@@ -86,9 +86,10 @@ class StaticObstacles:
     """Buildings (rectangles) and poles/trunks (circles) in a spatial hash for collision tests."""
 
     CELL_M = 10.0
+    CLEAR_M = 0.1  # shapes whose bounding boxes are this far apart cannot touch: no exact test needed
 
     def __init__(self, town: Town) -> None:
-        self.grid: dict[tuple[int, int], list[tuple[str, np.ndarray, float]]] = {}
+        self.grid: dict[tuple[int, int], list[tuple[str, np.ndarray, float, tuple[float, float, float, float]]]] = {}
         for b in town.buildings:
             lo, hi = b.footprint.min(axis=0), b.footprint.max(axis=0)
             self._add(("rect", b.footprint, 0.0), lo, hi)
@@ -98,17 +99,27 @@ class StaticObstacles:
             self._add(("circle", t.position, Town.TRUNK_RADIUS_M), t.position - 1, t.position + 1)
 
     def _add(self, item: tuple[str, np.ndarray, float], lo: np.ndarray, hi: np.ndarray) -> None:
+        """File a shape under every cell its box [lo, hi] touches, with its exact bounding box."""
+        kind, shape, r = item
+        box_lo = shape.min(axis=0) if kind == "rect" else shape - r
+        box_hi = shape.max(axis=0) if kind == "rect" else shape + r
+        box = (float(box_lo[0]), float(box_lo[1]), float(box_hi[0]), float(box_hi[1]))
         c = self.CELL_M
         for i in range(int(math.floor(lo[0] / c)), int(math.floor(hi[0] / c)) + 1):
             for j in range(int(math.floor(lo[1] / c)), int(math.floor(hi[1] / c)) + 1):
-                self.grid.setdefault((i, j), []).append(item)
+                self.grid.setdefault((i, j), []).append((kind, shape, r, box))
 
     def hits(self, polygon: np.ndarray) -> bool:
+        """Whether a convex polygon touches any building, pole or trunk."""
         c = self.CELL_M
         lo, hi = polygon.min(axis=0), polygon.max(axis=0)
+        clear = self.CLEAR_M
+        x0, y0, x1, y1 = float(lo[0]) - clear, float(lo[1]) - clear, float(hi[0]) + clear, float(hi[1]) + clear
         for i in range(int(math.floor(lo[0] / c)), int(math.floor(hi[0] / c)) + 1):
             for j in range(int(math.floor(lo[1] / c)), int(math.floor(hi[1] / c)) + 1):
-                for kind, shape, r in self.grid.get((i, j), []):
+                for kind, shape, r, box in self.grid.get((i, j), []):
+                    if box[0] > x1 or box[2] < x0 or box[1] > y1 or box[3] < y0:
+                        continue  # 10 cm or more apart on an axis: the exact tests below would say no
                     if kind == "rect" and polygons_intersect(polygon, shape):
                         return True
                     if kind == "circle" and circle_polygon_intersect(shape, r, polygon):
@@ -116,13 +127,16 @@ class StaticObstacles:
         return False
 
 
-def _maybe_within(items: list, centre: np.ndarray, radii: list[float]) -> list:
-    """The items (anything with a ``position``) that may lie within their radius of a point, in order:
-    a squared-distance test with 1 cm to spare, so that only the exact test that follows decides."""
+def _maybe_within(items: list, positions: np.ndarray | None, centre: np.ndarray, radius_m: float) -> list:
+    """The items that may lie within ``radius_m`` of a point, in order: a squared-distance test with
+    1 cm to spare, so that only the exact test that follows decides. ``positions`` are the items'
+    positions as an (N, 2) array if the caller has them (None: read ``item.position``)."""
     if not items:
         return []
-    d = np.array([item.position for item in items], dtype=float) - centre
-    keep = d[:, 0] ** 2 + d[:, 1] ** 2 < (np.asarray(radii, dtype=float) + 0.01) ** 2
+    if positions is None:
+        positions = np.concatenate([item.position for item in items]).reshape(-1, 2)
+    d = positions - centre
+    keep = d[:, 0] ** 2 + d[:, 1] ** 2 < (radius_m + 0.01) ** 2
     return [item for item, k in zip(items, keep.tolist(), strict=True) if k]
 
 
@@ -206,7 +220,7 @@ class World:
         vehicles = [self.ego] + self.npcs
         peds = self.crowd.peds
         n = len(vehicles) + len(peds)
-        pos = np.array([v.position for v in vehicles] + [p.position for p in peds], dtype=float).reshape(n, 2)
+        pos = np.concatenate([v.position for v in vehicles] + [p.position for p in peds]).astype(float).reshape(n, 2)
         head = np.array([v.heading for v in vehicles] + [p.heading for p in peds], dtype=float)
         spd = np.array([v.speed for v in vehicles] + [p.speed_mps if p.moving else 0.0 for p in peds], dtype=float)
         half = np.array([v.LENGTH / 2 for v in vehicles] + [p.RADIUS for p in peds], dtype=float)
@@ -224,9 +238,10 @@ class World:
         agents = self.agents()
         states = self.lights.states
         near_r2 = self.config.npc_near_radius_m ** 2
-        for npc in self.npcs:
-            d = npc.position - self.ego.position
-            far = d[0] * d[0] + d[1] * d[1] > near_r2
+        # NPC positions are agents' rows 1.. (the same numbers); the same per-element arithmetic, for all at once.
+        d = agents.positions[1:len(self.npcs) + 1] - self.ego.position
+        far_all = (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] > near_r2).tolist()
+        for npc, far in zip(self.npcs, far_all, strict=True):
             every = max(1, self.config.npc_far_decision_every if far else self.config.npc_decision_every)
             if (self.step_count + npc.object_id) % every == 0:
                 npc.decide(agents, states, self.config.enable_lane_change)
@@ -245,7 +260,7 @@ class World:
         vspd = np.array([v.speed for v in vehicles])
         vhead = np.array([v.heading for v in vehicles])
         self.crowd.step(dt, self.lights, vpos, vspd, vhead, self.step_count)
-        self.new_infractions = self._check_ego()
+        self.new_infractions = self._check_ego(vpos[1:])
         self.infractions += self.new_infractions
         return self.new_infractions
 
@@ -253,20 +268,21 @@ class World:
     def _record(self, kind: str, other: int = 0) -> Infraction:
         return Infraction(kind, self.time_s, float(self.ego.position[0]), float(self.ego.position[1]), other)
 
-    def _check_ego(self) -> list[Infraction]:
+    def _check_ego(self, npc_positions: np.ndarray | None = None) -> list[Infraction]:
         """This step's new infractions. A contact (collision, off road) counts once when it starts,
         not on every step it lasts, so an episode that goes on after one counts it once."""
         ego = self.ego
         out: list[Infraction] = []
         contacts: set[tuple[str, int]] = set()
         poly = rect_corners(ego.position, ego.heading, ego.LENGTH, ego.WIDTH)
-        for npc in _maybe_within(self.npcs, ego.position, [(v.LENGTH + ego.LENGTH) / 2 + 1.0 for v in self.npcs]):
+        longest = max((v.LENGTH for v in self.npcs), default=0.0)
+        for npc in _maybe_within(self.npcs, npc_positions, ego.position, (longest + ego.LENGTH) / 2 + 1.0):
             near = math.hypot(*(npc.position - ego.position)) < (npc.LENGTH + ego.LENGTH) / 2 + 1.0
             if near and polygons_intersect(poly, rect_corners(npc.position, npc.heading, npc.LENGTH, npc.WIDTH)):
                 npc.crashed = True
                 contacts.add(("collision_vehicle", npc.object_id))
         peds = self.crowd.peds
-        for ped in _maybe_within(peds, ego.position, [ego.LENGTH] * len(peds)):
+        for ped in _maybe_within(peds, None, ego.position, ego.LENGTH):
             if math.hypot(*(ped.position - ego.position)) < ego.LENGTH and circle_polygon_intersect(
                     ped.position, ped.RADIUS, poly):
                 contacts.add(("collision_pedestrian", ped.object_id))

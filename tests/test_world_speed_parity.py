@@ -1,0 +1,152 @@
+"""The world step's shortcuts (prefilters, batched integration, one-pass lane lookup) give exactly
+what the plain computations give: each is checked against the plain one on many random cases."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import pytest
+
+import sim.traffic as traffic
+from sim.geometry import circle_polygon_intersect, polygons_intersect, rect_corners, wrap_to_pi
+from sim.pedestrians import PedestrianCrowd
+from sim.traffic import Agents, TownVehicle, crosswalk_gap, path_gap, step_town_vehicles
+from sim.world import StaticObstacles, World, WorldConfig
+
+
+@pytest.fixture(scope="module")
+def world(town) -> World:
+    w = World(town, WorldConfig(npc_count=24, pedestrian_count=40), 3)
+    for _ in range(200):
+        w.step(np.array([0.0, 0.3]))
+    return w
+
+
+def random_agents(lanes: list, origin: np.ndarray, rng: np.random.Generator, n: int) -> Agents:
+    """Agents in all states: half scattered on and beside the given lanes (so that paths have someone
+    on them, or just off them), half anywhere within 50 m of the origin."""
+    on = [lanes[i].position(rng.uniform(-3, lanes[i].length + 3), rng.normal(0, 2.5))
+          for i in rng.integers(len(lanes), size=n // 2)]
+    pos = np.array(on + list(origin + rng.uniform(-50, 50, (n - n // 2, 2))))
+    ped = rng.random(n) < 0.5
+    return Agents(pos, rng.uniform(-math.pi, math.pi, n), np.where(rng.random(n) < 0.3, 0.0, rng.uniform(0, 9, n)),
+                  np.where(ped, 0.3, rng.choice([2.25, 3.4], n)), ped, np.arange(n, dtype=np.int64),
+                  ped & (rng.random(n) < 0.5))
+
+
+def plain_candidates(positions, ids, skip_id, ox, oy, radius2, *_args) -> np.ndarray:
+    """What path_gap selected before the prefilter: every agent near the origin."""
+    d2 = np.sum((positions - np.array([ox, oy])) ** 2, axis=1)
+    return np.nonzero((d2 < radius2) & (ids != skip_id))[0]
+
+
+def test_path_and_crosswalk_gaps_match_the_plain_search(town, world, monkeypatch):
+    rng = np.random.default_rng(0)
+    cases = []
+    for trial in range(300):
+        npc = world.npcs[trial % len(world.npcs)]
+        lookahead = float(rng.uniform(12.0, 45.0))
+        indexed, s0 = npc.path_with_indices(lookahead)
+        path = [(lane, offset) for lane, offset, _ in indexed]
+        origin = npc.position + rng.normal(0, 1.0, 2)
+        agents = random_agents([lane for lane, _ in path], origin, rng, 40)
+        cases.append((path, [i for *_, i in indexed], s0, agents, origin, lookahead))
+    fast = [(path_gap(p, s0, 2.25, a, -1, o, la), crosswalk_gap(town, p, ix, s0, 2.25, a, la))
+            for p, ix, s0, a, o, la in cases]
+    monkeypatch.setattr(traffic, "path_candidates", plain_candidates)
+    monkeypatch.setattr(traffic, "any_within", lambda *_: True)
+    plain = [(path_gap(p, s0, 2.25, a, -1, o, la), crosswalk_gap(town, p, ix, s0, 2.25, a, la))
+             for p, ix, s0, a, o, la in cases]
+    assert fast == plain
+    assert sum(g is not None for (g, _), _ in fast) > 200  # the cases do find leaders
+    assert sum(z is not None for _, z in fast) > 30
+
+
+def plain_locate(town, position, heading):
+    """Town.locate as it was: every lane of the hash cell through highway-env's geometry."""
+    best = None
+    half = town.lane_width / 2
+    for index in town.lanes_near(position):
+        lane = town.lane(index)
+        s, lat = lane.local_coordinates(position)
+        if not (-0.5 <= s <= lane.length + 0.5) or abs(lat) > half + 0.05:
+            continue
+        cost = abs(lat)
+        if heading is not None:
+            cost += 4.0 * abs(wrap_to_pi(lane.heading_at(s) - heading))
+        if best is None or cost < best[0]:
+            best = (cost, index, float(s), float(lat))
+    return None if best is None else best[1:]
+
+
+def test_locate_both_matches_two_plain_lookups(town):
+    rng = np.random.default_rng(1)
+    lanes = [town.lane(k) for k in town.lane_info]
+    found = 0
+    for i in rng.integers(len(lanes), size=2000):
+        lane = lanes[i]
+        p = lane.position(rng.uniform(-2, lane.length + 2), rng.normal(0, 2.0))
+        h = float(rng.uniform(-math.pi, math.pi))
+        with_heading, nearest = town.locate_both(p, h)
+        assert with_heading == plain_locate(town, p, h)
+        assert nearest == plain_locate(town, p, None) == town.locate(p)
+        found += with_heading is not None
+    assert found > 1000
+
+
+def test_static_hits_match_a_test_against_every_shape(town):
+    static = StaticObstacles(town)
+    rng = np.random.default_rng(2)
+    anchors = [b.footprint.mean(axis=0) for b in town.buildings] + list(town.poles) + [t.position for t in town.trees]
+    hits = 0
+    for k in rng.integers(len(anchors), size=1500):
+        poly = rect_corners(anchors[k] + rng.normal(0, 4.0, 2), float(rng.uniform(-math.pi, math.pi)), 4.6, 1.9)
+        plain = (any(polygons_intersect(poly, b.footprint) for b in town.buildings)
+                 or any(circle_polygon_intersect(p, town.POLE_RADIUS_M, poly) for p in town.poles)
+                 or any(circle_polygon_intersect(t.position, town.TRUNK_RADIUS_M, poly) for t in town.trees))
+        assert static.hits(poly) == plain
+        hits += plain
+    assert 100 < hits < 1400
+
+
+def test_batched_integration_matches_one_by_one(world):
+    rng = np.random.default_rng(3)
+    one = copy.deepcopy(world.npcs)
+    batch = copy.deepcopy(world.npcs)
+    for _ in range(50):
+        for a, b in zip(one, batch, strict=True):
+            action = {"steering": float(rng.uniform(-1, 1)), "acceleration": float(rng.uniform(-6, 3))}
+            a.action, b.action = dict(action), dict(action)
+            a.crashed = b.crashed = bool(rng.random() < 0.05)
+        for v in one:
+            v.step(0.05)
+        step_town_vehicles(batch, 0.05)
+        for a, b in zip(one, batch, strict=True):
+            assert (a.position.tobytes(), a.heading, a.speed, a.timer) == (b.position.tobytes(), b.heading, b.speed,
+                                                                           b.timer)
+            assert type(a.heading) is type(b.heading) and type(a.speed) is type(b.speed)
+
+
+def test_pedestrians_look_out_for_cars_as_one_by_one(world):
+    crowd = world.crowd
+    rng = np.random.default_rng(4)
+    for _ in range(200):
+        vehicles = rng.uniform(-150, 150, (12, 2))
+        speeds = rng.uniform(0, 2, 12)
+        peds = copy.deepcopy(crowd.peds)
+        for p in peds:
+            p.position = vehicles[int(rng.integers(12))] + rng.normal(0, 2.5, 2)
+            p.heading = float(rng.uniform(-math.pi, math.pi))
+        assert PedestrianCrowd._cars_in_the_way(peds, vehicles, speeds) == [
+            PedestrianCrowd._car_in_the_way(p, vehicles, speeds) for p in peds]
+
+
+def test_npc_lane_memo_is_only_used_within_a_decision(world):
+    npc: TownVehicle = world.npcs[0]
+    lane = world.town.lane(npc.target_lane_index)
+    assert npc._coords is None
+    before = npc._lane_coords(lane)
+    npc.position = npc.position + np.array([1.0, 0.0])
+    assert npc._lane_coords(lane) == lane.local_coordinates(npc.position) != before
