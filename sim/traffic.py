@@ -449,8 +449,8 @@ def step_town_vehicles(vehicles: list[TownVehicle], dt: float) -> None:
     position = np.array([v.position for v in vehicles], dtype=float)
     position += np.stack([speed * np.cos(course), speed * np.sin(course)], axis=1) * dt
     heading += speed * np.sin(beta) / half_length * dt
-    for k, v in enumerate(vehicles):
+    for v, (x, y), h in zip(vehicles, position.tolist(), heading, strict=True):
         v.timer += dt
-        v.position[:] = position[k]
-        v.heading = heading[k]
+        v.position[0], v.position[1] = x, y  # Python floats hold the float64 values exactly
+        v.heading = h
         v.speed = max(v.speed + v.action["acceleration"] * dt, 0.0)

@@ -256,7 +256,7 @@ class World:
         step_town_vehicles(batch, dt)
         self.distance_m += math.hypot(*(self.ego.position - before))
         vehicles = [self.ego] + self.npcs
-        vpos = np.array([v.position for v in vehicles])
+        vpos = np.concatenate([v.position for v in vehicles]).reshape(-1, 2)
         vspd = np.array([v.speed for v in vehicles])
         vhead = np.array([v.heading for v in vehicles])
         self.crowd.step(dt, self.lights, vpos, vspd, vhead, self.step_count)
