@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim.lights import TrafficLights
-from sim.objects import ObjectSnapshot, SemanticClass
+from sim.objects import ObjectSnapshot, SemanticClass, snapshot_of
 from sim.town import ARM_VEC, Crosswalk, Town
 
 SHIRT_COLORS = [(0.80, 0.15, 0.15), (0.15, 0.35, 0.75), (0.95, 0.85, 0.20), (0.20, 0.60, 0.30),
@@ -43,9 +43,9 @@ class Pedestrian:
     RADIUS = 0.3
 
     def snapshot(self) -> ObjectSnapshot:
-        return ObjectSnapshot(self.object_id, SemanticClass.PEDESTRIAN, float(self.position[0]),
-                              float(self.position[1]), float(self.heading), self.LENGTH, self.WIDTH,
-                              self.HEIGHT, self.color)
+        return snapshot_of(self.object_id, SemanticClass.PEDESTRIAN, float(self.position[0]),
+                           float(self.position[1]), float(self.heading), self.LENGTH, self.WIDTH,
+                           self.HEIGHT, self.color)
 
 
 class PedestrianCrowd:

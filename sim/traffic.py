@@ -23,7 +23,7 @@ from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
 from sim.geometry import wrap_to_pi
-from sim.objects import LightState, ObjectSnapshot, SemanticClass
+from sim.objects import LightState, ObjectSnapshot, SemanticClass, snapshot_of
 from sim.path_filter import any_within, path_candidates, path_rows
 from sim.routes import random_next_edge
 from sim.town import OPPOSITE, Approach, Command, Town, lanes_for
@@ -423,8 +423,8 @@ class TownVehicle(IDMVehicle):
         self.speed = max(self.speed, 0.0)
 
     def snapshot(self) -> ObjectSnapshot:
-        return ObjectSnapshot(self.object_id, self.kind, float(self.position[0]), float(self.position[1]),
-                              float(self.heading), self.LENGTH, self.WIDTH, self.HEIGHT, self.color)
+        return snapshot_of(self.object_id, self.kind, float(self.position[0]), float(self.position[1]),
+                           float(self.heading), self.LENGTH, self.WIDTH, self.HEIGHT, self.color)
 
 
 def step_town_vehicles(vehicles: list[TownVehicle], dt: float) -> None:

@@ -11,6 +11,7 @@ import pytest
 
 import sim.traffic as traffic
 from sim.geometry import circle_polygon_intersect, polygons_intersect, rect_corners, wrap_to_pi
+from sim.objects import ObjectSnapshot, SemanticClass, snapshot_of
 from sim.pedestrians import PedestrianCrowd
 from sim.traffic import Agents, TownVehicle, crosswalk_gap, path_gap, step_town_vehicles
 from sim.world import StaticObstacles, World, WorldConfig
@@ -150,3 +151,18 @@ def test_npc_lane_memo_is_only_used_within_a_decision(world):
     before = npc._lane_coords(lane)
     npc.position = npc.position + np.array([1.0, 0.0])
     assert npc._lane_coords(lane) == lane.local_coordinates(npc.position) != before
+
+
+def test_rect_corners_and_snapshots_are_what_the_plain_constructions_give():
+    rng = np.random.default_rng(5)
+    for _ in range(2000):
+        centre, heading = rng.uniform(-300, 300, 2), float(rng.uniform(-7, 7))
+        length, width = float(rng.uniform(0.3, 8)), float(rng.uniform(0.3, 3))
+        c, s = math.cos(heading), math.sin(heading)
+        fwd, side = np.array([c, s]) * (length / 2), np.array([-s, c]) * (width / 2)
+        plain = np.array([centre + fwd - side, centre + fwd + side, centre - fwd + side, centre - fwd - side])
+        assert rect_corners(centre, heading, length, width).tobytes() == plain.tobytes()
+    args = (7, SemanticClass.TRUCK, 1.5, -2.25, 0.125, 6.8, 2.3, 2.8, (0.1, 0.2, 0.3))
+    fast, plain_snap = snapshot_of(*args), ObjectSnapshot(*args)
+    assert type(fast) is ObjectSnapshot and fast == plain_snap and hash(fast) == hash(plain_snap)
+    assert repr(fast) == repr(plain_snap) and vars(fast) == vars(plain_snap)
