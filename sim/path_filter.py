@@ -55,18 +55,37 @@ def path_rows(lanes: list[AbstractLane]) -> np.ndarray:
 
 
 @nb.njit(cache=True, nogil=True)
-def may_touch_path(positions: np.ndarray, speeds: np.ndarray, half_lengths: np.ndarray, is_pedestrian: np.ndarray,
-                   candidates: np.ndarray, rows: np.ndarray, lateral_m: float, lookahead_s: float) -> np.ndarray:
+def _lateral_reach(k: int, headings: np.ndarray, speeds: np.ndarray, half_lengths: np.ndarray,
+                   is_pedestrian: np.ndarray, on_crossing: np.ndarray, path_heading: float, tolerances: np.ndarray,
+                   lookahead_s: float) -> tuple[float, float]:
+    """(lateral tolerance, reach) of agent ``k`` in ``sim.traffic.path_gap``: the tolerance it is held to
+    and how far its extra points (bumpers, a walking pedestrian's place ahead) lie from its centre.
+    ``tolerances`` = vehicle, walking pedestrian, standing pedestrian. The choices repeat path_gap's
+    comparisons on the same numbers, except the angle to the path, which is recomputed and so is given
+    bumpers whenever it is within a microradian of the threshold."""
+    if is_pedestrian[k]:
+        walking = speeds[k] > 0.1
+        tol = tolerances[1] if walking or on_crossing[k] else tolerances[2]
+        return tol, lookahead_s * speeds[k] if walking else 0.0
+    angle = abs((headings[k] - path_heading + np.pi) % (2 * np.pi) - np.pi)
+    return tolerances[0], half_lengths[k] if angle > 0.5 - 1e-6 else 0.0
+
+
+@nb.njit(cache=True, nogil=True)
+def may_touch_path(positions: np.ndarray, headings: np.ndarray, speeds: np.ndarray, half_lengths: np.ndarray,
+                   is_pedestrian: np.ndarray, on_crossing: np.ndarray, candidates: np.ndarray, rows: np.ndarray,
+                   path_heading: float, tolerances: np.ndarray, lookahead_s: float) -> np.ndarray:
     """For each candidate agent, whether any point the exact test tries (centre, bumpers, a walking
-    pedestrian's place ``lookahead_s`` ahead) could be within ``lateral_m`` of a path lane, between its
-    ends widened by the agent's half length. False means the exact test would skip the agent."""
+    pedestrian's place ``lookahead_s`` ahead) could be within its lateral tolerance of a path lane,
+    between the lane's ends widened by the agent's half length. False means the exact test would skip
+    the agent."""
     out = np.zeros(len(candidates), dtype=np.bool_)
     for i in range(len(candidates)):
         k = candidates[i]
-        half = half_lengths[k]
-        reach = lookahead_s * abs(speeds[k]) if is_pedestrian[k] else half
-        lat_max = lateral_m + reach + MARGIN_M
-        s_pad = half + reach + MARGIN_M
+        tol, reach = _lateral_reach(k, headings, speeds, half_lengths, is_pedestrian, on_crossing, path_heading,
+                                    tolerances, lookahead_s)
+        lat_max = tol + reach + MARGIN_M
+        s_pad = half_lengths[k] + reach + MARGIN_M
         px, py = positions[k, 0], positions[k, 1]
         for j in range(rows.shape[0]):
             kind = rows[j, 0]
@@ -90,8 +109,9 @@ def may_touch_path(positions: np.ndarray, speeds: np.ndarray, half_lengths: np.n
 
 @nb.njit(cache=True, nogil=True)
 def path_candidates(positions: np.ndarray, ids: np.ndarray, skip_id: int, ox: float, oy: float, radius2: float,
-                    speeds: np.ndarray, half_lengths: np.ndarray, is_pedestrian: np.ndarray, rows: np.ndarray,
-                    lateral_m: float, lookahead_s: float) -> np.ndarray:
+                    headings: np.ndarray, speeds: np.ndarray, half_lengths: np.ndarray, is_pedestrian: np.ndarray,
+                    on_crossing: np.ndarray, rows: np.ndarray, path_heading: float, tolerances: np.ndarray,
+                    lookahead_s: float) -> np.ndarray:
     """Indices (ascending) of the agents other than ``skip_id`` whose squared distance from the origin
     is below ``radius2`` (the same subtraction, squares and sum as NumPy's, so the same agents) and
     that ``may_touch_path``."""
@@ -104,7 +124,8 @@ def path_candidates(positions: np.ndarray, ids: np.ndarray, skip_id: int, ox: fl
             near[n] = k
             n += 1
     near = near[:n]
-    return near[may_touch_path(positions, speeds, half_lengths, is_pedestrian, near, rows, lateral_m, lookahead_s)]
+    return near[may_touch_path(positions, headings, speeds, half_lengths, is_pedestrian, on_crossing, near, rows,
+                               path_heading, tolerances, lookahead_s)]
 
 
 @nb.njit(cache=True, nogil=True)

@@ -102,10 +102,12 @@ def path_gap(path: list[tuple[AbstractLane, float]], my_s: float, my_half: float
     if len(agents.positions) == 0:
         return None, 0.0
     # Only agents near the origin that could touch the path go on to the exact (slow) test below.
-    lateral = max(vehicle_lateral_m, pedestrian_lateral_m, STANDING_PEDESTRIAN_LATERAL_M)
+    path_heading = float(path[0][0].heading_at(my_s - path[0][1]))
+    tolerances = np.array([vehicle_lateral_m, pedestrian_lateral_m, STANDING_PEDESTRIAN_LATERAL_M])
     near = path_candidates(agents.positions, agents.ids, skip_id, float(origin[0]), float(origin[1]),
-                           (lookahead_m + 8.0) ** 2, agents.speeds, agents.half_lengths, agents.is_pedestrian,
-                           path_rows([lane for lane, _ in path]), lateral, PEDESTRIAN_LOOKAHEAD_S)
+                           (lookahead_m + 8.0) ** 2, agents.headings, agents.speeds, agents.half_lengths,
+                           agents.is_pedestrian, agents.on_crossing, path_rows([lane for lane, _ in path]),
+                           path_heading, tolerances, PEDESTRIAN_LOOKAHEAD_S)
     best: float | None = None
     best_speed = 0.0
     for k in near:
