@@ -235,7 +235,8 @@ class World:
         vpos = np.array([v.position for v in vehicles])
         vspd = np.array([v.speed for v in vehicles])
         vhead = np.array([v.heading for v in vehicles])
-        self.crowd.step(dt, self.lights, vpos, vspd, vhead, self.step_count)
+        vsize = np.array([(v.LENGTH / 2, v.WIDTH / 2) for v in vehicles])
+        self.crowd.step(dt, self.lights, vpos, vspd, vhead, self.step_count, vsize)
         self.new_infractions = self._check_ego()
         self.infractions += self.new_infractions
         return self.new_infractions

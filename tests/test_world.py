@@ -102,6 +102,28 @@ def test_waiting_pedestrians_stand_on_the_pavement_away_from_the_corner(town):
         assert np.linalg.norm(here + along - junction) >= np.linalg.norm(here - junction) - 1e-9  # away from it
 
 
+def test_pedestrian_walks_round_a_car_standing_on_the_crossing_not_into_it(town):
+    cw = town.crosswalks[3]
+    world = quiet_world(town, start=far_lane(town, town.approaches[cw.approach]))
+    across = (cw.end - cw.start) / np.linalg.norm(cw.end - cw.start)
+    world.ego.position = cw.start + across * 0.45 * np.linalg.norm(cw.end - cw.start)  # mid-road, on the zebra
+    world.ego.heading = math.atan2(across[0], -across[1])  # along the road
+    world.ego.speed = 0.0
+    world.crowd = PedestrianCrowd(town, 1, np.random.default_rng(0), 1000)
+    ped = world.crowd.peds[0]
+    ped.crosswalk, ped.at_start, ped.position = cw.index, True, cw.start.copy()
+    ped.state, ped.target = "crossing", cw.end.copy()
+    kinds, was_blocked = [], False
+    for _ in range(int(25.0 / CFG.dt_s)):
+        kinds += [i.kind for i in world.step(np.array([0.0, -1.0]))]
+        was_blocked |= ped.blocked
+        if ped.state != "crossing":
+            break
+    assert "collision_pedestrian" not in kinds
+    assert was_blocked  # it stopped at the car first
+    assert ped.state == "walking"  # then got across, round the car
+
+
 def test_collision_with_a_vehicle(town):
     start = town.road_lanes()[0]
     world = quiet_world(town, start=start)
