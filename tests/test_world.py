@@ -124,6 +124,26 @@ def test_pedestrian_walks_round_a_car_standing_on_the_crossing_not_into_it(town)
     assert ped.state == "walking"  # then got across, round the car
 
 
+def test_npc_jammed_inside_a_junction_is_moved_out_of_sight(town):
+    """Two cars each in the other's path inside a junction wait for ever; like SUMO's time-to-teleport, the
+    world moves a jammed NPC elsewhere (same car) after npc_jam_teleport_s."""
+    inside = next(k for k, info in town.lane_info.items() if info.kind == "connector")
+    world = quiet_world(town, start=far_lane(town, town.approaches[0]))
+    npc = world.spawn_npc(inside, 0.5, SemanticClass.TRUCK, color=(0.1, 0.2, 0.3), target_speed=8.0)
+    lane = town.lane(inside)
+    world.ego.position, world.ego.heading = lane.position(9.0, 0.0), lane.heading_at(9.0) + 1.2  # across its way
+    world.ego.speed = npc.speed = 0.0
+    where = npc.position.copy()
+    drive_until(world, [0.0, -1.0], 5.0)
+    assert world.npcs[0] is npc and npc.speed < 0.1  # braked to wait for the ego, not yet moved
+    drive_until(world, [0.0, -1.0], CFG.npc_jam_teleport_s)
+    moved = world.npcs[0]
+    assert moved is not npc and moved.object_id == npc.object_id and moved.kind == SemanticClass.TRUCK
+    assert moved.color == (0.1, 0.2, 0.3) and np.linalg.norm(moved.position - where) > 1.0
+    assert np.linalg.norm(moved.position - world.ego.position) >= CFG.npc_teleport_min_m
+    assert moved in world.road.vehicles and npc not in world.road.vehicles
+
+
 def test_collision_with_a_vehicle(town):
     start = town.road_lanes()[0]
     world = quiet_world(town, start=start)
