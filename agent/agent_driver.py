@@ -6,7 +6,8 @@ environment renders it), its own speed and the route command. Each frame:
 1. **PilotNet** proposes the steering (``agent.pilotnet_driver.PilotNetModel``).
 2. **Detector** (YOLO-style, ONNX Runtime) every ``detect_every`` frames; **SORT** tracks vehicles and
    pedestrians (Kalman predictions on the frames in between); traffic lights are taken from the latest
-   detections: the largest light box within ``light_max_lateral_m`` of the camera axis is ours.
+   detections: the nearest light box hanging within ``light_max_lateral_m`` of the lane the car came along
+   (its heading change since it began to turn is dead-reckoned from its own speed and steering) is ours.
 3. **Lanes** (sliding windows in the bird's-eye view) and the **stop line** (distance to the bar).
 4. **Distance** to each tracked object from box geometry, or stereo: the ground-plane distance of the box's
    bottom row through the camera intrinsics and mounting (exact for things standing on the road, but one
@@ -63,6 +64,8 @@ class AgentConfig:
     score_threshold: float = 0.35
     light_score_threshold: float = 0.4
     light_max_lateral_m: float = 4.5  # our light hangs over the lane divider, within a lane of our axis
+    light_line_tolerance_m: float = 5.0  # with the stop line measured, ours hangs 21 m beyond it, give or take this
+    straight_steer: float = 0.08  # below this |steer| the car drives along its lane: the approach heading follows
     history_s: float = 1.0  # track history used for closing and lateral speeds
     lost_memory_s: float = 2.0  # an object lost while in our path and near is remembered this long
     lost_memory_m: float = 15.0  # ... when it was nearer than this (close in, the detector misses people)
@@ -216,6 +219,8 @@ class AgentDriver:
         self._history: dict[int, deque[tuple[float, float, float]]] = {}
         self._lost: dict[int, PerceivedObject] = {}  # objects lost in our path, remembered for a while
         self._in_path: dict[int, PerceivedObject] = {}  # last frame's seen objects in our path
+        self._yaw = 0.0  # dead-reckoned heading (rad, positive to the right) from our own speed and steering
+        self._approach_yaw = 0.0  # the heading the car had while it last drove along its lane
 
     # ------------------------------------------------------------------ perception helpers
     def _objects(self, tracks: list[Track], t: float, depth: np.ndarray | None) -> list[PerceivedObject]:
@@ -290,18 +295,43 @@ class AgentDriver:
             return (LIGHT_HEAD_HEIGHT_M - self.camera.mount_height_m) / math.tan(elevation)
         return self.geometry.f * LIGHT_HOUSING_M / max(y1 - y0 - self.config.light_box_pad_px, 1.0)
 
+    def _odometry(self, speed: float, steer: float, command: int) -> None:
+        """Integrate our heading from the speed and the steering just sent (highway-env's bicycle model).
+        While the car follows its lane, the approach heading follows it; once it steers into a commanded
+        turn, the approach heading stays: lights are then judged in the frame of the lane it came along."""
+        beta = math.atan(0.5 * math.tan(steer * EgoVehicle.MAX_STEER_RAD))
+        self._yaw += speed * math.sin(beta) / (EgoVehicle.LENGTH / 2) * self.dt
+        if command not in (1, 2) or abs(steer) < self.config.straight_steer:
+            self._approach_yaw = self._yaw
+
     def _light(self) -> LightSeen | None:
         """Our light: the nearest confident light box whose head hangs near our lane.
 
+        Positions are turned back into the frame of the approach lane (by the heading change since the car
+        began to turn): as the camera swings into a turn before the stop line, the cross street's light (green
+        while ours is red) comes to hang over the camera axis, but not over the lane we came along.
+        Once the stop line has been measured, ours must also hang where the town puts it, about 21 m beyond
+        the line: the cross street's head on the near right corner hangs over our lane's edge, 12 m nearer,
+        lit green while ours is red (measured: 21.4 m beyond the line for ours, 9.5 m for that one).
         A box cut by the top of the image is a light beside the car (the cross street's, seen edge-on at
         night): never ours, which stands across the junction, well inside the picture."""
         best = None
+        ctl = self.controller
+        expected = None
+        if ctl.stop_line_measured and ctl.stop_line is not None:
+            expected = ctl.stop_line + ctl.config.camera_to_front_m + ctl.config.light_beyond_stop_line_m
+        turned = self._yaw - self._approach_yaw
+        cos_t, sin_t = math.cos(turned), math.sin(turned)
         for d in self._lights:
             x0, y0, x1, y1 = d.box
             if d.score < self.config.light_score_threshold or y1 - y0 < 2 or y0 <= 1.0:
                 continue
-            z = self.light_distance(d.box)
-            if abs(self.geometry.lateral(0.5 * (x0 + x1), z)) > self.config.light_max_lateral_m:
+            z_cam = self.light_distance(d.box)
+            x_cam = self.geometry.lateral(0.5 * (x0 + x1), z_cam)
+            lateral, z = x_cam * cos_t + z_cam * sin_t, z_cam * cos_t - x_cam * sin_t
+            if abs(lateral) > self.config.light_max_lateral_m:
+                continue
+            if expected is not None and abs(z - expected) > self.config.light_line_tolerance_m:
                 continue
             if best is None or z < best.distance_m:
                 best = LightSeen(d.name.removeprefix("light_"), d.box, z, d.score)
@@ -356,6 +386,7 @@ class AgentDriver:
                       stop.distance_m if stop is not None else None, centre, max(lane_range, 8.0),
                       turning=command in (1, 2))
         decision = self.controller.step(scene, pilot, self.dt)
+        self._odometry(speed, decision.steer, command)
         lap("control")
         in_path = [o for o in objects if o.track_id in decision.in_path]
         self._in_path = {o.track_id: o for o in in_path if o.unseen_s == 0.0}

@@ -9,7 +9,7 @@ crossing, then walks over; on the far kerb it turns the corner to the next cross
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -17,6 +17,11 @@ from sim.lights import TrafficLights
 from sim.objects import ObjectSnapshot, SemanticClass, snapshot_of
 from sim.town import ARM_VEC, Crosswalk, Town
 
+STEP_AHEAD_M = 0.7  # how far ahead a pedestrian looks for a standing car's body
+BODY_MARGIN_M = 0.5  # ... kept clear of it (the pedestrian's radius is 0.3 m)
+DETOUR_AFTER_S = 1.5  # barred this long by a standing car, a pedestrian walks round it
+DETOUR_CLEARANCE_M = 0.9  # distance kept from the car's end while walking round it
+DEFAULT_HALF_SIZE = (2.3, 0.95)  # a car's half length and half width
 SHIRT_COLORS = [(0.80, 0.15, 0.15), (0.15, 0.35, 0.75), (0.95, 0.85, 0.20), (0.20, 0.60, 0.30),
                 (0.90, 0.90, 0.90), (0.25, 0.25, 0.28), (0.85, 0.45, 0.10), (0.55, 0.25, 0.60)]
 
@@ -36,6 +41,8 @@ class Pedestrian:
     moving: bool = False
     blocked: bool = False  # a car stands in its way on the crossing
     yields: bool = True  # waits for cars in its way (scenarios can make one that does not)
+    blocked_s: float = 0.0  # how long a standing car has barred the way
+    detour: list[np.ndarray] = field(default_factory=list)  # waypoints round a standing car, then on to target
 
     LENGTH = 0.35
     WIDTH = 0.55
@@ -112,8 +119,11 @@ class PedestrianCrowd:
         return bool(np.any(approaching & (dist < 25.0) & (time_to < 4.0) & (speeds > 0.5)))
 
     def step(self, dt: float, lights: TrafficLights, vehicles: np.ndarray, speeds: np.ndarray,
-             headings: np.ndarray, tick: int = 0) -> None:
-        """Move everyone one tick. Waiting pedestrians look up at the signal every fourth tick (5 Hz)."""
+             headings: np.ndarray, tick: int = 0, sizes: np.ndarray | None = None) -> None:
+        """Move everyone one tick. Waiting pedestrians look up at the signal every fourth tick (5 Hz).
+        ``sizes`` holds each vehicle's half length and half width (default: a car's)."""
+        if sizes is None:
+            sizes = np.tile(DEFAULT_HALF_SIZE, (len(vehicles), 1))
         # Crossing pedestrians look out for cars at 10 Hz; all who look this tick do it in one go (each
         # looks from where it stands before its own step, which is where the loop below finds it).
         looking = [ped for ped in self.peds
@@ -134,9 +144,13 @@ class PedestrianCrowd:
                     ped.state, ped.target = "crossing", there.copy()
             elif ped.state == "crossing":
                 if id(ped) in in_the_way:
-                    ped.blocked = in_the_way[id(ped)]
+                    self._look_out(ped, in_the_way[id(ped)], vehicles, speeds, headings, sizes, 2 * dt)
                 if ped.blocked:
                     continue  # a car is in the way: wait on the crossing
+                if ped.detour:
+                    if self._walk_to(ped, ped.detour[0], dt):
+                        ped.detour.pop(0)
+                    continue
                 if self._advance(ped, dt):
                     ped.jaywalk = False
                     ped.at_start = not ped.at_start
@@ -147,10 +161,51 @@ class PedestrianCrowd:
             elif ped.state == "walking" and self._advance(ped, dt):
                 ped.state, ped.target = "waiting", None
 
+    def _look_out(self, ped: Pedestrian, moving_car: bool, vehicles: np.ndarray, speeds: np.ndarray,
+                  headings: np.ndarray, sizes: np.ndarray, dt: float) -> None:
+        """Wait for a moving car close to where the next steps go, and for a standing car whose body bars
+        them (one that stopped with its nose on the crossing); after ``DETOUR_AFTER_S`` of the latter, walk
+        round its nearer end instead of waiting for ever (the car may be waiting for the pedestrian)."""
+        ped.blocked = moving_car  # ``_car_in_the_way``, worked out for all who look this tick at once
+        standing = None if ped.blocked else self._standing_car_in_the_way(ped, vehicles, speeds, headings, sizes)
+        if standing is None:
+            ped.blocked_s = 0.0
+            return
+        ped.blocked, ped.blocked_s = True, ped.blocked_s + dt
+        if ped.blocked_s >= DETOUR_AFTER_S:
+            ped.detour = self._detour(ped, vehicles[standing], float(headings[standing]), sizes[standing])
+            ped.blocked, ped.blocked_s = False, 0.0
+
+    @staticmethod
+    def _standing_car_in_the_way(ped: Pedestrian, vehicles: np.ndarray, speeds: np.ndarray, headings: np.ndarray,
+                                 sizes: np.ndarray) -> int | None:
+        """Index of a standing vehicle whose body (plus a margin) the next step would enter, if any."""
+        if len(vehicles) == 0:
+            return None
+        ahead = ped.position + STEP_AHEAD_M * np.array([math.cos(ped.heading), math.sin(ped.heading)])
+        d = ahead - vehicles
+        near = np.nonzero((d[:, 0] ** 2 + d[:, 1] ** 2 < 64.0) & (speeds <= 0.5))[0]
+        for k in near:
+            c, s = math.cos(headings[k]), math.sin(headings[k])
+            along, across = d[k, 0] * c + d[k, 1] * s, -d[k, 0] * s + d[k, 1] * c
+            if abs(along) < sizes[k, 0] + BODY_MARGIN_M and abs(across) < sizes[k, 1] + BODY_MARGIN_M:
+                return int(k)
+        return None
+
+    @staticmethod
+    def _detour(ped: Pedestrian, centre: np.ndarray, heading: float, half_size: np.ndarray) -> list[np.ndarray]:
+        """Two waypoints round a standing vehicle: along its side to clear of its nearer end, then across to the
+        other side; from there the crossing goes on."""
+        ex = np.array([math.cos(heading), math.sin(heading)])
+        ey = np.array([-ex[1], ex[0]])
+        rel = ped.position - centre
+        x, y = float(rel @ ex), float(rel @ ey)
+        end = (half_size[0] + DETOUR_CLEARANCE_M) * (1.0 if x >= 0 else -1.0)
+        return [centre + ex * end + ey * y, centre + ex * end - ey * y]
+
     @staticmethod
     def _car_in_the_way(ped: Pedestrian, vehicles: np.ndarray, speeds: np.ndarray) -> bool:
-        """A moving car close to where the next steps go. A car that stands still is waiting for the
-        pedestrian (cars keep their distance from anyone out on a crossing), so it holds no one back."""
+        """A moving car close to where the next steps go (standing ones: ``_standing_car_in_the_way``)."""
         if len(vehicles) == 0:
             return False
         d = vehicles - (ped.position + 1.2 * np.array([math.cos(ped.heading), math.sin(ped.heading)]))
@@ -169,17 +224,22 @@ class PedestrianCrowd:
         hit = (d[:, :, 0] ** 2 + d[:, :, 1] ** 2 < 2.8 ** 2) & (speeds > 0.5)[None, :]
         return hit.any(axis=1).tolist()
 
-    @staticmethod
-    def _advance(ped: Pedestrian, dt: float) -> bool:
-        """Walk towards the target; True on arrival. Plain floats: two-element arrays cost more
-        in call overhead than in arithmetic (each coordinate goes through the same operations)."""
+    @classmethod
+    def _advance(cls, ped: Pedestrian, dt: float) -> bool:
+        """Walk towards the target; True on arrival."""
         assert ped.target is not None
+        return cls._walk_to(ped, ped.target, dt)
+
+    @staticmethod
+    def _walk_to(ped: Pedestrian, goal: np.ndarray, dt: float) -> bool:
+        """Walk towards ``goal``; True on arrival. Plain floats: two-element arrays cost more
+        in call overhead than in arithmetic (each coordinate goes through the same operations)."""
         px, py = float(ped.position[0]), float(ped.position[1])
-        dx, dy = float(ped.target[0]) - px, float(ped.target[1]) - py
+        dx, dy = float(goal[0]) - px, float(goal[1]) - py
         dist = math.hypot(dx, dy)
         step = ped.speed_mps * dt
         if dist <= step:
-            ped.position = ped.target.copy()
+            ped.position = goal.copy()
             return True
         ped.heading = math.atan2(dy, dx)
         ped.position = np.array([px + dx / dist * step, py + dy / dist * step])

@@ -43,6 +43,8 @@ class WorldConfig:
     npc_decision_every: int = 2  # NPCs decide at 10 Hz (staggered), integrate at 20 Hz, as highway-env does
     npc_far_decision_every: int = 4  # beyond npc_near_radius_m of the ego they decide at 5 Hz (cf. CARLA's hybrid mode)
     npc_near_radius_m: float = 60.0
+    npc_jam_teleport_s: float = 10.0  # an NPC standing this long inside a junction (or crashed) is moved elsewhere
+    npc_teleport_min_m: float = 50.0  # ... at least this far from the ego, out of its sight (0: never teleport)
     route_min_length_m: float = 300.0
     route_deviation_s: float = 2.0  # how long off the route before it counts
 
@@ -170,6 +172,7 @@ class World:
         self._off_route_s = 0.0
         self.deviated = False
         self.npcs: list[TownVehicle] = []
+        self._jam_s: dict[int, float] = {}  # how long each NPC has stood jammed (see _unjam_npcs)
         self.crowd = PedestrianCrowd(town, config.pedestrian_count if spawn_traffic else 0, self.rng,
                                      PEDESTRIAN_ID_BASE, config.jaywalk_probability)
         if spawn_traffic:
@@ -213,6 +216,42 @@ class World:
             self.road.vehicles.append(npc)
             return npc
         return None
+
+    # ---------------------------------------------------------------- jams
+    def _unjam_npcs(self, dt: float) -> bool:
+        """SUMO's time-to-teleport, for NPCs: one that has stood still inside a junction (where only a
+        deadlock holds anyone up for long: two cars each in the other's path) or stood crashed for
+        ``npc_jam_teleport_s`` is moved to a free place on a road, out of the ego's sight."""
+        if self.config.npc_teleport_min_m <= 0:
+            return False
+        moved = False
+        for k, npc in enumerate(self.npcs):
+            info = self.town.lane_info.get(npc.lane_index)
+            jammed = npc.speed < 0.1 and (npc.crashed or (info is not None and info.kind == "connector"))
+            self._jam_s[npc.object_id] = self._jam_s.get(npc.object_id, 0.0) + dt if jammed else 0.0
+            if self._jam_s[npc.object_id] >= self.config.npc_jam_teleport_s:
+                self._jam_s[npc.object_id] = 0.0
+                self._teleport(k)
+                moved = True
+        return moved
+
+    def _teleport(self, k: int) -> None:
+        """Replace NPC ``k`` by the same car (id, kind, colour, cruise speed) on a free road lane far away."""
+        old = self.npcs[k]
+        roads = self.town.road_lanes()
+        for _ in range(50):
+            li = roads[int(self.rng.integers(len(roads)))]
+            lane = self.town.lane(li)
+            s = float(self.rng.uniform(6.0, max(7.0, lane.length - 25.0)))
+            pos = lane.position(s, 0.0)
+            if math.hypot(*(pos - self.ego.position)) < self.config.npc_teleport_min_m:
+                continue
+            if any(math.hypot(*(pos - v.position)) < 14.0 for v in self.npcs if v is not old):
+                continue
+            new = TownVehicle(self.road, self.town, li, s, old.object_id, old.kind, old.color, old.target_speed, self.rng)
+            self.npcs[k] = new
+            self.road.vehicles[self.road.vehicles.index(old)] = new
+            return
 
     # ---------------------------------------------------------------- stepping
     def agents(self) -> Agents:
@@ -259,7 +298,10 @@ class World:
         vpos = np.concatenate([v.position for v in vehicles]).reshape(-1, 2)
         vspd = np.array([v.speed for v in vehicles])
         vhead = np.array([v.heading for v in vehicles])
-        self.crowd.step(dt, self.lights, vpos, vspd, vhead, self.step_count)
+        vsize = np.array([(v.LENGTH / 2, v.WIDTH / 2) for v in vehicles])
+        self.crowd.step(dt, self.lights, vpos, vspd, vhead, self.step_count, vsize)
+        if self._unjam_npcs(dt):  # someone was moved: the collision checks need the new places
+            vpos = np.concatenate([v.position for v in [self.ego] + self.npcs]).reshape(-1, 2)
         self.new_infractions = self._check_ego(vpos[1:])
         self.infractions += self.new_infractions
         return self.new_infractions

@@ -102,6 +102,48 @@ def test_waiting_pedestrians_stand_on_the_pavement_away_from_the_corner(town):
         assert np.linalg.norm(here + along - junction) >= np.linalg.norm(here - junction) - 1e-9  # away from it
 
 
+def test_pedestrian_walks_round_a_car_standing_on_the_crossing_not_into_it(town):
+    cw = town.crosswalks[3]
+    world = quiet_world(town, start=far_lane(town, town.approaches[cw.approach]))
+    across = (cw.end - cw.start) / np.linalg.norm(cw.end - cw.start)
+    world.ego.position = cw.start + across * 0.45 * np.linalg.norm(cw.end - cw.start)  # mid-road, on the zebra
+    world.ego.heading = math.atan2(across[0], -across[1])  # along the road
+    world.ego.speed = 0.0
+    world.crowd = PedestrianCrowd(town, 1, np.random.default_rng(0), 1000)
+    ped = world.crowd.peds[0]
+    ped.crosswalk, ped.at_start, ped.position = cw.index, True, cw.start.copy()
+    ped.state, ped.target = "crossing", cw.end.copy()
+    kinds, was_blocked = [], False
+    for _ in range(int(25.0 / CFG.dt_s)):
+        kinds += [i.kind for i in world.step(np.array([0.0, -1.0]))]
+        was_blocked |= ped.blocked
+        if ped.state != "crossing":
+            break
+    assert "collision_pedestrian" not in kinds
+    assert was_blocked  # it stopped at the car first
+    assert ped.state == "walking"  # then got across, round the car
+
+
+def test_npc_jammed_inside_a_junction_is_moved_out_of_sight(town):
+    """Two cars each in the other's path inside a junction wait for ever; like SUMO's time-to-teleport, the
+    world moves a jammed NPC elsewhere (same car) after npc_jam_teleport_s."""
+    inside = next(k for k, info in town.lane_info.items() if info.kind == "connector")
+    world = quiet_world(town, start=far_lane(town, town.approaches[0]))
+    npc = world.spawn_npc(inside, 0.5, SemanticClass.TRUCK, color=(0.1, 0.2, 0.3), target_speed=8.0)
+    lane = town.lane(inside)
+    world.ego.position, world.ego.heading = lane.position(9.0, 0.0), lane.heading_at(9.0) + 1.2  # across its way
+    world.ego.speed = npc.speed = 0.0
+    where = npc.position.copy()
+    drive_until(world, [0.0, -1.0], 5.0)
+    assert world.npcs[0] is npc and npc.speed < 0.1  # braked to wait for the ego, not yet moved
+    drive_until(world, [0.0, -1.0], CFG.npc_jam_teleport_s)
+    moved = world.npcs[0]
+    assert moved is not npc and moved.object_id == npc.object_id and moved.kind == SemanticClass.TRUCK
+    assert moved.color == (0.1, 0.2, 0.3) and np.linalg.norm(moved.position - where) > 1.0
+    assert np.linalg.norm(moved.position - world.ego.position) >= CFG.npc_teleport_min_m
+    assert moved in world.road.vehicles and npc not in world.road.vehicles
+
+
 def test_collision_with_a_vehicle(town):
     start = town.road_lanes()[0]
     world = quiet_world(town, start=start)
