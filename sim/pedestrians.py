@@ -19,7 +19,8 @@ from sim.town import ARM_VEC, Crosswalk, Town
 
 STEP_AHEAD_M = 0.7  # how far ahead a pedestrian looks for a standing car's body
 BODY_MARGIN_M = 0.5  # ... kept clear of it (the pedestrian's radius is 0.3 m)
-DETOUR_AFTER_S = 1.5  # barred this long by a standing car, a pedestrian walks round it
+FRONT_MARGIN_M = 2.0  # ... and of the space just ahead of its bumper, which its driver cannot see
+DETOUR_AFTER_S = 1.5  # barred this long by a standing car, a pedestrian walks round its rear
 DETOUR_CLEARANCE_M = 0.9  # distance kept from the car's end while walking round it
 DEFAULT_HALF_SIZE = (2.3, 0.95)  # a car's half length and half width
 SHIRT_COLORS = [(0.80, 0.15, 0.15), (0.15, 0.35, 0.75), (0.95, 0.85, 0.20), (0.20, 0.60, 0.30),
@@ -165,7 +166,7 @@ class PedestrianCrowd:
                   headings: np.ndarray, sizes: np.ndarray, dt: float) -> None:
         """Wait for a moving car close to where the next steps go, and for a standing car whose body bars
         them (one that stopped with its nose on the crossing); after ``DETOUR_AFTER_S`` of the latter, walk
-        round its nearer end instead of waiting for ever (the car may be waiting for the pedestrian)."""
+        round its rear instead of waiting for ever (the car may be waiting for the pedestrian)."""
         ped.blocked = moving_car  # ``_car_in_the_way``, worked out for all who look this tick at once
         standing = None if ped.blocked else self._standing_car_in_the_way(ped, vehicles, speeds, headings, sizes)
         if standing is None:
@@ -179,7 +180,7 @@ class PedestrianCrowd:
     @staticmethod
     def _standing_car_in_the_way(ped: Pedestrian, vehicles: np.ndarray, speeds: np.ndarray, headings: np.ndarray,
                                  sizes: np.ndarray) -> int | None:
-        """Index of a standing vehicle whose body (plus a margin) the next step would enter, if any."""
+        """Index of a standing vehicle whose body (plus a margin, more ahead of it) the next step would enter."""
         if len(vehicles) == 0:
             return None
         ahead = ped.position + STEP_AHEAD_M * np.array([math.cos(ped.heading), math.sin(ped.heading)])
@@ -188,20 +189,23 @@ class PedestrianCrowd:
         for k in near:
             c, s = math.cos(headings[k]), math.sin(headings[k])
             along, across = d[k, 0] * c + d[k, 1] * s, -d[k, 0] * s + d[k, 1] * c
-            if abs(along) < sizes[k, 0] + BODY_MARGIN_M and abs(across) < sizes[k, 1] + BODY_MARGIN_M:
+            front = FRONT_MARGIN_M if along > 0 else BODY_MARGIN_M
+            if -sizes[k, 0] - BODY_MARGIN_M < along < sizes[k, 0] + front and abs(across) < sizes[k, 1] + BODY_MARGIN_M:
                 return int(k)
         return None
 
     @staticmethod
     def _detour(ped: Pedestrian, centre: np.ndarray, heading: float, half_size: np.ndarray) -> list[np.ndarray]:
-        """Two waypoints round a standing vehicle: along its side to clear of its nearer end, then across to the
-        other side; from there the crossing goes on."""
+        """Waypoints round a standing vehicle's rear: aside, along its side to clear of its back, then across to
+        the other side; from there the crossing goes on. Behind, never in front: the car may drive off at any
+        moment (it does not reverse), and its driver cannot see someone close to its front corner."""
         ex = np.array([math.cos(heading), math.sin(heading)])
         ey = np.array([-ex[1], ex[0]])
         rel = ped.position - centre
         x, y = float(rel @ ex), float(rel @ ey)
-        end = (half_size[0] + DETOUR_CLEARANCE_M) * (1.0 if x >= 0 else -1.0)
-        return [centre + ex * end + ey * y, centre + ex * end - ey * y]
+        side = math.copysign(max(abs(y), half_size[1] + DETOUR_CLEARANCE_M), y)  # step aside first if ahead of it
+        back = -(half_size[0] + DETOUR_CLEARANCE_M)
+        return [centre + ex * x + ey * side, centre + ex * back + ey * side, centre + ex * back - ey * side]
 
     @staticmethod
     def _car_in_the_way(ped: Pedestrian, vehicles: np.ndarray, speeds: np.ndarray) -> bool:
