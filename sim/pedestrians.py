@@ -167,7 +167,7 @@ class PedestrianCrowd:
         """Wait for a moving car close to where the next steps go, and for a standing car whose body bars
         them (one that stopped with its nose on the crossing); after ``DETOUR_AFTER_S`` of the latter, walk
         round its rear instead of waiting for ever (the car may be waiting for the pedestrian)."""
-        ped.blocked = moving_car  # ``_car_in_the_way``, worked out for all who look this tick at once
+        ped.blocked = moving_car  # ``_cars_in_the_way``, worked out for all who look this tick at once
         standing = None if ped.blocked else self._standing_car_in_the_way(ped, vehicles, speeds, headings, sizes)
         if standing is None:
             ped.blocked_s = 0.0
@@ -208,16 +208,9 @@ class PedestrianCrowd:
         return [centre + ex * x + ey * side, centre + ex * back + ey * side, centre + ex * back - ey * side]
 
     @staticmethod
-    def _car_in_the_way(ped: Pedestrian, vehicles: np.ndarray, speeds: np.ndarray) -> bool:
-        """A moving car close to where the next steps go (standing ones: ``_standing_car_in_the_way``)."""
-        if len(vehicles) == 0:
-            return False
-        d = vehicles - (ped.position + 1.2 * np.array([math.cos(ped.heading), math.sin(ped.heading)]))
-        return bool(np.any((d[:, 0] ** 2 + d[:, 1] ** 2 < 2.8 ** 2) & (speeds > 0.5)))
-
-    @staticmethod
     def _cars_in_the_way(peds: list[Pedestrian], vehicles: np.ndarray, speeds: np.ndarray) -> list[bool]:
-        """``_car_in_the_way`` for several pedestrians at once (the same element-wise operations)."""
+        """For each pedestrian, whether a moving car (over 0.5 m/s) is within 2.8 m of the point 1.2 m ahead
+        of it: where its next steps go. Standing cars: ``_standing_car_in_the_way``."""
         if not peds:
             return []
         if len(vehicles) == 0:

@@ -17,6 +17,14 @@ from sim.traffic import Agents, TownVehicle, crosswalk_gap, path_gap, step_town_
 from sim.world import StaticObstacles, World, WorldConfig
 
 
+def car_in_the_way(ped, vehicles: np.ndarray, speeds: np.ndarray) -> bool:
+    """The one-pedestrian-at-a-time rule that ``PedestrianCrowd._cars_in_the_way`` batches."""
+    if len(vehicles) == 0:
+        return False
+    d = vehicles - (ped.position + 1.2 * np.array([math.cos(ped.heading), math.sin(ped.heading)]))
+    return bool(np.any((d[:, 0] ** 2 + d[:, 1] ** 2 < 2.8 ** 2) & (speeds > 0.5)))
+
+
 @pytest.fixture(scope="module")
 def world(town) -> World:
     w = World(town, WorldConfig(npc_count=24, pedestrian_count=40), 3)
@@ -141,7 +149,7 @@ def test_pedestrians_look_out_for_cars_as_one_by_one(world):
             p.position = vehicles[int(rng.integers(12))] + rng.normal(0, 2.5, 2)
             p.heading = float(rng.uniform(-math.pi, math.pi))
         assert PedestrianCrowd._cars_in_the_way(peds, vehicles, speeds) == [
-            PedestrianCrowd._car_in_the_way(p, vehicles, speeds) for p in peds]
+            car_in_the_way(p, vehicles, speeds) for p in peds]
 
 
 def test_npc_lane_memo_is_only_used_within_a_decision(world):
