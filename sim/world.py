@@ -173,6 +173,7 @@ class World:
         self.deviated = False
         self.npcs: list[TownVehicle] = []
         self._jam_s: dict[int, float] = {}  # how long each NPC has stood jammed (see _unjam_npcs)
+        self._vsize: np.ndarray | None = None  # vehicles' half lengths and widths (fixed; a teleport keeps the car)
         self.crowd = PedestrianCrowd(town, config.pedestrian_count if spawn_traffic else 0, self.rng,
                                      PEDESTRIAN_ID_BASE, config.jaywalk_probability)
         if spawn_traffic:
@@ -298,8 +299,9 @@ class World:
         vpos = np.concatenate([v.position for v in vehicles]).reshape(-1, 2)
         vspd = np.array([v.speed for v in vehicles])
         vhead = np.array([v.heading for v in vehicles])
-        vsize = np.array([(v.LENGTH / 2, v.WIDTH / 2) for v in vehicles])
-        self.crowd.step(dt, self.lights, vpos, vspd, vhead, self.step_count, vsize)
+        if self._vsize is None or len(self._vsize) != len(vehicles):
+            self._vsize = np.array([(v.LENGTH / 2, v.WIDTH / 2) for v in vehicles])
+        self.crowd.step(dt, self.lights, vpos, vspd, vhead, self.step_count, self._vsize)
         if self._unjam_npcs(dt):  # someone was moved: the collision checks need the new places
             vpos = np.concatenate([v.position for v in [self.ego] + self.npcs]).reshape(-1, 2)
         self.new_infractions = self._check_ego(vpos[1:])
