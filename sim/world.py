@@ -214,6 +214,7 @@ class World:
             speed = target_speed if target_speed is not None else float(self.rng.uniform(*self.config.npc_speed_range_mps))
             npc = TownVehicle(self.road, self.town, li, ss, 1 + len(self.npcs), k, col, speed, self.rng)
             self.npcs.append(npc)
+            self._vsize = None
             self.road.vehicles.append(npc)
             return npc
         return None
@@ -299,7 +300,7 @@ class World:
         vpos = np.concatenate([v.position for v in vehicles]).reshape(-1, 2)
         vspd = np.array([v.speed for v in vehicles])
         vhead = np.array([v.heading for v in vehicles])
-        if self._vsize is None or len(self._vsize) != len(vehicles):
+        if self._vsize is None:
             self._vsize = np.array([(v.LENGTH / 2, v.WIDTH / 2) for v in vehicles])
         self.crowd.step(dt, self.lights, vpos, vspd, vhead, self.step_count, self._vsize)
         if self._unjam_npcs(dt):  # someone was moved: the collision checks need the new places
