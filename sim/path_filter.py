@@ -88,23 +88,26 @@ def may_touch_path(positions: np.ndarray, headings: np.ndarray, speeds: np.ndarr
         s_pad = half_lengths[k] + reach + MARGIN_M
         px, py = positions[k, 0], positions[k, 1]
         for j in range(rows.shape[0]):
-            kind = rows[j, 0]
-            dx, dy = px - rows[j, 1], py - rows[j, 2]
-            if kind == KIND_STRAIGHT:
-                ux, uy = rows[j, 3], rows[j, 4]
-                s = dx * ux + dy * uy
-                lat = dy * ux - dx * uy
-                if abs(lat) <= lat_max and -s_pad <= s <= rows[j, 5] + s_pad:
-                    out[i] = True
-                    break
-            elif kind == KIND_CIRCULAR:
-                if abs(np.sqrt(dx * dx + dy * dy) - rows[j, 6]) <= lat_max:
-                    out[i] = True
-                    break
-            else:
+            if _row_may_hold(px, py, rows, j, lat_max, s_pad):
                 out[i] = True
                 break
     return out
+
+
+@nb.njit(cache=True, nogil=True)
+def _row_may_hold(px: float, py: float, rows: np.ndarray, j: int, lat_max: float, s_pad: float) -> bool:
+    """Whether the point may lie within ``lat_max`` of lane row ``j``, between its ends widened by ``s_pad``
+    (a lane kind without a cheap bound always may)."""
+    kind = rows[j, 0]
+    dx, dy = px - rows[j, 1], py - rows[j, 2]
+    if kind == KIND_STRAIGHT:
+        ux, uy = rows[j, 3], rows[j, 4]
+        s = dx * ux + dy * uy
+        lat = dy * ux - dx * uy
+        return abs(lat) <= lat_max and -s_pad <= s <= rows[j, 5] + s_pad
+    if kind == KIND_CIRCULAR:
+        return abs(np.sqrt(dx * dx + dy * dy) - rows[j, 6]) <= lat_max
+    return True
 
 
 @nb.njit(cache=True, nogil=True)
@@ -133,20 +136,8 @@ def lanes_may_hold(px: float, py: float, rows: np.ndarray, lateral_m: float, s_p
     """For each lane row, whether the point could be within ``lateral_m`` of it, between its ends
     widened by ``s_pad`` (bounds widened by ``MARGIN_M``). False means the exact test would reject it."""
     out = np.zeros(rows.shape[0], dtype=np.bool_)
-    lat_max = lateral_m + MARGIN_M
-    pad = s_pad + MARGIN_M
     for j in range(rows.shape[0]):
-        kind = rows[j, 0]
-        dx, dy = px - rows[j, 1], py - rows[j, 2]
-        if kind == KIND_STRAIGHT:
-            ux, uy = rows[j, 3], rows[j, 4]
-            s = dx * ux + dy * uy
-            lat = dy * ux - dx * uy
-            out[j] = abs(lat) <= lat_max and -pad <= s <= rows[j, 5] + pad
-        elif kind == KIND_CIRCULAR:
-            out[j] = abs(np.sqrt(dx * dx + dy * dy) - rows[j, 6]) <= lat_max
-        else:
-            out[j] = True
+        out[j] = _row_may_hold(px, py, rows, j, lateral_m + MARGIN_M, s_pad + MARGIN_M)
     return out
 
 
