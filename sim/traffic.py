@@ -118,7 +118,7 @@ def path_gap(path: list[tuple[AbstractLane, float]], my_s: float, my_half: float
         ahead = np.array([math.cos(h), math.sin(h)])
         if ped and agents.speeds[k] > 0.1:  # a walking pedestrian counts where it will be soon, too
             points.append((agents.positions[k] + PEDESTRIAN_LOOKAHEAD_S * float(agents.speeds[k]) * ahead, half_k))
-        elif not ped and abs(wrap_to_pi(h - path[0][0].heading_at(my_s - path[0][1]))) > 0.5:
+        elif not ped and abs(wrap_to_pi(h - path_heading)) > 0.5:
             # A vehicle at an angle to the path (turning, crossing) can poke its bumper into the lane
             # while its centre is a lane away: its two bumpers count as well.
             points += [(agents.positions[k] + half_k * ahead, 0.0), (agents.positions[k] - half_k * ahead, 0.0)]

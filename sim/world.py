@@ -199,24 +199,37 @@ class World:
                   kind: SemanticClass | None = None, color: tuple[float, float, float] | None = None,
                   target_speed: float | None = None, min_gap_m: float = 14.0) -> TownVehicle | None:
         """Add one NPC, at a random free place unless told where. Returns None if no room was found."""
+        place = self._road_place(lane_index, s, min_gap_m, min_gap_m)
+        if place is None:
+            return None
+        k = kind if kind is not None else (SemanticClass.TRUCK if self.rng.random() < self.config.truck_fraction
+                                           else SemanticClass.CAR)
+        col = color or CAR_COLORS[int(self.rng.integers(len(CAR_COLORS)))]
+        speed = target_speed if target_speed is not None else float(self.rng.uniform(*self.config.npc_speed_range_mps))
+        npc = TownVehicle(self.road, self.town, *place, 1 + len(self.npcs), k, col, speed, self.rng)
+        self.npcs.append(npc)
+        self._vsize = None
+        self.road.vehicles.append(npc)
+        return npc
+
+    def _road_place(self, lane_index: tuple[str, str, int] | None, s: float | None, min_gap_m: float,
+                    ego_clear_m: float, skip: TownVehicle | None = None) -> tuple[tuple[str, str, int], float] | None:
+        """A place on a road lane: the given lane and ``s`` where given, else drawn at random until it is
+        ``min_gap_m`` from every NPC but ``skip`` and ``ego_clear_m`` from the ego (50 tries; None if none is).
+        A given lane is taken as it is."""
         roads = self.town.road_lanes()
         for _ in range(50):
             li = lane_index or roads[int(self.rng.integers(len(roads)))]
             lane = self.town.lane(li)
             ss = s if s is not None else float(self.rng.uniform(6.0, max(7.0, lane.length - 25.0)))
+            if lane_index is not None:
+                return li, ss
             pos = lane.position(ss, 0.0)
-            others = [self.ego.position] + [v.position for v in self.npcs]
-            if lane_index is None and min(float(np.linalg.norm(pos - o)) for o in others) < min_gap_m:
+            if float(np.linalg.norm(pos - self.ego.position)) < ego_clear_m:
                 continue
-            k = kind if kind is not None else (SemanticClass.TRUCK if self.rng.random() < self.config.truck_fraction
-                                               else SemanticClass.CAR)
-            col = color or CAR_COLORS[int(self.rng.integers(len(CAR_COLORS)))]
-            speed = target_speed if target_speed is not None else float(self.rng.uniform(*self.config.npc_speed_range_mps))
-            npc = TownVehicle(self.road, self.town, li, ss, 1 + len(self.npcs), k, col, speed, self.rng)
-            self.npcs.append(npc)
-            self._vsize = None
-            self.road.vehicles.append(npc)
-            return npc
+            if any(float(np.linalg.norm(pos - v.position)) < min_gap_m for v in self.npcs if v is not skip):
+                continue
+            return li, ss
         return None
 
     # ---------------------------------------------------------------- jams
@@ -240,20 +253,12 @@ class World:
     def _teleport(self, k: int) -> None:
         """Replace NPC ``k`` by the same car (id, kind, colour, cruise speed) on a free road lane far away."""
         old = self.npcs[k]
-        roads = self.town.road_lanes()
-        for _ in range(50):
-            li = roads[int(self.rng.integers(len(roads)))]
-            lane = self.town.lane(li)
-            s = float(self.rng.uniform(6.0, max(7.0, lane.length - 25.0)))
-            pos = lane.position(s, 0.0)
-            if math.hypot(*(pos - self.ego.position)) < self.config.npc_teleport_min_m:
-                continue
-            if any(math.hypot(*(pos - v.position)) < 14.0 for v in self.npcs if v is not old):
-                continue
-            new = TownVehicle(self.road, self.town, li, s, old.object_id, old.kind, old.color, old.target_speed, self.rng)
-            self.npcs[k] = new
-            self.road.vehicles[self.road.vehicles.index(old)] = new
+        place = self._road_place(None, None, 14.0, self.config.npc_teleport_min_m, skip=old)
+        if place is None:
             return
+        new = TownVehicle(self.road, self.town, *place, old.object_id, old.kind, old.color, old.target_speed, self.rng)
+        self.npcs[k] = new
+        self.road.vehicles[self.road.vehicles.index(old)] = new
 
     # ---------------------------------------------------------------- stepping
     def agents(self) -> Agents:
