@@ -50,7 +50,7 @@ LIGHT_STATES = ("red", "yellow", "green")
 @dataclass(frozen=True)
 class ControllerConfig:
     speed_limit_mps: float = 8.0  # cruise speed: the town's limit
-    turn_slowdown: float = 0.5  # cruise / (1 + 3 turn_slowdown |steer|) while steering hard
+    lateral_accel_mps2: float = 2.0  # in a bend, cruise at most sqrt(a / curvature) (the autopilot's comfort)
     max_accel_mps2: float = 2.0  # gentle acceleration
     jerk_mps3: float = 4.0  # how fast the acceleration may rise
     comfortable_brake_mps2: float = 3.0  # normal braking limit
@@ -300,7 +300,8 @@ class Controller:
         self._update_light(scene, dt)
         self._update_stop_line(scene, dt)
 
-        target = min(cfg.speed_limit_mps, cfg.speed_limit_mps / (1.0 + cfg.turn_slowdown * 3.0 * abs(steer)))
+        curvature = abs(math.tan(steer * cfg.max_steer_rad)) / cfg.wheelbase_m  # of the arc being steered
+        target = min(cfg.speed_limit_mps, math.sqrt(cfg.lateral_accel_mps2 / max(curvature, 1e-6)))
         constraints: list[Constraint] = []
         in_path: list[int] = []
         ids: dict[int, int] = {}  # constraint index -> track id
