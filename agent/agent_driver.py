@@ -3,7 +3,9 @@
 It sees only what a real car has: the camera frame (and the stereo pair when ``distance="stereo"`` and the
 environment renders it), its own speed and the route command. Each frame:
 
-1. **PilotNet** proposes the steering (``agent.pilotnet_driver.PilotNetModel``).
+1. **PilotNet** proposes the steering (``agent.pilotnet_driver.PilotNetModel``). Going straight through a
+   junction, where there are no lines and PilotNet drifts, the car instead holds the approach lane's heading
+   and its place across it, both measured from the lane fit before the stop line and dead-reckoned since.
 2. **Detector** (YOLO-style, ONNX Runtime) every ``detect_every`` frames; **SORT** tracks vehicles and
    pedestrians (Kalman predictions on the frames in between); traffic lights are taken from the latest
    detections: the nearest light box hanging within ``light_max_lateral_m`` of the lane the car came along
@@ -14,6 +16,11 @@ environment renders it), its own speed and the route command. Each frame:
    image row is ``z^2 / (f h)`` metres of road: 4 m at 30 m), fused with the distance a known height
    gives (``f H / h_px``; a few per cent at any range, but wrong for an unusual size), each weighted by
    its variance. Closing and lateral speeds come from a least-squares fit over the track's last second.
+   A vehicle that stands wholly to one side of the camera axis and does not move sideways draws its inner
+   box edge from its far side: that edge is read at least the vehicle's width beyond its near face (a car
+   waiting in the oncoming lane is not in our path). An object lost from view while in our path is kept
+   where it was for a while; a person lost close in (the detector misses people who fill the frame, and
+   beside the car's front is outside the view) is kept longer and does not drift.
 5. **Controller** (``agent.controller``) and **ADAS** warnings (``agent.adas``).
 
 Per-stage timings (ms) for every frame are kept in ``timings``; the last frame's whole state in ``view``
@@ -50,6 +57,9 @@ ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DETECTOR = ROOT / "data" / "models" / "detector.onnx"
 # Size priors (metres): typical heights, which unlike widths do not change with the viewing angle.
 HEIGHT_PRIOR_M = {"car": 1.5, "truck": 2.8, "pedestrian": 1.75}
+# The least depth a vehicle shows, whatever its yaw: its width (depth = L|sin| + W|cos| >= W). A vehicle wholly
+# to one side of the camera axis draws its inner box edge from its far side, not from its near face.
+DEPTH_PRIOR_M = {"car": 1.9, "truck": 2.3}
 LIGHT_HOUSING_M = 2.1  # a signal head's height (three lamps)
 LIGHT_HEAD_HEIGHT_M = 5.2  # town design: signal heads hang 5.2 m above the road on mast arms
 TRACKED = ("car", "truck", "pedestrian")
@@ -69,6 +79,18 @@ class AgentConfig:
     history_s: float = 1.0  # track history used for closing and lateral speeds
     lost_memory_s: float = 2.0  # an object lost while in our path and near is remembered this long
     lost_memory_m: float = 15.0  # ... when it was nearer than this (close in, the detector misses people)
+    near_memory_s: float = 4.0  # a pedestrian lost this near, or at the image's edge, stays (not drifting) this
+    near_memory_m: float = 7.0  # long: the detector misses people who fill the frame, and beside the car's
+    #                             front, outside the 90-degree view, is where they go
+    still_lateral_mps: float = 0.3  # a vehicle moving sideways slower than this gets the depth prior
+    junction_hold_m: float = 20.0  # going straight, this far past the stop line the car holds the approach
+    #                                lane's heading and offset (no lines to steer by inside the junction)
+    hold_heading_gain: float = 1.5  # steer per radian of heading error (about a 1 s time constant at 5 m/s)
+    hold_offset_gain: float = 0.3  # steer per metre of dead-reckoned offset from the approach lane's centre
+    hold_max_steer: float = 0.3
+    road_min_confidence: float = 0.25  # a lane fit this sure measures the approach lane
+    road_clear_m: float = 8.0  # the approach lane is measured only while the stop line is farther than this
+    #                            (close to it, the crosswalk's stripes look like lane lines)
     clock: str = "wall"  # stage timings in wall-clock time, or "cpu": CPU time of this thread (load-independent)
     ldw_min_lane_confidence: float = 0.5  # lane departure is only judged on a well-seen lane
     light_box_pad_px: float = 1.0  # light boxes come out about a pixel taller than the housing (measured)
@@ -220,6 +242,8 @@ class AgentDriver:
         self._lost: dict[int, PerceivedObject] = {}  # objects lost in our path, remembered for a while
         self._in_path: dict[int, PerceivedObject] = {}  # last frame's seen objects in our path
         self._yaw = 0.0  # dead-reckoned heading (rad, positive to the right) from our own speed and steering
+        self._road_yaw: float | None = None  # the approach lane's heading in the same frame, from the lane fit
+        self._road_offset = 0.0  # metres right of the approach lane's centre (measured, then dead-reckoned)
         self._approach_yaw = 0.0  # the heading the car had while it last drove along its lane
 
     # ------------------------------------------------------------------ perception helpers
@@ -245,12 +269,21 @@ class AgentDriver:
                 hist.popleft()
             alive.add(tr.track_id)
             closing, lateral = 0.0, 0.0
-            if len(hist) >= 4 and hist[-1][0] - hist[0][0] >= 0.2:
+            known = len(hist) >= 4 and hist[-1][0] - hist[0][0] >= 0.2  # enough history for speeds
+            if known:
                 arr = np.array(hist)
                 tt = arr[:, 0] - arr[:, 0].mean()
                 denom = float((tt ** 2).sum())
                 closing = -float((tt * (arr[:, 1] - arr[:, 1].mean())).sum()) / denom
                 lateral = float((tt * (arr[:, 2] - arr[:, 2].mean())).sum()) / denom
+            if kind in DEPTH_PRIOR_M and known and abs(lateral) < self.config.still_lateral_mps:
+                # Wholly to one side: the inner edge's ray meets the vehicle at least its width beyond the near
+                # face (exact for a crossing car, still conservative for one alongside, which shows its length).
+                cx = float(self.geometry.k[0, 2])
+                if box[0] > cx:
+                    xl = self.geometry.lateral(box[0], z + DEPTH_PRIOR_M[kind])
+                elif box[2] < cx:
+                    xr = self.geometry.lateral(box[2], z + DEPTH_PRIOR_M[kind])
             out.append(PerceivedObject(tr.track_id, kind, float(z), float(xl), float(xr), closing, lateral,
                                        (float(box[0]), float(box[1]), float(box[2]), float(box[3]))))
         for tid in list(self._history):
@@ -272,17 +305,24 @@ class AgentDriver:
         out = list(objects)
         for tid in list(self._lost):
             o = self._lost[tid]
-            if tid in seen or o.unseen_s + dt > cfg.lost_memory_s:
+            near = o.kind == "pedestrian" and (o.distance_m < cfg.near_memory_m or self._at_border(o.box))
+            if tid in seen or o.unseen_s + dt > (cfg.near_memory_s if near else cfg.lost_memory_s):
                 del self._lost[tid]
                 continue
             along = speed * dt if o.kind == "pedestrian" else o.closing_speed_mps * dt
-            shift = o.lateral_speed_mps * dt if o.kind == "pedestrian" else 0.0
+            # Near, a person's box is cut or wrong and its sideways "speed" is perspective, not walking.
+            shift = o.lateral_speed_mps * dt if o.kind == "pedestrian" and not near else 0.0
             ghost = PerceivedObject(tid, o.kind, o.distance_m - along, o.lateral_left_m + shift,
                                     o.lateral_right_m + shift, o.closing_speed_mps, o.lateral_speed_mps, o.box,
                                     o.unseen_s + dt)
             self._lost[tid] = ghost
             out.append(ghost)
         return out
+
+    def _at_border(self, box: tuple[float, float, float, float]) -> bool:
+        """Whether a box touches the image's bottom or side edge (the object goes on beyond the frame)."""
+        w, h = self.camera.width, self.camera.height
+        return box[3] >= h - 1.5 or box[0] <= 0.5 or box[2] >= w - 1.5
 
     def light_distance(self, box: tuple[float, float, float, float]) -> float:
         """Ground distance (m) to a signal head from how far above the horizon its box's centre is (the head
@@ -301,8 +341,32 @@ class AgentDriver:
         turn, the approach heading stays: lights are then judged in the frame of the lane it came along."""
         beta = math.atan(0.5 * math.tan(steer * EgoVehicle.MAX_STEER_RAD))
         self._yaw += speed * math.sin(beta) / (EgoVehicle.LENGTH / 2) * self.dt
+        if self._road_yaw is not None:
+            self._road_offset += speed * math.sin(self._yaw + beta - self._road_yaw) * self.dt
         if command not in (1, 2) or abs(steer) < self.config.straight_steer:
             self._approach_yaw = self._yaw
+
+    def _measure_road(self, centre: np.ndarray | None, confidence: float) -> None:
+        """Keep the approach lane's heading (in the odometry frame) and our offset from its centre, from a
+        confident lane fit taken well before the stop line."""
+        ctl = self.controller
+        if (centre is None or confidence < self.config.road_min_confidence or ctl.ignore_light_m > 0
+                or (ctl.stop_line is not None and ctl.stop_line < self.config.road_clear_m)):
+            return
+        z0 = -self.camera.mount_forward_m
+        heading = self._yaw + math.atan(float(np.polyval(np.polyder(centre), z0)))
+        self._road_yaw = heading if self._road_yaw is None else self._road_yaw + 0.2 * (heading - self._road_yaw)
+        self._road_offset = -float(np.polyval(centre, z0))
+
+    def _junction_hold(self, command: int) -> float | None:
+        """Going straight through a junction (no lines to follow), the steer that keeps the approach lane's
+        heading and our place across it; None when this does not apply."""
+        ctl, cfg = self.controller, self.config
+        inside = ctl.ignore_light_m > ctl.config.junction_ignore_m - cfg.junction_hold_m
+        if command != 3 or not inside or self._road_yaw is None:
+            return None
+        steer = -(cfg.hold_heading_gain * (self._yaw - self._road_yaw) + cfg.hold_offset_gain * self._road_offset)
+        return float(np.clip(steer, -cfg.hold_max_steer, cfg.hold_max_steer))
 
     def _light(self) -> LightSeen | None:
         """Our light: the nearest confident light box whose head hangs near our lane.
@@ -381,11 +445,19 @@ class AgentDriver:
         light = self._light()
         lap("distance")
         centre = lane_centre_of(lanes, -self.camera.mount_forward_m)
+        self._measure_road(centre, lanes.confidence)
+        hold = self._junction_hold(command)
+        net_steer = pilot
+        if hold is not None:
+            pilot = hold
         lane_range = min(30.0, max((ln.z_range_m[1] for ln in (lanes.left, lanes.right) if ln is not None), default=30.0))
         scene = Scene(speed, objects, light.state if light else None, light.distance_m if light else None,
                       stop.distance_m if stop is not None else None, centre, max(lane_range, 8.0),
                       turning=command in (1, 2))
         decision = self.controller.step(scene, pilot, self.dt)
+        if hold is not None:  # the steering was overridden too: say so, and keep what PilotNet proposed
+            decision.pilot_steer = net_steer
+            decision.reason += "; straight through the junction on the approach lane's heading"
         self._odometry(speed, decision.steer, command)
         lap("control")
         in_path = [o for o in objects if o.track_id in decision.in_path]

@@ -103,6 +103,102 @@ def test_agent_dead_reckons_its_heading_from_speed_and_steering() -> None:
     env.close()
 
 
+def car_beside_box(geo: BoxGeometry, inner_m: float, near_m: float, length_m: float = 4.5,
+                   width_m: float = 1.9) -> np.ndarray:
+    """The box of a 1.5 m tall car parked parallel to us, wholly left of the axis: near face at ``near_m``,
+    inner side ``inner_m`` metres left. Its right box edge comes from its far inner corner."""
+    outer = -(inner_m + width_m)
+    (u_out, v_bottom), = geo.birdseye.image_of_ground(np.array([outer]), np.array([near_m]))
+    (u_in, _), = geo.birdseye.image_of_ground(np.array([-inner_m]), np.array([near_m + length_m]))
+    return np.array([u_out, v_bottom - geo.f * 1.5 / near_m, u_in, v_bottom])
+
+
+@needs_models
+def test_a_car_wholly_beside_the_axis_is_placed_by_its_far_corner_not_nearer() -> None:
+    from agent.autolabel import CLASSES
+    from agent.drivers import make_driver
+    from agent.tracking import Track
+    from envs.drive_env import DriveConfig
+
+    driver = make_driver("agent")
+    driver.reset(SimpleNamespace(config=DriveConfig()))
+    box = car_beside_box(driver.geometry, inner_m=2.5, near_m=4.4)
+    track = Track(7, box, hits=10, age=10, time_since_update=0, label=CLASSES.index("car"))
+    naive = driver.geometry.lateral(box[2], driver.geometry.distance(box, "car"))
+    half = driver.controller.config.path_half_width_m
+    assert naive > -half  # read at its near face, the car 2.5 m to our left would be in our 1.3 m corridor
+    first = driver._objects([track], 0.0, None)[0]
+    assert first.lateral_right_m == pytest.approx(naive)  # no history yet: it might be moving sideways
+    for k in range(1, 8):  # standing still for 0.35 s
+        obj = driver._objects([track], 0.05 * k, None)[0]
+    assert -2.5 - 0.1 <= obj.lateral_right_m <= -half - 0.3  # clear of the corridor, never beyond the truth
+    # the same box drifting sideways towards us keeps the conservative near-face reading
+    driver.reset(SimpleNamespace(config=DriveConfig()))
+    for k in range(8):
+        moving = Track(8, box + np.array([4.0 * k, 0, 4.0 * k, 0]), hits=10, age=10, time_since_update=0,
+                       label=CLASSES.index("car"))
+        obj = driver._objects([moving], 0.05 * k, None)[0]
+    assert obj.lateral_right_m == pytest.approx(driver.geometry.lateral(moving.box[2], obj.distance_m))
+
+
+@needs_models
+def test_a_person_lost_near_the_car_stays_where_last_seen_for_a_while() -> None:
+    from agent.controller import PerceivedObject
+    from agent.drivers import make_driver
+    from envs.drive_env import DriveConfig
+
+    driver = make_driver("agent")
+    driver.reset(SimpleNamespace(config=DriveConfig()))
+    cfg = driver.config
+    # Last seen 4 m ahead in our path; its sideways "speed" is perspective (the box grows as it nears).
+    near = PerceivedObject(3, "pedestrian", 4.0, 0.2, 0.8, 0.0, 1.5, (170.0, 50.0, 200.0, 120.0))
+    far = PerceivedObject(4, "pedestrian", 12.0, 0.2, 0.6, 0.0, 1.5, (163.0, 70.0, 168.0, 90.0))
+    driver._in_path = {3: near, 4: far}
+    seen_at: dict[int, list[float]] = {3: [], 4: []}
+    for _ in range(int(5.0 / driver.dt)):
+        for o in driver._remember([], 0.0):
+            seen_at[o.track_id].append(o.lateral_left_m)
+        driver._in_path = {}
+    dt = driver.dt
+    assert len(seen_at[3]) * dt == pytest.approx(cfg.near_memory_s, abs=2 * dt)
+    assert set(seen_at[3]) == {0.2}  # it stays where it was
+    assert len(seen_at[4]) * dt == pytest.approx(cfg.lost_memory_s, abs=2 * dt)
+    assert seen_at[4][-1] > 0.2 + 1.5 * (cfg.lost_memory_s - 2 * dt)  # a farther one walks on
+
+
+@needs_models
+def test_straight_through_a_junction_the_agent_holds_the_approach_lane() -> None:
+    from agent.drivers import make_driver
+    from envs.drive_env import DriveConfig, DriveEnv
+
+    env = DriveEnv(DriveConfig(render_camera=False))
+    env.reset(seed=1)
+    world = env.world
+    driver = make_driver("agent")
+    driver.reset(SimpleNamespace(config=env.config))
+    ctl = driver.controller
+    # Before the junction the lane fit says: the lane runs 0.1 rad left of our axis, its centre 0.5 m left.
+    z0 = -driver.camera.mount_forward_m
+    centre = np.array([0.0, -0.1, -0.5 + 0.1 * z0])  # x = b z + c in the camera's ground frame
+    driver._measure_road(centre, 0.9)
+    assert driver._road_yaw == pytest.approx(-0.1, abs=1e-3) and driver._road_offset == pytest.approx(0.5)
+    assert driver._junction_hold(3) is None  # not in a junction yet
+    ctl.ignore_light_m = ctl.config.junction_ignore_m  # the bumper just crossed the stop line
+    driver._measure_road(np.array([0.0, 0.3, 2.0]), 0.9)  # crosswalk stripes: not measured in the junction
+    assert driver._road_yaw == pytest.approx(-0.1, abs=1e-3)
+    assert driver._junction_hold(1) is None  # a commanded turn is PilotNet's
+    world.ego.speed = 5.0
+    h0 = world.ego.heading
+    for _ in range(80):  # 4 s, 20 m, on the same bicycle model the world uses
+        steer = driver._junction_hold(3)
+        assert steer is not None
+        env.step(np.array([steer, 0.0], np.float32))
+        driver._odometry(float(world.ego.speed), steer, 3)
+    assert world.ego.heading - h0 == pytest.approx(-0.1, abs=0.03)  # turned onto the lane's heading
+    assert abs(driver._road_offset) < 0.25  # and back near its centre (dead-reckoned)
+    env.close()
+
+
 @needs_models
 def test_agent_drives_from_observations_only_and_times_every_stage() -> None:
     from agent.drivers import make_driver
