@@ -15,6 +15,12 @@ Why each piece is the way it is:
 - Both lines share curvature and heading when both are found (parallel lines), which lets a solid line
   steady the fit of a dashed one that shows only two or three dashes.
 - ``LaneResult.detected`` is False ("no lane") when neither line has enough evidence; nothing is guessed.
+- The painted lines are not the lane's boundaries: the town (like a real road) paints its edge line and
+  its centre line inside the lane and its dashed divider on the boundary (``MarkingSpec``). Each line is
+  classified from the image alone, yellow or white by its paint's colour and solid or dashed by how much
+  of its length has paint in the bird's-eye view, and the lane boundary is placed beyond it as the marking
+  convention says (``LaneResult.centre_offset_m``, ``centre_coeffs``). ``offset_m`` and the line fits stay
+  the painted lines' (the agent's path and lane-departure warning read them).
 
 Coordinates: the ground frame is metric, origin below the camera, ``x_m`` to the right, ``z_m`` forward.
 A line is ``x = a z^2 + b z + c``. Offsets are signed, positive when the car is right of the lane centre,
@@ -151,6 +157,48 @@ def lane_masks(bev_rgb: np.ndarray, cfg: ThresholdConfig, px_per_m_x: float) -> 
     return {"white": white_u8, "yellow": yellow_u8, "gradient": support, "combined": combined}
 
 
+# --------------------------------------------------------------------------- marking conventions
+@dataclass(frozen=True)
+class MarkingSpec:
+    """Where each kind of line is painted relative to the lane boundary it marks.
+
+    The numbers are the town's marking spec, ``sim/town.py`` (``generate_town``: ``line_half`` and
+    ``add_markings``; lanes 3.5 m wide, lines 0.14 m wide):
+
+    - solid white edge line: painted from 0.35 to 0.21 m inside the lane's outer edge (its middle 0.28 m in);
+    - dashed white divider between same-direction lanes (3 m dashes, 6 m gaps): centred on the boundary;
+    - yellow centre line: each direction paints a solid yellow line from 0.06 to 0.20 m inside its lane's
+      left edge, so the road has a double yellow line (two 0.14 m lines 0.12 m apart) centred on the
+      boundary between the directions. The detector's search band (0.4-0.6 m each side of the line) takes
+      the paint of both, and at 320x160 the pair is one blur beyond a few metres, so a yellow fit is the
+      middle of the pair: the boundary.
+
+    A detector knows only these conventions, as a real lane-keeping system knows its country's; it never
+    reads the lane model.
+    """
+
+    line_width_m: float = 0.14
+    solid_white_gap_m: float = 0.21  # from a solid white line's outer side to the lane boundary
+    yellow_gap_m: float = 0.06  # from one yellow line's outer side to the boundary (the pair straddles it)
+    double_yellow: bool = True  # the centre line is a pair centred on the boundary (False: a single line)
+    dash_m: float = 3.0
+    dash_gap_m: float = 6.0  # a dashed line is centred on the boundary: paint on a third of its length
+    # How a fitted line is called solid or dashed (bird's-eye rows along the fit that have paint near it):
+    coverage_margin_m: float = 0.2  # paint this close to the fit counts
+    coverage_z_max_m: float = 18.0  # look no farther: beyond, one image row smears over a dash gap
+    coverage_min_span_m: float = 6.0  # at least two thirds of a dash period must be in view
+    solid_min_coverage: float = 0.65  # between a dashed line's third (a little more, smeared) and a solid one's all
+    style_memory: float = 0.6  # weight of the previous frames' coverage of the same line
+
+    def boundary_beyond_m(self, color: str, style: str) -> float:
+        """How far beyond the middle of a line (away from the lane it bounds) the lane boundary lies."""
+        if color == "yellow":
+            return 0.0 if self.double_yellow else self.line_width_m / 2 + self.yellow_gap_m
+        if style == "solid":
+            return self.line_width_m / 2 + self.solid_white_gap_m
+        return 0.0  # dashed (or not known: taken as painted on the boundary)
+
+
 # --------------------------------------------------------------------------- results
 @dataclass
 class LaneLine:
@@ -161,6 +209,8 @@ class LaneLine:
     confidence: float  # 0..1
     n_pixels: int
     color: str = "white"  # "white" or "yellow", by majority of its pixels
+    style: str = "unknown"  # "solid", "dashed", or "unknown" (too little of it in view), from its paint coverage
+    coverage: float = float("nan")  # share of its length (3-18 m ahead, smoothed over frames) with paint
 
     def x_at(self, z_m: np.ndarray | float) -> np.ndarray:
         return np.polyval(self.coeffs, z_m)
@@ -182,6 +232,12 @@ class LaneResult:
     used_previous: bool = False  # True when the search ran around the previous fit instead of windows
     bev: np.ndarray | None = None
     mask: np.ndarray | None = None
+    # The lane itself, with its boundaries placed beyond the painted lines by the marking conventions
+    # (``MarkingSpec``): the centre line x = a z^2 + b z + c, the car's offset from it (positive right, at
+    # the vehicle centre, in the lane holding the car) and the boundary-to-boundary width.
+    centre_offset_m: float = float("nan")
+    centre_coeffs: np.ndarray | None = None
+    boundary_width_m: float = float("nan")
 
 
 # --------------------------------------------------------------------------- detector
@@ -204,6 +260,7 @@ class LaneConfig:
     lane_width_range_m: tuple[float, float] = (2.6, 4.4)
     smoothing: float = 0.5  # weight of the new fit in the running average
     quadratic_min_extent_m: float = 10.0  # shorter evidence gets a straight-line fit
+    markings: MarkingSpec = field(default_factory=MarkingSpec)
 
 
 class LaneDetector:
@@ -219,6 +276,9 @@ class LaneDetector:
         """Forget the previous frames (call at the start of an episode)."""
         self._prev: tuple[LaneLine | None, LaneLine | None] = (None, None)
         self.lane_width_m = self.config.lane_width_prior_m
+        self.boundary_width_m = self.config.lane_width_prior_m
+        # Per side: (the line's x at the car, its smoothed paint coverage) while the same line is followed.
+        self._coverage: list[tuple[float, float] | None] = [None, None]
 
     # ------------------------------------------------------------------ main entry
     def detect(self, rgb: np.ndarray, keep_images: bool = False) -> LaneResult:
@@ -241,6 +301,7 @@ class LaneDetector:
             left_idx, right_idx, windows = self._sliding_windows(binary, xs, ys, self._prev)
             lines = self._fit_pair(xs, ys, left_idx, right_idx, masks)
         left, right = self._smooth(*lines)
+        left, right = self._classify(left, right, binary)
         result = self._summarise(left, right)
         result.windows, result.used_previous = windows, used_previous
         if keep_images:
@@ -400,6 +461,86 @@ class LaneDetector:
         self._prev = (out[0], out[1])
         return out[0], out[1]
 
+    def paint_coverage(self, line: LaneLine, binary: np.ndarray) -> tuple[float, float]:
+        """Share of the bird's-eye rows along a line (from the near edge to the farthest paint found for it,
+        at most ``coverage_z_max_m``, where the line is inside the camera image) that have paint within
+        ``coverage_margin_m`` of the fit, and the stretch of road (m) those rows cover. Stopping at the
+        line's own far end keeps a solid line that ends at a junction solid."""
+        spec, be, bcfg = self.config.markings, self.birdseye, self.config.birdseye
+        z = be.z_of_row
+        rows = np.nonzero((z >= bcfg.z_min_m) & (z <= min(spec.coverage_z_max_m, line.z_range_m[1])))[0]
+        x = line.x_at(z[rows])
+        uv = be.image_of_ground(x, z[rows])
+        seen = (uv[:, 0] >= 0) & (uv[:, 0] < self.camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < self.camera.height)
+        rows, x = rows[seen], x[seen]
+        if len(rows) < 2:
+            return float("nan"), 0.0
+        span = float(np.ptp(z[rows])) + 1.0 / bcfg.px_per_m_z
+        m = int(round(spec.coverage_margin_m * bcfg.px_per_m_x))
+        cols = np.round((x - bcfg.x_min_m) * bcfg.px_per_m_x - 0.5).astype(np.int64)[:, None] + np.arange(-m, m + 1)
+        inside = (cols >= 0) & (cols < binary.shape[1])
+        hit = (binary[rows[:, None], np.clip(cols, 0, binary.shape[1] - 1)] > 0) & inside
+        return float(hit.any(axis=1).mean()), span
+
+    def _classify(self, left: LaneLine | None, right: LaneLine | None,
+                  binary: np.ndarray) -> tuple[LaneLine | None, LaneLine | None]:
+        """Call each line solid or dashed from its paint coverage, smoothed over the frames that follow the
+        same line (its position at the car moved less than a third of a lane)."""
+        spec = self.config.markings
+        z0 = -self.camera.mount_forward_m
+        out: list[LaneLine | None] = []
+        for k, line in enumerate((left, right)):
+            if line is None:
+                self._coverage[k] = None
+                out.append(None)
+                continue
+            x_car = float(line.x_at(z0))
+            cov, span = self.paint_coverage(line, binary)
+            prev = self._coverage[k]
+            same = prev is not None and abs(prev[0] - x_car) < self.lane_width_m / 3
+            if span >= spec.coverage_min_span_m and math.isfinite(cov):
+                cov = spec.style_memory * prev[1] + (1 - spec.style_memory) * cov if same and prev is not None else cov
+            elif same and prev is not None:
+                cov = prev[1]  # too little in view this frame: keep what was seen of this line
+            else:
+                cov = float("nan")
+            self._coverage[k] = (x_car, cov) if math.isfinite(cov) else None
+            style = "unknown" if not math.isfinite(cov) else ("solid" if cov >= spec.solid_min_coverage else "dashed")
+            out.append(LaneLine(line.coeffs, line.z_range_m, line.confidence, line.n_pixels, line.color, style, cov))
+        return out[0], out[1]
+
+    def _boundary(self, line: LaneLine, sign: float) -> np.ndarray:
+        """The lane boundary a line marks, as (a, b, c): the line moved ``sign`` (-1 left, +1 right) by the
+        marking spec's distance, measured across the line."""
+        beyond = self.config.markings.boundary_beyond_m(line.color, line.style)
+        slope = float(np.polyval(np.polyder(line.coeffs), -self.camera.mount_forward_m))
+        return line.coeffs + np.array([0.0, 0.0, sign * beyond * math.sqrt(1.0 + slope * slope)])
+
+    def _lane_centre(self, left: LaneLine | None, right: LaneLine | None) -> tuple[np.ndarray, float]:
+        """The centre between the boundaries the lines mark and the car's offset from it, both for the lane
+        holding the car (the neighbouring lanes taken as wide as this one)."""
+        cfg = self.config
+        z0 = -self.camera.mount_forward_m
+        bl = self._boundary(left, -1.0) if left is not None else None
+        br = self._boundary(right, 1.0) if right is not None else None
+        if bl is not None and br is not None:
+            width = float(np.polyval(br, z0) - np.polyval(bl, z0))
+            if cfg.lane_width_range_m[0] <= width <= cfg.lane_width_range_m[1]:
+                self.boundary_width_m = 0.9 * self.boundary_width_m + 0.1 * width
+            centre = 0.5 * (bl + br)
+        else:
+            # One boundary: the centre half a lane across it (measured across the lane, so wider along the
+            # car's x axis when the car is turned to the lane, as in a lane change).
+            line, sign = (bl, 1.0) if bl is not None else (br, -1.0)
+            assert line is not None
+            slope = 2 * line[0] * z0 + line[1]
+            centre = line + np.array([0.0, 0.0, sign * self.boundary_width_m / 2 * math.sqrt(1.0 + slope * slope)])
+        slope = 2 * centre[0] * z0 + centre[1]
+        offset = -float(np.polyval(centre, z0)) * math.cos(math.atan(slope))
+        lanes_over = round(offset / self.boundary_width_m)
+        offset -= lanes_over * self.boundary_width_m
+        return centre + np.array([0.0, 0.0, lanes_over * self.boundary_width_m]), offset
+
     def _summarise(self, left: LaneLine | None, right: LaneLine | None) -> LaneResult:
         cfg = self.config
         z0 = -self.camera.mount_forward_m  # the vehicle centre, behind the camera
@@ -429,12 +570,15 @@ class LaneDetector:
         # neighbouring lanes to be as wide as this one.
         offset -= round(offset / self.lane_width_m) * self.lane_width_m
         radius = math.inf if abs(a) < 1e-6 else (1 + slope ** 2) ** 1.5 / (2 * a)
-        return LaneResult(left, right, offset, float(radius), heading, self.lane_width_m, float(confidence), True)
+        lane_centre, centre_offset = self._lane_centre(left, right)
+        return LaneResult(left, right, offset, float(radius), heading, self.lane_width_m, float(confidence), True,
+                          centre_offset_m=centre_offset, centre_coeffs=lane_centre, boundary_width_m=self.boundary_width_m)
 
 
 # --------------------------------------------------------------------------- pictures
-def draw_lanes(rgb: np.ndarray, result: LaneResult, birdseye: BirdsEye) -> np.ndarray:
-    """The camera image with the lane area and lines drawn back through the homography."""
+def draw_lanes(rgb: np.ndarray, result: LaneResult, birdseye: BirdsEye, centre: bool = True) -> np.ndarray:
+    """The camera image with the lane area and lines drawn back through the homography, and (``centre``) the
+    lane centre placed by the marking conventions as a dashed yellow line, up to 20 m."""
     out = rgb.copy()
     zz = np.linspace(birdseye.config.z_min_m, birdseye.config.z_max_m, 40)
     pts = {}
@@ -450,6 +594,11 @@ def draw_lanes(rgb: np.ndarray, result: LaneResult, birdseye: BirdsEye) -> np.nd
         layer = out.copy()
         cv2.fillPoly(layer, [poly], (60, 220, 90))
         out = cv2.addWeighted(layer, 0.3, out, 0.7, 0)
+    if centre and result.centre_coeffs is not None:  # the lane centre by the marking conventions
+        z = zz[zz <= 20.0]
+        uv = np.round(birdseye.image_of_ground(np.polyval(result.centre_coeffs, z), z)).astype(np.int32)
+        for k in range(0, len(uv) - 1, 2):  # dashed
+            cv2.line(out, tuple(uv[k]), tuple(uv[k + 1]), (255, 230, 0), 1, cv2.LINE_AA)
     return out
 
 

@@ -97,6 +97,10 @@ def main() -> None:
         k = nxt()
         stereo.object_distances(stereo.depth(disparities[k]), boxes[k])
 
+    def refined_objects() -> None:
+        k = nxt()
+        stereo.object_distances_refined(pairs[k][0], pairs[k][1], disparities[k], boxes[k])
+
     stages = [
         ("bird's-eye warp + thresholds", warp_and_masks),
         ("lanes, sliding windows (no previous fit)", lanes_windows),
@@ -106,6 +110,7 @@ def main() -> None:
         ("SORT update", tracker),
         ("stereo SGBM 3-way disparity", disparity),
         ("stereo depth + object distances", depth_and_objects),
+        ("stereo object distances, refined (all boxes)", refined_objects),
     ]
     for name, fn in stages:
         lat = measure(fn, repeats=args.repeats, warmup=10)

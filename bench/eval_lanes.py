@@ -12,7 +12,9 @@ Figures:
   of the lane's angle), false-lane rate (FP / predicted lanes) and missed-lane rate (FN / true lanes),
   on frames where the ego is on a painted road (not inside a junction); image rows whose road is 3-30 m ahead;
 - offset MAE against the painted-lane centre and against the lane model's centre (``World.lane_offset_m``),
-  on frames with a detection, and how often there is one;
+  on frames with a detection, and how often there is one: for the middle of the painted lines
+  (``LaneResult.offset_m``) and for the lane centre placed by the marking conventions
+  (``LaneResult.centre_offset_m``: each line classified yellow / white and solid / dashed from the image);
 - stop lines: detection rate of visible stop lines by distance, absolute distance error, false detections.
 """
 
@@ -34,10 +36,23 @@ from agent.lanes import BirdsEye, LaneDetector, LaneResult, draw_birdseye, draw_
 from agent.lanes_hough import HoughLaneDetector  # noqa: E402
 from agent.stop_line import StopLine, StopLineDetector  # noqa: E402
 from envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
-from envs.perception_truth import lane_truth, lane_z_range_rows, stop_line_truth, tusimple_frame  # noqa: E402
+from envs.perception_truth import camera_pose, lane_truth, lane_z_range_rows, stop_line_truth, tusimple_frame  # noqa: E402
+from sim.scene_meshes import to_world  # noqa: E402
 
 PRESETS = ("noon", "dusk", "overcast", "night")
 STOP_BINS = ((3.0, 10.0), (10.0, 15.0), (15.0, 20.0))
+
+
+def centre_truth_px(world, camera) -> np.ndarray:
+    """Image points (N x 2) of the lane model's centre line 3-20 m ahead of the camera (for the pictures)."""
+    if world.ego_lane is None:
+        return np.zeros((0, 2))
+    index, s0, _ = world.ego_lane
+    lane = world.town.lane(index)
+    s = np.arange(s0, min(lane.length, s0 + camera.mount_forward_m + 20.0), 0.5)
+    p = np.array([lane.position(float(v), 0.0) for v in s]).reshape(-1, 2)
+    uv, z = camera_pose(world, camera).project(to_world(p[:, 0], p[:, 1], 0.0))
+    return uv[z >= 3.0]
 
 
 def predicted_x(result: LaneResult, birdseye: BirdsEye, h_samples: np.ndarray) -> list[np.ndarray]:
@@ -66,6 +81,8 @@ class Tally:
         self.err_model: list[float] = []
         self.err_painted: list[float] = []
         self.err_in_lane: list[float] = []  # painted-centre error while the car is within 1 m of it (not changing lanes)
+        self.centre_model: list[float] = []  # the same for centre_offset_m (lane centre by marking conventions)
+        self.centre_painted: list[float] = []
         self.frames = self.with_offset = 0
         self.radius: list[tuple[float, float]] = []  # (true |R|, estimated |R|) on bends
 
@@ -90,6 +107,11 @@ class Tally:
                 self.err_painted.append(abs(result.offset_m - gt.painted_offset_m))
                 if abs(gt.painted_offset_m) <= 1.0:
                     self.err_in_lane.append(abs(result.offset_m - gt.painted_offset_m))
+            if math.isfinite(result.centre_offset_m):
+                if math.isfinite(gt.offset_m):
+                    self.centre_model.append(abs(result.centre_offset_m - gt.offset_m))
+                if math.isfinite(gt.painted_offset_m):
+                    self.centre_painted.append(abs(result.centre_offset_m - gt.painted_offset_m))
 
     def row(self) -> str:
         acc = np.mean(self.acc) if self.acc else float("nan")
@@ -99,9 +121,14 @@ class Tally:
         mm = np.mean(self.err_model) if self.err_model else float("nan")
         med = np.median(self.err_painted) if self.err_painted else float("nan")
         il = np.mean(self.err_in_lane) if self.err_in_lane else float("nan")
+        centre = ""
+        if self.centre_model:
+            centre = (f" | lane centre by marking conventions: offset MAE vs lane model {np.mean(self.centre_model):5.3f} m "
+                      f"(median {np.median(self.centre_model):5.3f}, p95 {np.percentile(self.centre_model, 95):5.3f}), "
+                      f"vs painted centre {np.mean(self.centre_painted):5.3f} m")
         return (f"acc {acc:5.3f} FP {fpr:5.3f} FN {fnr:5.3f} | offset MAE vs painted centre {mp:5.3f} m (median {med:5.3f}, "
                 f"in lane {il:5.3f}), vs lane model {mm:5.3f} m | offset given in {self.with_offset / max(1, self.frames):4.0%} "
-                f"of {self.frames} road frames" + self._radius())
+                f"of {self.frames} road frames" + centre + self._radius())
 
     def _radius(self) -> str:
         if not self.radius:
@@ -196,7 +223,8 @@ def run(frames: int, episodes: int, seed: int, sheet: Path | None) -> None:
                 totals["stop"].add(sl, st)
                 if sheet is not None and episode == 0 and shots < 2 and (k == frames // 3 or (shots == 1 and (
                         sl is not None or k == frames - 1))):
-                    tiles.append(_tile(rgb, res, sl, gt, st, windows.birdseye, h_samples, preset))
+                    tiles.append(_tile(rgb, res, sl, gt, st, windows.birdseye, h_samples, preset,
+                                       centre_truth_px(env.world, cam)))
                     shots += 1
         dt = time.perf_counter() - t0
         print(f"[{preset}] {episodes} x {frames} frames in {dt:.0f} s")
@@ -216,10 +244,13 @@ def run(frames: int, episodes: int, seed: int, sheet: Path | None) -> None:
 
 
 def _tile(rgb: np.ndarray, res: LaneResult, sl: StopLine | None, gt, st, be: BirdsEye, h_samples: np.ndarray,
-          preset: str) -> np.ndarray:
-    """Camera with lanes (green area, red/blue fits, magenta ground-truth points, orange stop line) beside the
-    bird's-eye mask (white / yellow paint) with sliding windows (green) and fits."""
+          preset: str, centre_px: np.ndarray) -> np.ndarray:
+    """Camera with lanes (green area, red/blue fits, magenta ground-truth points of the painted lines, dashed
+    yellow: the lane centre by marking conventions, white dots: the lane model's centre, orange stop line)
+    beside the bird's-eye mask (white / yellow paint) with sliding windows (green) and fits."""
     img = draw_lanes(rgb, res, be)
+    for u, v in centre_px:
+        cv2.circle(img, (int(round(u)), int(round(v))), 1, (255, 255, 255), -1)
     for x in gt.lanes_x:
         for xx, yy in zip(x, h_samples, strict=True):
             if xx >= 0:
@@ -229,8 +260,11 @@ def _tile(rgb: np.ndarray, res: LaneResult, sl: StopLine | None, gt, st, be: Bir
         uv = be.image_of_ground(xs, np.full(2, sl.distance_m))
         cv2.line(img, tuple(np.round(uv[0]).astype(int)), tuple(np.round(uv[1]).astype(int)), (255, 140, 0), 2)
     big = cv2.resize(img, (640, 320), interpolation=cv2.INTER_LINEAR)
-    text = f"{preset} offset {res.offset_m:+.2f} m (true {gt.painted_offset_m:+.2f})" if res.detected else f"{preset} no lane"
-    cv2.putText(big, text, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+    text = (f"{preset} painted {res.offset_m:+.2f} m (true {gt.painted_offset_m:+.2f}), lane {res.centre_offset_m:+.2f} m "
+            f"(true {gt.offset_m:+.2f})") if res.detected else f"{preset} no lane"
+    cv2.putText(big, text, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+    kinds = [f"{name} {ln.style} {ln.color}" for name, ln in (("L", res.left), ("R", res.right)) if ln is not None]
+    cv2.putText(big, ", ".join(kinds), (6, 312), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
     if sl is not None or math.isfinite(st.distance_m):
         stxt = f"stop line {sl.distance_m:.1f} m" if sl is not None else "stop line: none"
         cv2.putText(big, stxt + f" (true {st.distance_m:.1f} m)", (6, 38), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1,

@@ -9,8 +9,11 @@ has no ground truth. D1 (KITTI 2015): a pixel is wrong if its disparity is off b
 more than 5 %. "D1-all" fills pixels without a match by KITTI's background interpolation first, so every
 ground-truth pixel counts; "D1 valid" counts only matched pixels, and "density" is their share.
 Object distances: cars, trucks and pedestrians with at least 60 pixels in the left frame, boxes from
-the segmentation map; the estimate is the median stereo depth over the box's centre, the truth the
-median true depth over the object's own pixels.
+the segmentation map; the truth is the median true depth over the object's own pixels. Two estimates:
+"median", the median stereo depth over the box's centre (``StereoDepth.object_distance``, what the
+agent's stereo mode uses), and "refined", the nearest disparity mode in the box refined by matching the
+object's pixels (``object_distances_refined``). The refined estimate's settings were chosen on drives with
+``--seed 61 --episodes 6``; the default seeds (21-24) are the held-out evaluation.
 """
 
 from __future__ import annotations
@@ -58,12 +61,12 @@ def main() -> None:
     print(f"rig: {cam.width}x{cam.height}, f = {cam.focal_px:.0f} px, baseline {cam.stereo_baseline_m:.2f} m "
           f"(1 px of disparity = {cam.focal_px * cam.stereo_baseline_m:.1f} m); SGBM 3-way, "
           f"{stereo.config.num_disparities} disparities, block {stereo.config.block_size}")
-    all_err: list[tuple[float, float, tuple[int, int]]] = []
+    all_err: list[tuple[float, float, float, tuple[int, int]]] = []
     all_d1: list[tuple[float, ...]] = []
     pictures = []
     for preset in presets:
         d1s: list[tuple[float, ...]] = []
-        errs: list[tuple[float, float, tuple[int, int]]] = []
+        errs: list[tuple[float, float, float, tuple[int, int]]] = []
         t0 = time.perf_counter()
         for episode in range(args.episodes):
             driver = Autopilot()
@@ -90,23 +93,26 @@ def main() -> None:
                             float(err.mean()) if len(err) else np.nan, float((err > 1.0).mean()) if len(err) else np.nan))
                 depth = stereo.depth(disp)
                 boxes, ids, oid = boxes_from_segmentation(truth.segmentation, min_pixels=60)
-                for box, i in zip(boxes, ids, strict=True):
+                refined = stereo.object_distances_refined(obs["stereo"][0], obs["stereo"][1], disp, boxes)
+                for box, i, z_ref in zip(boxes, ids, refined, strict=True):
                     true_m = float(np.median(truth.depth_m[oid == i]))
-                    errs.append((true_m, stereo.object_distance(depth, box), (episode, int(i))))
+                    errs.append((true_m, stereo.object_distance(depth, box), float(z_ref), (episode, int(i))))
                 if (args.picture is not None and episode == 0 and len(pictures) < len(presets)
                         and k == args.every * (args.frames // 2)):
-                    pictures.append(_picture(obs["stereo"][0], disp, truth.disparity_px, boxes, stereo, depth, preset))
+                    pictures.append(_picture(obs["stereo"][0], disp, truth.disparity_px, boxes, refined, preset))
         d1 = np.array(d1s)
         print(f"[{preset}] {len(d1s)} frames in {time.perf_counter() - t0:.0f} s: D1-all {d1[:, 0].mean():.2%}, "
               f"D1 valid {d1[:, 1].mean():.2%}, density {d1[:, 2].mean():.1%}, end-point error {np.nanmean(d1[:, 3]):.2f} px, "
               f"off by > 1 px {np.nanmean(d1[:, 4]):.1%}")
-        print("  objects: " + _ranges(errs))
+        print("  objects, median:  " + _ranges(errs, 1))
+        print("  objects, refined: " + _ranges(errs, 2))
         all_err += errs
         all_d1 += d1s
     d1 = np.array(all_d1)
     print(f"[all] D1-all {d1[:, 0].mean():.2%} (target < 5%), D1 valid {d1[:, 1].mean():.2%}, density {d1[:, 2].mean():.1%}, "
           f"end-point error {np.nanmean(d1[:, 3]):.2f} px, off by > 1 px {np.nanmean(d1[:, 4]):.1%}")
-    print("  objects: " + _ranges(all_err))
+    print("  objects, median:  " + _ranges(all_err, 1))
+    print("  objects, refined: " + _ranges(all_err, 2))
     print("  seed 000's ZED: about 0.1 m indoors (2.6-10 m), 0.5-1 m outdoors up to 20 m")
     env.close()
     if pictures:
@@ -115,10 +121,11 @@ def main() -> None:
         print(f"picture: {args.picture}")
 
 
-def _ranges(errs: list[tuple[float, float, tuple[int, int]]]) -> str:
+def _ranges(errs: list[tuple[float, float, float, tuple[int, int]]], which: int) -> str:
+    """Per range: boxes, objects, the share measured, MAE, median error, of estimate ``which`` (1 median, 2 refined)."""
     parts = []
     for lo, hi in RANGES:
-        sel = [(t, e, o) for t, e, o in errs if lo <= t < hi]
+        sel = [(row[0], row[which], row[3]) for row in errs if lo <= row[0] < hi]
         if not sel:
             continue
         ok = [(t, e) for t, e, _ in sel if np.isfinite(e)]
@@ -133,13 +140,12 @@ def _ranges(errs: list[tuple[float, float, tuple[int, int]]]) -> str:
     return "; ".join(parts)
 
 
-def _picture(left: np.ndarray, disp: np.ndarray, truth: np.ndarray, boxes: np.ndarray, stereo: StereoDepth,
-             depth: np.ndarray, preset: str) -> np.ndarray:
-    """Left image with boxes and stereo distances | estimated disparity | true disparity."""
+def _picture(left: np.ndarray, disp: np.ndarray, truth: np.ndarray, boxes: np.ndarray, distances: np.ndarray,
+             preset: str) -> np.ndarray:
+    """Left image with boxes and (refined) stereo distances | estimated disparity | true disparity."""
     top = float(np.percentile(truth[truth > 0], 99)) if (truth > 0).any() else 1.0
     img = left.copy()
-    for b in boxes:
-        d = stereo.object_distance(depth, b)
+    for b, d in zip(boxes, distances, strict=True):
         x0, y0, x1, y1 = (int(v) for v in b)
         cv2.rectangle(img, (x0, y0), (x1, y1), (255, 255, 0), 1)
         cv2.putText(img, f"{d:.1f}m", (x0, max(8, y0 - 2)), cv2.FONT_HERSHEY_SIMPLEX, 0.3, (255, 255, 0), 1, cv2.LINE_AA)

@@ -159,3 +159,74 @@ def test_ground_truth_lines_lie_on_painted_pixels() -> None:
     assert max(shares) > 0.9  # the solid line (edge or centre line)
     assert min(shares) > 0.2  # a dashed line: paint on about a third of its length
     assert abs(gt.lateral_m[1] - gt.lateral_m[0] - 3.3) < 0.15  # painted lines are 3.2-3.4 m apart
+
+
+def marked_road(car_offset_m: float, lane: str) -> np.ndarray:
+    """A camera image of the town's two-lane carriageway painted by its marking spec (sim/town.py): a double
+    yellow centre line (0.14 m lines 0.06-0.20 m either side of the boundary), a dashed white divider (3 m dashes,
+    6 m gaps) on the boundary, a solid white edge line 0.21-0.35 m inside the outer edge. The car is in the
+    ``lane`` ("inner" or "outer") at ``car_offset_m`` right of that lane's centre."""
+    cfg = BirdsEyeConfig(x_min_m=-10, x_max_m=10, z_min_m=0.5, z_max_m=80, px_per_m_x=50, px_per_m_z=50)
+    scale = 4
+    be = BirdsEye(CAM, cfg)
+    to_big = np.array([[scale, 0, (scale - 1) / 2], [0, scale, (scale - 1) / 2], [0, 0, 1.0]])
+    w, h = cfg.size
+    canvas = np.full((h, w, 3), (62, 62, 66), np.uint8)
+    # lateral positions of the paint's middle, relative to the car's lane centre (positive right)
+    inner_centre = 0.0 if lane == "inner" else -3.5
+    lines = [(inner_centre - 1.75 - 0.13, (235, 195, 40), False), (inner_centre - 1.75 + 0.13, (235, 195, 40), False),
+             (inner_centre + 1.75, (235, 235, 230), True), (inner_centre + 5.25 - 0.28, (235, 235, 230), False)]
+    z = be.z_of_row
+    for lat, color, dashed in lines:
+        u = (lat - car_offset_m - cfg.x_min_m) * cfg.px_per_m_x
+        paint = ((z + 2.3) % 9.0 < 3.0) if dashed else np.ones_like(z, bool)
+        for du in range(-3, 4):  # 0.14 m wide
+            cols = np.full(h, int(round(u + du)))
+            ok = (cols >= 0) & (cols < w) & paint
+            canvas[np.arange(h)[ok], cols[ok]] = color
+    img = cv2.warpPerspective(canvas, to_big @ be.bev_to_image, (CAM.width * scale, CAM.height * scale),
+                              flags=cv2.INTER_LINEAR, borderValue=(120, 160, 210))
+    return cv2.resize(img, (CAM.width, CAM.height), interpolation=cv2.INTER_AREA)
+
+
+@pytest.mark.parametrize(("lane", "car_offset_m"), [("outer", 0.0), ("outer", 0.4), ("outer", -0.5), ("inner", 0.0),
+                                                    ("inner", 0.35), ("inner", -0.4)])
+def test_lane_centre_from_marking_conventions(lane: str, car_offset_m: float) -> None:
+    """The painted lines are classified from the image (colour, solid / dashed) and the lane boundaries placed
+    beyond them by the marking spec, so the offset from the lane centre is right in either lane; the painted
+    lines' own fields keep their meaning (the middle of the paint)."""
+    img = marked_road(car_offset_m, lane)
+    det = LaneDetector(CAM)
+    for _ in range(3):  # the line styles are smoothed over frames
+        res = det.detect(img)
+    assert res.detected and res.left is not None and res.right is not None
+    if lane == "outer":
+        assert (res.left.color, res.left.style) == ("white", "dashed")
+        assert (res.right.color, res.right.style) == ("white", "solid")
+        painted_centre = (-1.75 + 1.47) / 2  # the edge line is painted 0.28 m inside the lane
+    else:
+        assert res.left.color == "yellow"
+        assert (res.right.color, res.right.style) == ("white", "dashed")
+        painted_centre = 0.0  # the double yellow line straddles the boundary
+    # A misread line costs 0.14 m (edge line taken as dashed) or 0.065 m (double yellow taken as one line).
+    assert abs(res.centre_offset_m - car_offset_m) < 0.05
+    assert abs(res.offset_m - (car_offset_m - painted_centre)) < 0.05  # the painted centre, as before
+    assert abs(res.boundary_width_m - 3.5) < 0.1
+    assert res.centre_coeffs is not None and abs(-np.polyval(res.centre_coeffs, -CAM.mount_forward_m) - car_offset_m) < 0.05
+
+
+def test_lane_centre_from_one_line_with_the_car_turned() -> None:
+    """With only the solid edge line seen and the car turned 20 degrees to the lane (a lane change), the lane
+    centre is half a lane across the boundary measured across the lane, not along the car's axis (which would be
+    0.1 m off here)."""
+    from agent.lanes import LaneLine
+
+    det = LaneDetector(CAM)
+    z0 = -CAM.mount_forward_m
+    b = math.tan(math.radians(20.0))
+    for car_offset_m in (-0.4, 0.0, 0.3):
+        across = 1.47 - car_offset_m  # the edge line's middle, measured across the lane from the vehicle centre
+        c = across * math.sqrt(1 + b * b) - b * z0
+        edge = LaneLine(np.array([0.0, b, c]), (3.0, 20.0), 1.0, 500, "white", "solid", 1.0)
+        _, offset = det._lane_centre(None, edge)
+        assert abs(offset - car_offset_m) < 0.01
