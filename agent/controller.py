@@ -18,9 +18,13 @@ Why it is built this way:
   has stopped; the controller keeps the last measured distance and counts down its own travelled
   distance (speed x dt), which is exact enough for the last metres. The bar's distance falls back on the
   light's distance minus where this town's lights stand (across the junction) when no bar has been seen.
+  A bar cannot move away: a reading more than ``line_jump_m`` farther than the tracked line (the zebra
+  beyond it, caught for a frame) is believed only after ``line_jump_frames`` frames in a row that agree.
 - **Lights are debounced** (a state needs ``light_confirm_frames`` frames; a light unseen for
   ``light_memory_s`` is forgotten), and the yellow decision is taken once, when the yellow appears:
-  stop if the stop needs no more than the comfortable deceleration, else go on; a red after a "go on"
+  stop if the stop needs no more than the comfortable deceleration, else go on (before a commanded turn,
+  which brings the car down to the turn speed before the line, stop unless even the full brake cannot or
+  the line is a second away at turn speed); a red after a "go on"
   yellow, or a red that could not be stopped for even with the full brake, is driven through
   (the car is already committed), and the reason says so.
 - **Once past the stop line**, the junction's light is ignored for ``junction_ignore_m`` metres: it stands
@@ -69,6 +73,8 @@ class ControllerConfig:
     min_lateral_speed_mps: float = 0.3  # slower lateral motion is not "entering" (box jitter)
     lookahead_m: float = 45.0  # objects farther than this are ignored
     light_confirm_frames: int = 2
+    line_jump_m: float = 1.5  # a stop-line reading this much farther than the tracked line is suspect ...
+    line_jump_frames: int = 3  # ... until seen this many frames in a row where odometry puts it
     light_memory_s: float = 1.0
     red_memory_s: float = 4.0  # a red is kept longer: not seeing the light is no reason to go
     light_beyond_stop_line_m: float = 21.0  # town design: lights stand across the junction (12.5 + 7 + 1.75 m)
@@ -168,6 +174,8 @@ class Controller:
         self.last_accel = 0.0
         self.stop_line: float | None = None  # bumper to the stop line, metres
         self.stop_line_measured = False  # True once a bar was seen (not only inferred from the light)
+        self._farther_line: float | None = None  # a reading farther than the tracked line, not yet believed
+        self._farther_count = 0
         self.ignore_light_m = 0.0  # travel left during which lights are ignored (inside a junction)
         self.light_state: str | None = None
         self._light_candidate: str | None = None
@@ -245,10 +253,20 @@ class Controller:
             self.ignore_light_m = max(0.0, self.ignore_light_m - travelled)
         if self.stop_line is not None:
             self.stop_line -= travelled
+        if self._farther_line is not None:
+            self._farther_line -= travelled
         measured = None if scene.stop_line_m is None else scene.stop_line_m - cfg.camera_to_front_m
         if (measured is not None and self.stop_line_measured and self.stop_line is not None
-                and self.stop_line < 5.0 and measured > self.stop_line + 1.5):
-            measured = None  # a bar cannot move away: close in, a farther "bar" is the zebra beyond it
+                and measured > self.stop_line + cfg.line_jump_m):
+            # A bar cannot move away: a farther "bar" is the zebra beyond it (close in always; farther out
+            # it is believed only when it is seen again where odometry puts it, frame after frame).
+            agrees = self._farther_line is not None and abs(measured - self._farther_line) < 1.0
+            self._farther_count = self._farther_count + 1 if agrees else 1
+            self._farther_line = measured
+            if self.stop_line < 5.0 or self._farther_count < cfg.line_jump_frames:
+                measured = None
+        else:
+            self._farther_line, self._farther_count = None, 0
         if measured is not None and self.ignore_light_m <= 0:
             self.stop_line = measured
             self.stop_line_measured = True
@@ -261,7 +279,7 @@ class Controller:
             self.ignore_light_m = cfg.junction_ignore_m
             self.light_state, self._light_candidate, self._yellow_go = None, None, None
 
-    def _light_constraint(self, speed: float) -> Constraint | None:
+    def _light_constraint(self, speed: float, turning: bool = False) -> Constraint | None:
         """The stop constraint of a red or yellow light, if it applies; ``self.note`` says why not when it does not."""
         cfg = self.config
         self.note = ""
@@ -278,7 +296,10 @@ class Controller:
         need = speed * speed / (2.0 * max(gap, 0.05))  # deceleration to stop at the point
         if state == "yellow":
             if self._yellow_go is None:
-                self._yellow_go = need > cfg.comfortable_brake_mps2
+                # Turning, the car slows to the turn speed before the line anyway, and would cross it on red:
+                # it stops unless even the full brake cannot, or the line is a second away at turn speed.
+                self._yellow_go = (need > 0.9 * cfg.max_brake_mps2 or gap < cfg.junction_turn_speed_mps
+                                   if turning else need > cfg.comfortable_brake_mps2)
             if self._yellow_go:
                 self.note = "yellow light: too close to stop comfortably, going on"
                 return None
@@ -309,7 +330,7 @@ class Controller:
             constraints.append(Constraint(f"turning at a junction: {cfg.junction_turn_speed_mps:.1f} m/s", math.inf,
                                           cfg.junction_turn_speed_mps, 0.0, 0.0,
                                           self._idm(speed, min(target, cfg.junction_turn_speed_mps), None, 0.0, 0.0, 0.0)))
-        light = self._light_constraint(speed)
+        light = self._light_constraint(speed, scene.turning)
         if light is not None:
             if math.isinf(light.gap_m):  # a speed cap, not a point to stop at
                 light.accel_mps2 = self._idm(speed, min(target, light.speed_mps), None, 0.0, 0.0, 0.0)
@@ -343,6 +364,13 @@ class Controller:
                     c.accel_mps2 = min(c.accel_mps2, -cfg.comfortable_brake_mps2)
             if c.accel_mps2 < accel:
                 accel, reason, governing = c.accel_mps2, c.reason, k
+        if governing is not None and not constraints[governing].hard:
+            # A speed cap (the turn) may ask for more than a stop point does, but only comfortable braking;
+            # a stop point that comfort cannot meet still gets the brake it needs, and gives the reason.
+            urgent = [k for k, c in enumerate(constraints) if c.hard and c.accel_mps2 < -cfg.comfortable_brake_mps2]
+            if urgent:
+                governing = min(urgent, key=lambda k: constraints[k].accel_mps2)
+                reason = constraints[governing].reason
         hard = governing is not None and constraints[governing].hard
         holding = governing is not None and constraints[governing].hold
         if holding:

@@ -102,6 +102,41 @@ def test_yellow_far_enough_stops_and_yellow_too_close_goes_on() -> None:
     assert any("going on" in d.reason for d in close.decisions)
 
 
+def test_yellow_before_a_commanded_turn_stops_with_the_brake_it_needs() -> None:
+    def turning_scene(line_m: float) -> Callable[[float, float, float], Scene]:
+        plain = light_scene(line_m, lambda t: "yellow" if t < 1.0 else "red")
+
+        def scene(s: float, v: float, t: float) -> Scene:
+            out = plain(s, v, t)
+            out.turning = True  # no lane near the junction: the turn cap applies before the line
+            return out
+        return scene
+
+    # 8 m/s, line 6 m ahead: going straight it goes on (above); before a turn the car slows to 3 m/s and
+    # would cross the line on red, so it stops, harder than comfort
+    run = drive(turning_scene(6.0), 4.0, v0=8.0)
+    assert run.speed[-1] == 0.0 and 6.0 - run.travelled >= 0.0
+    assert min(run.accel) < -CFG.comfortable_brake_mps2
+    # a line 2 m ahead at 8 m/s cannot be stopped for: going on
+    close = drive(turning_scene(2.0), 2.0, v0=8.0)
+    assert close.travelled > 2.0 + 3.0
+
+
+def test_a_farther_stop_bar_seen_once_is_the_zebra_beyond_it() -> None:
+    ctrl = Controller(CFG)
+    for k in range(4):  # a bar 13 m ahead, at 6 m/s
+        ctrl.step(Scene(6.0, light="red", stop_line_m=13.0 - 0.3 * k + CAM), 0.0, DT)
+    tracked = ctrl.stop_line
+    d = ctrl.step(Scene(6.0, light="red", stop_line_m=tracked - 0.3 + 3.5 + CAM), 0.0, DT)  # one frame: zebra
+    assert d.stop_line_gap_m == pytest.approx(tracked - 0.3, abs=1e-6)
+    # seen again and again where odometry puts it: the first reading was the wrong one, believe the new one
+    far = tracked - 0.3 + 3.5
+    for _ in range(CFG.line_jump_frames):
+        far -= 0.3
+        d = ctrl.step(Scene(6.0, light="red", stop_line_m=far + CAM), 0.0, DT)
+    assert d.stop_line_gap_m == pytest.approx(far, abs=1e-6)
+
+
 def test_red_light_seen_after_the_stop_line_is_ignored() -> None:
     ctrl = Controller(CFG)
     # bar seen 4 m ahead of the bumper, then passed; the light across the junction then shows red
