@@ -524,31 +524,34 @@ class SceneRenderer:
         if light_states:
             self.set_light_states(light_states)
         in_view = _in_view(objects, view)
-        heights = self._object_heights(objects)
-        seen = set()
-        for k, obj in enumerate(objects):
-            seen.add(obj.object_id)
-            body = self._active.get(obj.object_id)
+        active, looks, last_pose, cid = self._active, self._look, self._last_pose, self._cid
+        ped = SemanticClass.PEDESTRIAN
+        for obj, shown in zip(objects, in_view, strict=True):
+            oid = obj.object_id
+            body = active.get(oid)
             look = (obj.kind, obj.length_m, obj.width_m, obj.height_m, obj.color)
-            if body is not None and self._look.get(obj.object_id) == look:
-                pass  # same body, same paint as last step: only the pose may change
-            else:
+            if body is None or looks.get(oid) != look:  # else: same body, same paint; only the pose may change
                 body = self._fit_body(obj, body)
-                self._look[obj.object_id] = look
-            pose = (obj.x, obj.y, obj.heading, body.uid) if in_view[k] else ("parked", body.uid)
-            if self._last_pose.get(obj.object_id) == pose:
+                looks[oid] = look
+            pose = (obj.x, obj.y, obj.heading, body.uid) if shown else ("parked", body.uid)
+            if last_pose.get(oid) == pose:
                 continue  # standing still (or still out of view): nothing to move
-            self._last_pose[obj.object_id] = pose
-            if not in_view[k]:
+            last_pose[oid] = pose
+            if not shown:
                 self._set_shown(body, False)
                 continue
-            self._set_shown(body, True)
+            if not body.shown:
+                self._set_shown(body, True)
+            # Pedestrians on a raised surface (sidewalk, park) stand on it.
+            z = Z_SLAB if obj.kind == ped and SURFACE_RAISED[self.ground_map.lookup_point(obj.x, obj.y)] else 0.0
             orn = p.getQuaternionFromEuler([0.0, 0.0, yaw_of(obj.heading)])
-            p.resetBasePositionAndOrientation(body.uid, world_point(obj.x, obj.y, heights[k]), orn, **self._cid)
-        for oid in [k for k in self._active if k not in seen]:
-            self._last_pose.pop(oid, None)
-            self._look.pop(oid, None)
-            self._release(oid)
+            p.resetBasePositionAndOrientation(body.uid, world_point(obj.x, obj.y, z), orn, **cid)
+        if len(active) > len(objects):  # every object has its body now; more bodies: some objects are gone
+            seen = {obj.object_id for obj in objects}
+            for oid in [k for k in active if k not in seen]:
+                last_pose.pop(oid, None)
+                looks.pop(oid, None)
+                self._release(oid)
         if self._new_bodies:
             self._settle_broadphase()
 
@@ -578,16 +581,6 @@ class SceneRenderer:
         for link, rgb in body.link_rgb.items():
             paint = body.color if link in body.body_links else rgb
             p.changeVisualShape(body.uid, link, rgbaColor=[*paint, 1.0 if shown else 0.0], **self._cid)
-
-    def _object_heights(self, objects: Sequence[ObjectSnapshot]) -> np.ndarray:
-        """Base height of each object: pedestrians on a raised surface (sidewalk, park) stand on it."""
-        heights = np.zeros(len(objects))
-        peds = [k for k, o in enumerate(objects) if o.kind == SemanticClass.PEDESTRIAN]
-        if peds:
-            xs = np.array([objects[k].x for k in peds])
-            ys = np.array([objects[k].y for k in peds])
-            heights[peds] = np.where(SURFACE_RAISED[self.ground_map.lookup(xs, ys)], Z_SLAB, 0.0)
-        return heights
 
     def _release(self, object_id: int) -> None:
         body = self._active.pop(object_id)
@@ -724,17 +717,31 @@ def _grade(preset: LightingPreset, camera: CameraConfig) -> tuple[np.ndarray, np
     return grade, flags
 
 
-def _in_view(objects: Sequence[ObjectSnapshot], view: tuple[float, float, float, float, float] | None) -> np.ndarray:
+_RADII: dict[tuple[float, float], float] = {}  # an object's footprint radius plus margin, by (length, width)
+
+
+def _in_view(objects: Sequence[ObjectSnapshot], view: tuple[float, float, float, float, float] | None) -> list[bool]:
     """Which objects may show in a camera's horizontal wedge (conservative: size and a margin count)."""
     if view is None or not objects:
-        return np.ones(len(objects), bool)
+        return [True] * len(objects)
     x, y, heading, hfov_deg, range_m = view
-    pos = np.array([[o.x, o.y] for o in objects]) - np.array([x, y])
-    radius = np.array([0.5 * math.hypot(o.length_m, o.width_m) for o in objects]) + 1.0
+    pos = np.array([(o.x, o.y) for o in objects])
+    pos -= (x, y)
+    radii = []
+    for o in objects:
+        r = _RADII.get((o.length_m, o.width_m))
+        if r is None:
+            if len(_RADII) > 1024:
+                _RADII.clear()
+            r = _RADII[(o.length_m, o.width_m)] = 0.5 * math.hypot(o.length_m, o.width_m) + 1.0
+        radii.append(r)
+    radius = np.array(radii)
     dist = np.hypot(pos[:, 0], pos[:, 1])
     ang = np.abs((np.arctan2(pos[:, 1], pos[:, 0]) - heading + np.pi) % (2 * np.pi) - np.pi)
-    reach = math.radians(hfov_deg) / 2 + np.arcsin(np.clip(radius / np.maximum(dist, 1e-6), 0.0, 1.0)) + math.radians(5)
-    return (dist <= radius + 3.0) | ((dist <= range_m + radius) & (ang <= reach))
+    # np.minimum/np.maximum: np.clip's value for these finite ratios, without its Python wrapper
+    sine = np.minimum(np.maximum(radius / np.maximum(dist, 1e-6), 0.0), 1.0)
+    reach = math.radians(hfov_deg) / 2 + np.arcsin(sine) + math.radians(5)
+    return ((dist <= radius + 3.0) | ((dist <= range_m + radius) & (ang <= reach))).tolist()
 
 
 def _ground_map(town: Town) -> GroundMap:
