@@ -721,12 +721,10 @@ _RADII: dict[tuple[float, float], float] = {}  # an object's footprint radius pl
 
 
 def _in_view(objects: Sequence[ObjectSnapshot], view: tuple[float, float, float, float, float] | None) -> list[bool]:
-    """Which objects may show in a camera's horizontal wedge (conservative: size and a margin count)."""
+    """Which objects may show in a camera's horizontal wedge (conservative: size and a 5 degree margin count)."""
     if view is None or not objects:
         return [True] * len(objects)
     x, y, heading, hfov_deg, range_m = view
-    pos = np.array([(o.x, o.y) for o in objects])
-    pos -= (x, y)
     radii = []
     for o in objects:
         r = _RADII.get((o.length_m, o.width_m))
@@ -735,13 +733,8 @@ def _in_view(objects: Sequence[ObjectSnapshot], view: tuple[float, float, float,
                 _RADII.clear()
             r = _RADII[(o.length_m, o.width_m)] = 0.5 * math.hypot(o.length_m, o.width_m) + 1.0
         radii.append(r)
-    radius = np.array(radii)
-    dist = np.hypot(pos[:, 0], pos[:, 1])
-    ang = np.abs((np.arctan2(pos[:, 1], pos[:, 0]) - heading + np.pi) % (2 * np.pi) - np.pi)
-    # np.minimum/np.maximum: np.clip's value for these finite ratios, without its Python wrapper
-    sine = np.minimum(np.maximum(radius / np.maximum(dist, 1e-6), 0.0), 1.0)
-    reach = math.radians(hfov_deg) / 2 + np.arcsin(sine) + math.radians(5)
-    return ((dist <= radius + 3.0) | ((dist <= range_m + radius) & (ang <= reach))).tolist()
+    return kernels.in_view_wedge(np.array([(o.x, o.y) for o in objects]), np.array(radii), float(x), float(y),
+                                 float(heading), math.radians(hfov_deg) / 2, float(range_m), math.radians(5)).tolist()
 
 
 def _ground_map(town: Town) -> GroundMap:

@@ -16,6 +16,8 @@ Parameter vectors (built by ``sim.render``; indices named below):
 
 from __future__ import annotations
 
+import math
+
 import numba as nb
 import numpy as np
 
@@ -229,3 +231,26 @@ def object_boxes(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, n
     order = np.argsort(seen[:n])
     b = box[order]
     return seen[order], b[:, 0], b[:, 1], b[:, 2], b[:, 3], b[:, 4]
+
+
+@nb.njit(cache=True, nogil=True)
+def in_view_wedge(pos: np.ndarray, radius: np.ndarray, x: float, y: float, heading: float, half_fov: float,
+                  range_m: float, margin: float) -> np.ndarray:
+    """Which discs (centre ``pos[k]``, radius ``radius[k]``) may show in a camera's horizontal wedge: those
+    within 3 m of the camera, and those within range no further off its axis than ``half_fov`` plus the
+    disc's angular radius plus ``margin`` (radians).
+
+    The formula of the NumPy code it replaced, element by element; libm's atan2 and asin may differ from
+    NumPy's vectorised ones in the last bit, which can only matter for a disc exactly on the wedge's edge,
+    ``margin`` outside the picture either way.
+    """
+    n = pos.shape[0]
+    out = np.empty(n, np.bool_)
+    for k in range(n):
+        dx, dy = pos[k, 0] - x, pos[k, 1] - y
+        r = radius[k]
+        dist = math.hypot(dx, dy)
+        ang = abs((math.atan2(dy, dx) - heading + math.pi) % (2 * math.pi) - math.pi)
+        reach = half_fov + math.asin(min(max(r / max(dist, 1e-6), 0.0), 1.0)) + margin
+        out[k] = (dist <= r + 3.0) or (dist <= range_m + r and ang <= reach)
+    return out
