@@ -277,7 +277,8 @@ class DriveEnv(gym.Env):
         world = self._require_world()
         if self.frame is None:
             return []
-        uniq, x0, y0, x1, y1, counts = object_boxes(self.frame.segmentation[..., 1])
+        boxes = self.frame.object_boxes
+        uniq, x0, y0, x1, y1, counts = boxes if boxes is not None else object_boxes(self.frame.segmentation[..., 1])
         if len(uniq) == 0:
             return []
         snaps = {s.object_id: s for s in world.object_snapshots()}

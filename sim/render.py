@@ -41,6 +41,7 @@ from sim.scene_meshes import (
 from sim.town import Town
 
 MAX_LINKS = 8  # links per body the segmentation lookup tables can tell apart
+BOX_CAPACITY = 64  # object ids a frame's boxes are gathered for while shading (more: object_boxes afterwards)
 HIDDEN_Z = -500.0  # where pooled, unused object bodies wait (below the ground, beyond the far plane)
 CALIBRATION_Z = -3000.0  # a grass patch far below the town, rendered once per preset to learn the grass colour
 
@@ -90,6 +91,8 @@ class CameraFrame:
     depth_m: np.ndarray  # HxW float32, z-depth along the optical axis (far_m where there is only sky)
     segmentation: np.ndarray  # HxWx2 int32: [..., 0] SemanticClass, [..., 1] object id (0 = static scenery)
     intrinsics: np.ndarray  # 3x3 K
+    # kernels.object_boxes(segmentation[..., 1]), found while shading (None: ask object_boxes)
+    object_boxes: tuple[np.ndarray, ...] | None = None
 
 
 # --------------------------------------------------------------------------- lighting
@@ -644,16 +647,18 @@ class SceneRenderer:
         rx, ry, rz = fy / norm, -fx / norm, 0.0
         geo = np.array([ex, ey, ez, fx, fy, fz, rx, ry, fy * rz - fz * ry, fz * rx - fx * rz, fx * ry - fy * rx,
                         *setup.geo_tail])
-        any_emit = kernels.shade_frame(
+        seen, box = np.empty(BOX_CAPACITY, np.int64), np.empty((BOX_CAPACITY, 5), np.int64)
+        any_emit, n_ids = kernels.shade_frame(
             np.asarray(rgba, np.uint8).reshape(h, w, 4), np.asarray(buf, np.float32).reshape(h, w),
             np.asarray(seg, np.int32).reshape(h, w), self._class_lut, self._id_lut, self._emit_mask, self._night_emit,
             self._emissive, setup.palette, SURFACE_CLASS, SURFACE_RAISED, self.ground_map.texels, geo, setup.grade,
-            setup.flags, setup.cone, setup.sky, img, depth, semantic, sky, glow_src, rgb)
+            setup.flags, setup.cone, setup.sky, img, depth, semantic, sky, glow_src, rgb, seen, box)
         if bloom:
             glow = cv2.GaussianBlur(glow_src, (0, 0), setup.glow_sigma) if any_emit else glow_src
             gain = setup.grade[kernels.P_GLOW:kernels.P_GLOW + 1] if any_emit else _NO_GLOW
             kernels.finish_frame(img, sky, setup.sky, glow, gain, rgb)
-        return CameraFrame(rgb, depth, semantic, setup.intrinsics.copy())
+        boxes = kernels.sorted_boxes(seen, box, n_ids) if n_ids >= 0 else None
+        return CameraFrame(rgb, depth, semantic, setup.intrinsics.copy(), boxes)
 
     def _setup(self, lighting: str, camera: CameraConfig) -> _FrameSetup:
         """Everything of a frame that depends only on the camera and the lighting, built once per pair."""
