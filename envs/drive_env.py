@@ -39,6 +39,9 @@ from sim.town import Command
 from sim.world import TERMINAL_INFRACTIONS, World, WorldConfig, cached_town
 
 INFRACTION_REWARD = {"red_light": -5.0, "wrong_way": -2.0, "route_deviation": -2.0}
+# Lower-case names by value, one table per enum (IntEnum members of different enums compare equal as ints).
+_CLASS_NAMES = {int(c): c.name.lower() for c in SemanticClass}
+_LIGHT_NAMES = {int(s): s.name.lower() for s in LightState}
 
 
 @dataclass(frozen=True)
@@ -274,28 +277,29 @@ class DriveEnv(gym.Env):
         world = self._require_world()
         if self.frame is None:
             return []
-        uniq, x0, y0, x1, y1, counts = object_boxes(self.frame.segmentation[..., 1])
+        boxes = self.frame.object_boxes
+        uniq, x0, y0, x1, y1, counts = boxes if boxes is not None else object_boxes(self.frame.segmentation[..., 1])
         if len(uniq) == 0:
             return []
         snaps = {s.object_id: s for s in world.object_snapshots()}
-        ego = world.ego
+        ex, ey = float(world.ego.position[0]), float(world.ego.position[1])
         out = []
-        for k, oid in enumerate(uniq.tolist()):
+        # Python ints from the arrays in one go each (the values int() of each element would give)
+        for oid, bx0, by0, bx1, by1, n in zip(uniq.tolist(), x0.tolist(), y0.tolist(), x1.tolist(), y1.tolist(),
+                                              counts.tolist(), strict=True):
             if oid >= LIGHT_ID_BASE:
                 ap = world.town.approaches[oid - LIGHT_ID_BASE]
                 x, y, heading = float(ap.light_head[0]), float(ap.light_head[1]), ap.travel_heading + math.pi
-                cls, extra = SemanticClass.TRAFFIC_LIGHT, {"state": world.lights.state(ap.index).name.lower(),
+                cls, extra = SemanticClass.TRAFFIC_LIGHT, {"state": _LIGHT_NAMES[world.lights.state(ap.index)],
                                                           "approach": ap.index}
             elif oid in snaps:
                 s = snaps[oid]
                 x, y, heading, cls, extra = s.x, s.y, s.heading, s.kind, {}
             else:
                 continue
-            out.append({"id": int(oid), "class": SemanticClass(cls).name.lower(), "x": x, "y": y,
-                        "heading": float(heading),
-                        "distance_m": float(math.hypot(x - ego.position[0], y - ego.position[1])),
-                        "bbox": [int(x0[k]), int(y0[k]), int(x1[k]) + 1, int(y1[k]) + 1],
-                        "pixels": int(counts[k]), **extra})
+            out.append({"id": oid, "class": _CLASS_NAMES[cls], "x": x, "y": y, "heading": float(heading),
+                        "distance_m": float(math.hypot(x - ex, y - ey)), "bbox": [bx0, by0, bx1 + 1, by1 + 1],
+                        "pixels": n, **extra})
         return out
 
     def _info(self, new_infractions: list) -> dict[str, Any]:

@@ -16,6 +16,8 @@ Parameter vectors (built by ``sim.render``; indices named below):
 
 from __future__ import annotations
 
+import math
+
 import numba as nb
 import numpy as np
 
@@ -46,7 +48,8 @@ def shade_frame(rgba: np.ndarray, buf: np.ndarray, seg: np.ndarray, class_lut: n
                 emit_mask: np.ndarray, night_emit: np.ndarray, emissive: np.ndarray, palette: np.ndarray,
                 surface_class: np.ndarray, surface_raised: np.ndarray, texels: np.ndarray, geo: np.ndarray,
                 grade: np.ndarray, flags: np.ndarray, cone: np.ndarray, sky_img: np.ndarray, img: np.ndarray,
-                depth: np.ndarray, semantic: np.ndarray, sky: np.ndarray, glow_src: np.ndarray, out: np.ndarray) -> bool:
+                depth: np.ndarray, semantic: np.ndarray, sky: np.ndarray, glow_src: np.ndarray, out: np.ndarray,
+                seen: np.ndarray, box: np.ndarray) -> tuple[bool, int]:
     """TinyRenderer's buffers to a graded float image, metric depth, (class, id) and the sky mask.
 
     Per pixel: z-depth from the depth buffer; (class, id) from the (body, link) lookup tables;
@@ -56,7 +59,8 @@ def shade_frame(rgba: np.ndarray, buf: np.ndarray, seg: np.ndarray, class_lut: n
     pixel (sky painted, clipped) goes straight to ``out`` and ``img``, ``sky`` and ``glow_src`` are
     left alone; with bloom the graded pixel goes to ``img``, emissive ones also to ``glow_src`` (all
     other pixels there are set to 0), and ``finish_frame`` completes the frame after the blur.
-    Returns whether any pixel was emissive.
+    On the way it does ``_fill_boxes``' work on the object ids it writes (``seen``, ``box``; see there).
+    Returns whether any pixel was emissive, and ``_fill_boxes``' count (-1: more ids than ``seen`` holds).
     """
     h, w = buf.shape
     sky_key = class_lut.shape[0] - 1
@@ -78,6 +82,7 @@ def shade_frame(rgba: np.ndarray, buf: np.ndarray, seg: np.ndarray, class_lut: n
             r0 = r
             break
     any_emit = False
+    n_ids, last_id, last = 0, 0, -1  # the object boxes, as in _fill_boxes
     for r in range(h):
         t = (r - cy) / focal
         dir_z = fz + t * dz
@@ -116,6 +121,29 @@ def shade_frame(rgba: np.ndarray, buf: np.ndarray, seg: np.ndarray, class_lut: n
             depth[r, c] = d
             semantic[r, c, 0] = cls
             semantic[r, c, 1] = oid
+            if oid > 0 and n_ids >= 0:
+                if oid != last_id:
+                    last = -1
+                    for k in range(n_ids):
+                        if seen[k] == oid:
+                            last = k
+                            break
+                    if last < 0:
+                        if n_ids == len(seen):
+                            n_ids = -1  # too many: the caller falls back to object_boxes
+                        else:
+                            seen[n_ids] = oid
+                            box[n_ids, 0], box[n_ids, 1], box[n_ids, 2], box[n_ids, 3], box[n_ids, 4] = c, r, c, r, 0
+                            last = n_ids
+                            n_ids += 1
+                    last_id = oid
+                if n_ids >= 0:
+                    if c < box[last, 0]:
+                        box[last, 0] = c
+                    if c > box[last, 2]:
+                        box[last, 2] = c
+                    box[last, 3] = r  # rows only grow
+                    box[last, 4] += 1
             if empty and not bloom:
                 out[r, c, 0], out[r, c, 1], out[r, c, 2] = _u8(sky_img[r, c, 0]), _u8(sky_img[r, c, 1]), _u8(sky_img[r, c, 2])
                 continue  # the sky replaces whatever the grade would make of this pixel
@@ -146,7 +174,7 @@ def shade_frame(rgba: np.ndarray, buf: np.ndarray, seg: np.ndarray, class_lut: n
                     glow_src[r, c, 0], glow_src[r, c, 1], glow_src[r, c, 2] = 0.0, 0.0, 0.0
             else:
                 out[r, c, 0], out[r, c, 1], out[r, c, 2] = _u8(v0), _u8(v1), _u8(v2)
-    return any_emit
+    return any_emit, n_ids
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -226,6 +254,35 @@ def object_boxes(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, n
         if n >= 0:
             break
         cap *= 4
+    return sorted_boxes(seen, box, n)
+
+
+def sorted_boxes(seen: np.ndarray, box: np.ndarray, n: int
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``object_boxes``' result from a filled ``seen`` and ``box`` with ``n`` ids (``_fill_boxes``, ``shade_frame``)."""
     order = np.argsort(seen[:n])
     b = box[order]
     return seen[order], b[:, 0], b[:, 1], b[:, 2], b[:, 3], b[:, 4]
+
+
+@nb.njit(cache=True, nogil=True)
+def in_view_wedge(pos: np.ndarray, radius: np.ndarray, x: float, y: float, heading: float, half_fov: float,
+                  range_m: float, margin: float) -> np.ndarray:
+    """Which discs (centre ``pos[k]``, radius ``radius[k]``) may show in a camera's horizontal wedge: those
+    within 3 m of the camera, and those within range no further off its axis than ``half_fov`` plus the
+    disc's angular radius plus ``margin`` (radians).
+
+    The formula of the NumPy code it replaced, element by element; libm's atan2 and asin may differ from
+    NumPy's vectorised ones in the last bit, which can only matter for a disc exactly on the wedge's edge,
+    ``margin`` outside the picture either way.
+    """
+    n = pos.shape[0]
+    out = np.empty(n, np.bool_)
+    for k in range(n):
+        dx, dy = pos[k, 0] - x, pos[k, 1] - y
+        r = radius[k]
+        dist = math.hypot(dx, dy)
+        ang = abs((math.atan2(dy, dx) - heading + math.pi) % (2 * math.pi) - math.pi)
+        reach = half_fov + math.asin(min(max(r / max(dist, 1e-6), 0.0), 1.0)) + margin
+        out[k] = (dist <= r + 3.0) or (dist <= range_m + r and ang <= reach)
+    return out

@@ -177,6 +177,13 @@ class GroundMap:
         np.clip(iy, 0, h - 1, out=iy)
         return self.texels[iy, ix]
 
+    def lookup_point(self, x: float, y: float) -> int:
+        """``lookup`` for one point, without arrays (the same float operations, truncation and clamping)."""
+        h, w = self.texels.shape
+        ix = min(max(int((float(x) - float(self.origin[0])) * self.texels_per_m), 0), w - 1)
+        iy = min(max(int((float(y) - float(self.origin[1])) * self.texels_per_m), 0), h - 1)
+        return int(self.texels[iy, ix])
+
 
 def build_ground_map(town: Town, texels_per_m: float = 10.0) -> GroundMap:
     """Rasterise asphalt, slabs, parks and markings (sub-texel accurate) into a ``GroundMap``."""
