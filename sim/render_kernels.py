@@ -121,29 +121,9 @@ def shade_frame(rgba: np.ndarray, buf: np.ndarray, seg: np.ndarray, class_lut: n
             depth[r, c] = d
             semantic[r, c, 0] = cls
             semantic[r, c, 1] = oid
-            if oid > 0 and n_ids >= 0:
-                if oid != last_id:
-                    last = -1
-                    for k in range(n_ids):
-                        if seen[k] == oid:
-                            last = k
-                            break
-                    if last < 0:
-                        if n_ids == len(seen):
-                            n_ids = -1  # too many: the caller falls back to object_boxes
-                        else:
-                            seen[n_ids] = oid
-                            box[n_ids, 0], box[n_ids, 1], box[n_ids, 2], box[n_ids, 3], box[n_ids, 4] = c, r, c, r, 0
-                            last = n_ids
-                            n_ids += 1
-                    last_id = oid
-                if n_ids >= 0:
-                    if c < box[last, 0]:
-                        box[last, 0] = c
-                    if c > box[last, 2]:
-                        box[last, 2] = c
-                    box[last, 3] = r  # rows only grow
-                    box[last, 4] += 1
+            if oid > 0 and n_ids >= 0:  # n_ids -1: too many, the caller falls back to object_boxes
+                n_ids, last = _grow_box(seen, box, n_ids, last_id, last, oid, r, c)
+                last_id = oid
             if empty and not bloom:
                 out[r, c, 0], out[r, c, 1], out[r, c, 2] = _u8(sky_img[r, c, 0]), _u8(sky_img[r, c, 1]), _u8(sky_img[r, c, 2])
                 continue  # the sky replaces whatever the grade would make of this pixel
@@ -207,6 +187,34 @@ def finish_frame(img: np.ndarray, sky: np.ndarray, sky_img: np.ndarray, glow: np
                 out[r, c, k] = _u8(v)
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _grow_box(seen: np.ndarray, box: np.ndarray, n: int, last_id: int, last: int, v: int, r: int,
+              c: int) -> tuple[int, int]:
+    """Add pixel (r, c) of object ``v`` to its box (rows are visited in order); returns the id count and
+    ``v``'s slot, or (-1, -1) when ``v`` is new and ``seen`` is full. ``last_id``/``last``: the previous
+    pixel's id and slot (neighbouring pixels mostly share one)."""
+    if v != last_id:
+        last = -1
+        for k in range(n):
+            if seen[k] == v:
+                last = k
+                break
+        if last < 0:
+            if n == len(seen):
+                return -1, -1
+            seen[n] = v
+            box[n, 0], box[n, 1], box[n, 2], box[n, 3], box[n, 4] = c, r, c, r, 0
+            last = n
+            n += 1
+    if c < box[last, 0]:
+        box[last, 0] = c
+    if c > box[last, 2]:
+        box[last, 2] = c
+    box[last, 3] = r  # rows only grow
+    box[last, 4] += 1
+    return n, last
+
+
 @nb.njit(cache=True, nogil=True)
 def _fill_boxes(ids: np.ndarray, seen: np.ndarray, box: np.ndarray) -> int:
     """``object_boxes``' pass: how many ids it found, or -1 when there were more than ``seen`` holds."""
@@ -218,26 +226,10 @@ def _fill_boxes(ids: np.ndarray, seen: np.ndarray, box: np.ndarray) -> int:
             v = ids[r, c]
             if v <= 0:
                 continue
-            if v != last_id:
-                last = -1
-                for k in range(n):
-                    if seen[k] == v:
-                        last = k
-                        break
-                if last < 0:
-                    if n == len(seen):
-                        return -1
-                    seen[n] = v
-                    box[n, 0], box[n, 1], box[n, 2], box[n, 3], box[n, 4] = c, r, c, r, 0
-                    last = n
-                    n += 1
-                last_id = v
-            if c < box[last, 0]:
-                box[last, 0] = c
-            if c > box[last, 2]:
-                box[last, 2] = c
-            box[last, 3] = r  # rows only grow
-            box[last, 4] += 1
+            n, last = _grow_box(seen, box, n, last_id, last, v, r, c)
+            if n < 0:
+                return -1
+            last_id = v
     return n
 
 
