@@ -82,16 +82,21 @@ def test_our_light_is_the_one_across_the_junction_not_the_cross_streets() -> Non
     assert driver._light().state == "green"
 
 
-@needs_models
-def test_agent_dead_reckons_its_heading_from_speed_and_steering() -> None:
+def blind_world_and_agent():
+    """A camera-less env (its world moves the car by the same bicycle model) and an agent set up for it."""
     from agent.drivers import make_driver
     from envs.drive_env import DriveConfig, DriveEnv
 
     env = DriveEnv(DriveConfig(render_camera=False))
     env.reset(seed=1)
-    world = env.world
     driver = make_driver("agent")
     driver.reset(SimpleNamespace(config=env.config))
+    return env, env.world, driver
+
+
+@needs_models
+def test_agent_dead_reckons_its_heading_from_speed_and_steering() -> None:
+    env, world, driver = blind_world_and_agent()
     world.ego.speed = 5.0
     h0 = world.ego.heading
     for k in range(40):
@@ -168,14 +173,7 @@ def test_a_person_lost_near_the_car_stays_where_last_seen_for_a_while() -> None:
 
 @needs_models
 def test_straight_through_a_junction_the_agent_holds_the_approach_lane() -> None:
-    from agent.drivers import make_driver
-    from envs.drive_env import DriveConfig, DriveEnv
-
-    env = DriveEnv(DriveConfig(render_camera=False))
-    env.reset(seed=1)
-    world = env.world
-    driver = make_driver("agent")
-    driver.reset(SimpleNamespace(config=env.config))
+    env, world, driver = blind_world_and_agent()
     ctl = driver.controller
     # Before the junction the lane fit says: the lane runs 0.1 rad left of our axis, its centre 0.5 m left.
     z0 = -driver.camera.mount_forward_m
