@@ -509,6 +509,11 @@ class LaneDetector:
             out.append(LaneLine(line.coeffs, line.z_range_m, line.confidence, line.n_pixels, line.color, style, cov))
         return out[0], out[1]
 
+    def _tracked_width(self, width_m: float, measured_m: float) -> float:
+        """A lane width followed over frames: a plausible measurement moves it a tenth of the way."""
+        lo, hi = self.config.lane_width_range_m
+        return 0.9 * width_m + 0.1 * measured_m if lo <= measured_m <= hi else width_m
+
     def _boundary(self, line: LaneLine, sign: float) -> np.ndarray:
         """The lane boundary a line marks, as (a, b, c): the line moved ``sign`` (-1 left, +1 right) by the
         marking spec's distance, measured across the line."""
@@ -519,14 +524,12 @@ class LaneDetector:
     def _lane_centre(self, left: LaneLine | None, right: LaneLine | None) -> tuple[np.ndarray, float]:
         """The centre between the boundaries the lines mark and the car's offset from it, both for the lane
         holding the car (the neighbouring lanes taken as wide as this one)."""
-        cfg = self.config
         z0 = -self.camera.mount_forward_m
         bl = self._boundary(left, -1.0) if left is not None else None
         br = self._boundary(right, 1.0) if right is not None else None
         if bl is not None and br is not None:
-            width = float(np.polyval(br, z0) - np.polyval(bl, z0))
-            if cfg.lane_width_range_m[0] <= width <= cfg.lane_width_range_m[1]:
-                self.boundary_width_m = 0.9 * self.boundary_width_m + 0.1 * width
+            self.boundary_width_m = self._tracked_width(self.boundary_width_m,
+                                                        float(np.polyval(br, z0) - np.polyval(bl, z0)))
             centre = 0.5 * (bl + br)
         else:
             # One boundary: the centre half a lane across it (measured across the lane, so wider along the
@@ -542,15 +545,12 @@ class LaneDetector:
         return centre + np.array([0.0, 0.0, lanes_over * self.boundary_width_m]), offset
 
     def _summarise(self, left: LaneLine | None, right: LaneLine | None) -> LaneResult:
-        cfg = self.config
         z0 = -self.camera.mount_forward_m  # the vehicle centre, behind the camera
         nan = float("nan")
         if left is None and right is None:
             return LaneResult(None, None, nan, nan, nan, self.lane_width_m, 0.0, False)
         if left is not None and right is not None:
-            width = float(right.x_at(z0) - left.x_at(z0))
-            if cfg.lane_width_range_m[0] <= width <= cfg.lane_width_range_m[1]:
-                self.lane_width_m = 0.9 * self.lane_width_m + 0.1 * width
+            self.lane_width_m = self._tracked_width(self.lane_width_m, float(right.x_at(z0) - left.x_at(z0)))
             centre = 0.5 * (left.coeffs + right.coeffs)
             confidence = 0.5 * (left.confidence + right.confidence)
         elif left is not None:
