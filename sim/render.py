@@ -41,6 +41,7 @@ from sim.scene_meshes import (
 from sim.town import Town
 
 MAX_LINKS = 8  # links per body the segmentation lookup tables can tell apart
+BOX_CAPACITY = 64  # object ids a frame's boxes are gathered for while shading (more: object_boxes afterwards)
 HIDDEN_Z = -500.0  # where pooled, unused object bodies wait (below the ground, beyond the far plane)
 CALIBRATION_Z = -3000.0  # a grass patch far below the town, rendered once per preset to learn the grass colour
 
@@ -647,7 +648,7 @@ class SceneRenderer:
         rx, ry, rz = fy / norm, -fx / norm, 0.0
         geo = np.array([ex, ey, ez, fx, fy, fz, rx, ry, fy * rz - fz * ry, fz * rx - fx * rz, fx * ry - fy * rx,
                         *setup.geo_tail])
-        seen, box = np.empty(kernels.BOX_CAPACITY, np.int64), np.empty((kernels.BOX_CAPACITY, 5), np.int64)
+        seen, box = np.empty(BOX_CAPACITY, np.int64), np.empty((BOX_CAPACITY, 5), np.int64)
         any_emit, n_ids = kernels.shade_frame(
             np.asarray(rgba, np.uint8).reshape(h, w, 4), np.asarray(buf, np.float32).reshape(h, w),
             np.asarray(seg, np.int32).reshape(h, w), self._class_lut, self._id_lut, self._emit_mask, self._night_emit,

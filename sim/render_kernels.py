@@ -32,8 +32,6 @@ GRADE_SIZE = 16
 F_FOG, F_LIFT, F_HEADLIGHTS, F_WINDOWS, F_BLOOM = 0, 1, 2, 3, 4
 
 
-BOX_CAPACITY = 64  # object ids a frame's boxes are first gathered for (more: the pass runs again, 4x larger)
-
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _texel(texels: np.ndarray, x: float, y: float, x0: float, y0: float, per_m: float) -> int:
     """``GroundMap.lookup`` for one point: nearest texel, index clamped onto the grass border."""
@@ -241,7 +239,7 @@ def object_boxes(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, n
     One compiled pass; a frame holds a few dozen ids at most and neighbouring pixels mostly share one,
     so a short linear search behind a last-id cache beats sorting every labelled pixel.
     """
-    cap = BOX_CAPACITY
+    cap = 64
     while True:
         seen, box = np.empty(cap, np.int64), np.empty((cap, 5), np.int64)
         n = _fill_boxes(ids, seen, box)
