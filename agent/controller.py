@@ -75,6 +75,8 @@ class ControllerConfig:
     light_confirm_frames: int = 2
     line_jump_m: float = 1.5  # a stop-line reading this much farther than the tracked line is suspect ...
     line_jump_frames: int = 3  # ... until seen this many frames in a row where odometry puts it
+    line_unseen_forget_s: float = 1.0  # a tracked bar still this far off (below) and unseen this long was not one:
+    line_unseen_far_m: float = 6.0  #    a real bar in range is found again frame after frame as the car nears it
     light_memory_s: float = 1.0
     red_memory_s: float = 4.0  # a red is kept longer: not seeing the light is no reason to go
     light_beyond_stop_line_m: float = 21.0  # town design: lights stand across the junction (12.5 + 7 + 1.75 m)
@@ -176,6 +178,7 @@ class Controller:
         self.stop_line_measured = False  # True once a bar was seen (not only inferred from the light)
         self._farther_line: float | None = None  # a reading farther than the tracked line, not yet believed
         self._farther_count = 0
+        self._line_unseen_s = 0.0  # since the tracked bar was last measured
         self.ignore_light_m = 0.0  # travel left during which lights are ignored (inside a junction)
         self.light_state: str | None = None
         self._light_candidate: str | None = None
@@ -270,6 +273,13 @@ class Controller:
         if measured is not None and self.ignore_light_m <= 0:
             self.stop_line = measured
             self.stop_line_measured = True
+            self._line_unseen_s = 0.0
+        elif self.stop_line_measured and self.stop_line is not None:
+            self._line_unseen_s += dt
+            if self.stop_line > cfg.line_unseen_far_m and self._line_unseen_s > cfg.line_unseen_forget_s:
+                # A glimpse (a kerb seen across the lane, a patch of headlight) dead-reckoned to the bumper
+                # would put the car "in the junction" and make it ignore the real light ahead.
+                self.stop_line, self.stop_line_measured = None, False
         elif (not self.stop_line_measured and scene.light_distance_m is not None and self.ignore_light_m <= 0
               and scene.light in LIGHT_STATES):
             inferred = scene.light_distance_m - cfg.light_beyond_stop_line_m - cfg.camera_to_front_m

@@ -137,6 +137,23 @@ def test_a_farther_stop_bar_seen_once_is_the_zebra_beyond_it() -> None:
     assert d.stop_line_gap_m == pytest.approx(far, abs=1e-6)
 
 
+def test_a_bar_glimpsed_once_and_never_again_does_not_put_the_car_in_the_junction() -> None:
+    # Seed 717: a bar read 18 m ahead for three frames (a kerb across the lane at night) and never again;
+    # dead-reckoned to the bumper, it made the car ignore the red light 40 m ahead as if inside the junction.
+    real = light_scene(40.0, lambda t: "red")
+
+    def scene(s: float, v: float, t: float) -> Scene:
+        out = real(s, v, t)
+        if t < 0.15:
+            out.stop_line_m = 18.0 - s + CAM
+        return out
+
+    run = drive(scene, 25.0, v0=5.0)
+    assert run.speed[-1] == 0.0
+    assert 0.0 <= 40.0 - run.travelled <= 2.0, 40.0 - run.travelled
+    assert run.decisions[-1].reason.startswith("red light")
+
+
 def test_red_light_seen_after_the_stop_line_is_ignored() -> None:
     ctrl = Controller(CFG)
     # bar seen 4 m ahead of the bumper, then passed; the light across the junction then shows red
