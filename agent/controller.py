@@ -179,6 +179,8 @@ class Controller:
         self._farther_line: float | None = None  # a reading farther than the tracked line, not yet believed
         self._farther_count = 0
         self._line_unseen_s = 0.0  # since the tracked bar was last measured
+        self._odd_light_line: float | None = None  # a stop line inferred from a light, far from the tracked one
+        self._odd_light_count = 0
         self.ignore_light_m = 0.0  # travel left during which lights are ignored (inside a junction)
         self.light_state: str | None = None
         self._light_candidate: str | None = None
@@ -258,6 +260,8 @@ class Controller:
             self.stop_line -= travelled
         if self._farther_line is not None:
             self._farther_line -= travelled
+        if self._odd_light_line is not None:
+            self._odd_light_line -= travelled
         measured = None if scene.stop_line_m is None else scene.stop_line_m - cfg.camera_to_front_m
         if (measured is not None and self.stop_line_measured and self.stop_line is not None
                 and measured > self.stop_line + cfg.line_jump_m):
@@ -282,8 +286,19 @@ class Controller:
                 self.stop_line, self.stop_line_measured = None, False
         elif (not self.stop_line_measured and scene.light_distance_m is not None and self.ignore_light_m <= 0
               and scene.light in LIGHT_STATES):
-            inferred = scene.light_distance_m - cfg.light_beyond_stop_line_m - cfg.camera_to_front_m
-            self.stop_line = inferred - cfg.light_fallback_margin_m
+            inferred = scene.light_distance_m - cfg.light_beyond_stop_line_m - cfg.camera_to_front_m \
+                - cfg.light_fallback_margin_m
+            if (self.stop_line is None and inferred >= -1.0) or (
+                    self.stop_line is not None and abs(inferred - self.stop_line) <= cfg.line_jump_m):
+                self.stop_line, self._odd_light_count = inferred, 0
+            else:
+                # A reading far from the tracked one, or one that puts the car past a line it never saw (seed 513:
+                # a "light" 12 m ahead for one frame), is believed only when seen again where odometry puts it.
+                agrees = self._odd_light_line is not None and abs(inferred - self._odd_light_line) < 1.0
+                self._odd_light_count = self._odd_light_count + 1 if agrees else 1
+                self._odd_light_line = inferred
+                if self._odd_light_count >= cfg.line_jump_frames:
+                    self.stop_line, self._odd_light_count = inferred, 0
         if self.stop_line is not None and self.stop_line < -1.0:  # the bumper is past the line: in the junction
             self.stop_line, self.stop_line_measured = None, False
             self.ignore_light_m = cfg.junction_ignore_m

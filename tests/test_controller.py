@@ -154,6 +154,22 @@ def test_a_bar_glimpsed_once_and_never_again_does_not_put_the_car_in_the_junctio
     assert run.decisions[-1].reason.startswith("red light")
 
 
+def test_one_frame_of_a_near_light_does_not_put_the_car_past_a_line_it_never_saw() -> None:
+    # Seed 513: no bar seen yet, the line inferred from the light 43 m ahead; one frame read a yellow light
+    # 12 m ahead, whose inferred line lay behind the bumper: the car "was in the junction" and ignored lights.
+    def scene(s: float, v: float, t: float) -> Scene:
+        bumper_to_line = 40.0 - s
+        if abs(t - 0.5) < 1e-9:
+            return Scene(v, light="yellow", light_distance_m=12.0)
+        return Scene(v, light="red", light_distance_m=bumper_to_line + CAM + 21.0)  # the bar is never seen
+
+    run = drive(scene, 25.0, v0=6.0)
+    assert run.speed[-1] == 0.0
+    gap = 40.0 - run.travelled
+    assert 0.0 <= gap <= 2.0 + CFG.light_fallback_margin_m, gap  # the margin: stopping by the light alone
+    assert run.decisions[-1].reason.startswith("red light")
+
+
 def test_red_light_seen_after_the_stop_line_is_ignored() -> None:
     ctrl = Controller(CFG)
     # bar seen 4 m ahead of the bumper, then passed; the light across the junction then shows red
