@@ -33,6 +33,7 @@ import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -66,6 +67,43 @@ TRACKED = ("car", "truck", "pedestrian")
 STAGES = ("pilotnet", "detector", "tracking", "lanes", "stop_line", "distance", "control", "adas")
 
 
+def lane_index_of(lanes: LaneResult) -> int | None:
+    """Which of our direction's two lanes holds the car, from the lines' paint (town design: the yellow centre
+    line left of the inner lane (0), the dashed divider between the two, the solid white edge right of the
+    outer lane (1)); None when the lines do not say."""
+    left, right = lanes.left, lanes.right
+    if left is not None and left.color == "yellow":
+        return 0
+    if right is not None and right.color == "white" and right.style == "solid":
+        return 1
+    if left is not None and left.color == "white" and left.style == "dashed":
+        return 1
+    if right is not None and right.color == "white" and right.style == "dashed":
+        return 0
+    return None
+
+
+@lru_cache(maxsize=16)
+def turn_path(command: int, setback_m: float, lane_offset_m: float, step_m: float = 0.2) -> tuple[np.ndarray, float]:
+    """A junction turn in the approach frame (x along the approach lane from its stop bar's near edge, y to the
+    right): 30 m of approach, the town's quarter circle from the bar's far edge (0.5 m on) into the same lane of
+    the road turned into, then 30 m of that road; and the path length at which the arc ends. The lane's centre
+    is ``lane_offset_m`` right of the road's centre line, so a right turn's radius is ``setback - offset`` and a
+    left turn's ``setback + offset`` (``sim/town.py``, junction connectors)."""
+    right = command == 2
+    radius = setback_m - lane_offset_m if right else setback_m + lane_offset_m
+    side = 1.0 if right else -1.0
+    approach = np.stack([np.arange(-29.5, 0.5, step_m), np.zeros(len(np.arange(-29.5, 0.5, step_m)))], axis=1)
+    theta = np.arange(0.0, math.pi / 2, step_m / radius)
+    arc = np.stack([0.5 + radius * np.sin(theta), side * (radius - radius * np.cos(theta))], axis=1)
+    end = np.array([0.5 + radius, side * radius])
+    along = np.arange(0.0, 30.0, step_m)
+    exit_ = np.stack([np.full(len(along), end[0]), end[1] + side * along], axis=1)
+    path = np.concatenate([approach, arc, exit_])
+    path.setflags(write=False)
+    return path, (len(approach) + len(arc)) * step_m
+
+
 @dataclass(frozen=True)
 class AgentConfig:
     detect_every: int = 1  # run the detector on every k-th frame (SORT predicts in between)
@@ -88,6 +126,12 @@ class AgentConfig:
     hold_heading_gain: float = 1.5  # steer per radian of heading error (about a 1 s time constant at 5 m/s)
     hold_offset_gain: float = 0.3  # steer per metre of dead-reckoned offset from the approach lane's centre
     hold_max_steer: float = 0.3
+    turn_guidance: bool = True  # commanded turns inside a junction follow the town's turn arc (below)
+    junction_setback_m: float = 12.0  # town design: connectors start this far from the junction centre, at the
+    lane_width_m: float = 3.5  #        stop bar's far edge (the bar is 0.5 m deep); lanes 3.5 m wide
+    turn_lookahead_m: float = 3.5  # pure pursuit of the arc from the rear axle (as the autopilot follows lanes):
+    turn_lookahead_s: float = 0.4  # lookahead = this + turn_lookahead_s x speed
+    turn_bar_seen_m: float = 12.0  # a turn is placed only by a stop bar seen this near
     road_min_confidence: float = 0.25  # a lane fit this sure measures the approach lane
     road_clear_m: float = 8.0  # the approach lane is measured only while the stop line is farther than this
     #                            (close to it, the crosswalk's stripes look like lane lines)
@@ -245,6 +289,11 @@ class AgentDriver:
         self._road_yaw: float | None = None  # the approach lane's heading in the same frame, from the lane fit
         self._road_offset = 0.0  # metres right of the approach lane's centre (measured, then dead-reckoned)
         self._approach_yaw = 0.0  # the heading the car had while it last drove along its lane
+        self._pos = np.zeros(2)  # dead-reckoned position of the car's centre (x ahead at yaw 0, y right)
+        self._lane_k: int | None = None  # 0 = inner lane (next to the centre line), 1 = outer, from the lines' paint
+        # the stop bar ahead (x, y, road yaw, our lane there, the command of the turn once it has begun)
+        self._junction: tuple[float, float, float, int, int] | None = None
+        self._turning = False  # following a junction turn's arc this frame
 
     # ------------------------------------------------------------------ perception helpers
     def _objects(self, tracks: list[Track], t: float, depth: np.ndarray | None) -> list[PerceivedObject]:
@@ -340,13 +389,14 @@ class AgentDriver:
         While the car follows its lane, the approach heading follows it; once it steers into a commanded
         turn, the approach heading stays: lights are then judged in the frame of the lane it came along."""
         beta = math.atan(0.5 * math.tan(steer * EgoVehicle.MAX_STEER_RAD))
+        self._pos += speed * self.dt * np.array([math.cos(self._yaw + beta), math.sin(self._yaw + beta)])
         self._yaw += speed * math.sin(beta) / (EgoVehicle.LENGTH / 2) * self.dt
         if self._road_yaw is not None:
             self._road_offset += speed * math.sin(self._yaw + beta - self._road_yaw) * self.dt
         if command not in (1, 2) or abs(steer) < self.config.straight_steer:
             self._approach_yaw = self._yaw
 
-    def _measure_road(self, centre: np.ndarray | None, confidence: float) -> None:
+    def _measure_road(self, centre: np.ndarray | None, confidence: float, lanes: LaneResult | None = None) -> None:
         """Keep the approach lane's heading (in the odometry frame) and our offset from its centre, from a
         confident lane fit taken well before the stop line."""
         ctl = self.controller
@@ -354,6 +404,9 @@ class AgentDriver:
                 or (ctl.stop_line is not None and ctl.stop_line < self.config.road_clear_m)):
             return
         z0 = -self.camera.mount_forward_m
+        k = lane_index_of(lanes) if lanes is not None else None
+        if k is not None:
+            self._lane_k = k
         heading = self._yaw + math.atan(float(np.polyval(np.polyder(centre), z0)))
         self._road_yaw = heading if self._road_yaw is None else self._road_yaw + 0.2 * (heading - self._road_yaw)
         self._road_offset = -float(np.polyval(centre, z0))
@@ -367,6 +420,64 @@ class AgentDriver:
             return None
         steer = -(cfg.hold_heading_gain * (self._yaw - self._road_yaw) + cfg.hold_offset_gain * self._road_offset)
         return float(np.clip(steer, -cfg.hold_max_steer, cfg.hold_max_steer))
+
+    def _note_junction(self, stop: StopLine | None) -> None:
+        """Where the stop bar ahead lies in the odometry frame (the approach lane's centre at the bar's near
+        edge), from the controller's tracked bar and the approach lane measured before it. Only a bar seen
+        within ``turn_bar_seen_m`` of the camera places a turn (farther readings are a metre or so off)."""
+        ctl = self.controller
+        if ctl.ignore_light_m > 0 or not ctl.stop_line_measured or ctl.stop_line is None or self._road_yaw is None:
+            return
+        if self._junction is None and (stop is None or stop.distance_m > self.config.turn_bar_seen_m):
+            return
+        ahead = ctl.stop_line + ctl.config.camera_to_front_m + self.camera.mount_forward_m  # car centre to the bar
+        u = np.array([math.cos(self._road_yaw), math.sin(self._road_yaw)])
+        right = np.array([-u[1], u[0]])
+        bar = self._pos - self._road_offset * right + ahead * u
+        self._junction = (float(bar[0]), float(bar[1]), self._road_yaw, -1 if self._lane_k is None else self._lane_k, 0)
+
+    def _turn_steer(self, command: int, speed: float) -> float | None:
+        """Turning at a junction (no lines to follow), the steer that pursues the town's turn arc from our lane
+        to the same lane of the road we turn into; None when this does not apply."""
+        cfg, ctl = self.config, self.controller
+        self._turning = False
+        if self._junction is None or not cfg.turn_guidance:
+            return None
+        bx, by, road_yaw, k, started = self._junction
+        if started:  # a turn under way is finished, whatever the route says next (leaving the junction, the
+            command = started  # command already announces the next one)
+        elif command not in (1, 2):
+            if ctl.ignore_light_m > 0:  # through this junction another way: its bar is behind us
+                self._junction = None
+            return None
+        if k < 0:
+            k = 0 if command == 1 else 1  # the lane a turn is taken from
+        u = np.array([math.cos(road_yaw), math.sin(road_yaw)])
+        heading = self._yaw - road_yaw
+        half = EgoVehicle.LENGTH / 2
+        rel = self._pos - np.array([bx, by])
+        # the rear axle, along the approach and right of it: in highway-env's bicycle model it moves along the
+        # car's heading on a curve of curvature tan(delta) / length
+        here = np.array([float(rel @ u) - half * math.cos(heading), float(rel[0] * -u[1] + rel[1] * u[0])
+                         - half * math.sin(heading)])
+        path, arc_end = turn_path(command, cfg.junction_setback_m, (k + 0.5) * cfg.lane_width_m)
+        lookahead = cfg.turn_lookahead_m + cfg.turn_lookahead_s * speed
+        if here[0] < path[0, 0] + 30.0 - lookahead:  # the arc starts 30 m into the path (0.5 m past the bar)
+            return None
+        step = float(np.hypot(*(path[1] - path[0])))
+        nearest = int(np.argmin(np.sum((path - here) ** 2, axis=1)))
+        if nearest * step > arc_end + 6.0:  # out of the turn, lined up on the road turned into: the lines lead again
+            self._junction = None
+            return None
+        if not started:
+            self._junction = (bx, by, road_yaw, k, command)
+        target = path[min(len(path) - 1, nearest + int(round(lookahead / step)))]
+        alpha = math.atan2(target[1] - here[1], target[0] - here[0]) - heading
+        alpha = math.atan2(math.sin(alpha), math.cos(alpha))
+        # Pure pursuit: the arc from the rear axle through the target has curvature 2 sin(alpha) / lookahead.
+        delta = math.atan(2.0 * EgoVehicle.LENGTH * math.sin(alpha) / lookahead)
+        self._turning = True
+        return float(np.clip(delta / EgoVehicle.MAX_STEER_RAD, -1.0, 1.0))
 
     def _light(self) -> LightSeen | None:
         """Our light: the nearest confident light box whose head hangs near our lane.
@@ -445,11 +556,14 @@ class AgentDriver:
         light = self._light()
         lap("distance")
         centre = lane_centre_of(lanes, -self.camera.mount_forward_m)
-        self._measure_road(centre, lanes.confidence)
+        self._measure_road(centre, lanes.confidence, lanes)
         hold = self._junction_hold(command)
+        turn = self._turn_steer(command, speed)
         net_steer = pilot
         if hold is not None:
             pilot = hold
+        elif turn is not None:
+            pilot = turn
         lane_range = min(30.0, max((ln.z_range_m[1] for ln in (lanes.left, lanes.right) if ln is not None), default=30.0))
         scene = Scene(speed, objects, light.state if light else None, light.distance_m if light else None,
                       stop.distance_m if stop is not None else None, centre, max(lane_range, 8.0),
@@ -458,6 +572,10 @@ class AgentDriver:
         if hold is not None:  # the steering was overridden too: say so, and keep what PilotNet proposed
             decision.pilot_steer = net_steer
             decision.reason += "; straight through the junction on the approach lane's heading"
+        elif turn is not None:
+            decision.pilot_steer = net_steer
+            decision.reason += "; turning along the junction's arc"
+        self._note_junction(stop)  # the bar as measured this frame, where the car is this frame
         self._odometry(speed, decision.steer, command)
         lap("control")
         in_path = [o for o in objects if o.track_id in decision.in_path]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -235,3 +237,83 @@ def test_agent_stops_0_to_2_m_before_the_stop_line_at_a_red_light() -> None:
     assert result.passed, result.detail
     reasons = {driver.view.decision.reason}
     assert any(r.startswith("red light") for r in reasons)
+
+
+def test_turn_path_is_the_towns_quarter_circle_into_the_same_lane() -> None:
+    from agent.agent_driver import turn_path
+
+    for command, side in ((2, 1.0), (1, -1.0)):
+        path, arc_end = turn_path(command, 12.0, 5.25)
+        radius = 12.0 - 5.25 if command == 2 else 12.0 + 5.25
+        steps = np.hypot(*np.diff(path, axis=0).T)
+        assert steps.max() < 0.25  # one continuous polyline
+        k = int(round(arc_end / 0.2))
+        assert path[k - 1] == pytest.approx([0.5 + radius, side * radius], abs=0.2)  # the arc ends in the new road
+        assert path[-1][0] == pytest.approx(0.5 + radius) and side * path[-1][1] > radius + 25.0  # ... and follows it
+
+
+def test_lane_index_from_the_lines_paint() -> None:
+    from agent.agent_driver import lane_index_of
+    from agent.lanes import LaneLine
+
+    def line(color: str, style: str) -> LaneLine:
+        return LaneLine(np.zeros(3), (2.0, 20.0), 0.9, 100, color, style)
+
+    def lanes(left, right):
+        return SimpleNamespace(left=left, right=right)
+
+    assert lane_index_of(lanes(line("yellow", "solid"), line("white", "dashed"))) == 0
+    assert lane_index_of(lanes(line("white", "dashed"), line("white", "solid"))) == 1
+    assert lane_index_of(lanes(None, line("white", "dashed"))) == 0
+    assert lane_index_of(lanes(line("white", "unknown"), None)) is None
+
+
+@needs_models
+@pytest.mark.parametrize("command", [1, 2])
+def test_a_commanded_turn_follows_the_junctions_arc_into_the_same_lane(command: int) -> None:
+    """The agent's turn, dead-reckoned from a stop bar seen 10 m ahead of the camera, on the world's own bicycle model and
+    connectors: the car stays within the band of its lanes and comes out on the road it turned into."""
+    from agent.drivers import make_driver
+    from agent.stop_line import StopLine
+    from envs.drive_env import DriveConfig, DriveEnv
+    from envs.scenarios import APPROACH_ARM, APPROACH_NODE, exit_edge
+    from sim.routes import shortest_route
+    from sim.town import Arm
+    from sim.world import World, cached_town
+
+    config = DriveConfig(render_camera=False)
+    town = cached_town(config.world.town, config.town_seed)
+    ap = town.approach_at(APPROACH_NODE, APPROACH_ARM)
+    goal = shortest_route(town, ap.edge, exit_edge(town, APPROACH_NODE, Arm.N if command == 1 else Arm.S))[-1]
+    k = 0 if command == 1 else 1  # the lane the turn is taken from
+    lane = town.network.graph[ap.edge[0]][ap.edge[1]][k]
+    start_s = lane.length - 0.5 - 9.0 - 2.3  # the bumper 9 m before the bar's near edge
+    world = World(town, replace(config.world, npc_count=0, pedestrian_count=0), seed=0,
+                  start=(ap.edge[0], ap.edge[1], k), start_s=start_s, goal=goal, spawn_traffic=False)
+    env = DriveEnv(config)
+    env.reset(seed=0, options={"world": world})
+    driver = make_driver("agent")
+    driver.reset(SimpleNamespace(config=env.config))
+    ctl = driver.controller
+    ctl.stop_line, ctl.stop_line_measured = 9.0, True  # as the stop-line detector reads it
+    driver._road_yaw, driver._road_offset, driver._lane_k = 0.0, 0.0, k  # as the lane fit measures the lane
+    driver._note_junction(StopLine(9.0 + ctl.config.camera_to_front_m, 0.5, 0.9, 0))
+    h0, steer, worst, guided = world.ego.heading, 0.0, 0.0, 0
+    for _ in range(300):  # up to 15 s at about 3 m/s, until 8 m into the road turned into
+        target = driver._turn_steer(int(world.command()), float(world.ego.speed))
+        guided += target is not None
+        rate = ctl.config.steer_rate_per_s * driver.dt  # the controller's steering-rate limit
+        steer = float(np.clip(target if target is not None else 0.0, steer - rate, steer + rate))
+        throttle = float(np.clip(0.5 * (3.0 - world.ego.speed), -1.0, 1.0))
+        _, _, terminated, _, info = env.step(np.array([steer, throttle], np.float32))
+        driver._odometry(float(world.ego.speed), steer, int(world.command()))
+        worst = max(worst, info["lane_band_offset_m"])
+        assert not terminated and not info["infractions"], info["infractions"]
+        if world.ego_lane is not None and world.ego_lane[0][:2] == goal and world.ego_lane[1] > 8.0:
+            break
+    assert guided > 40
+    assert worst < 0.5, worst
+    assert world.ego_lane is not None and world.ego_lane[0][:2] == goal
+    turned = math.remainder(world.ego.heading - h0, 2 * math.pi)
+    assert turned == pytest.approx((-1 if command == 1 else 1) * math.pi / 2, abs=0.15)
+    env.close()
