@@ -67,20 +67,7 @@ TRACKED = ("car", "truck", "pedestrian")
 STAGES = ("pilotnet", "detector", "tracking", "lanes", "stop_line", "distance", "control", "adas")
 
 
-def lane_index_of(lanes: LaneResult) -> int | None:
-    """Which of our direction's two lanes holds the car, from the lines' paint (town design: the yellow centre
-    line left of the inner lane (0), the dashed divider between the two, the solid white edge right of the
-    outer lane (1)); None when the lines do not say."""
-    left, right = lanes.left, lanes.right
-    if left is not None and left.color == "yellow":
-        return 0
-    if right is not None and right.color == "white" and right.style == "solid":
-        return 1
-    if left is not None and left.color == "white" and left.style == "dashed":
-        return 1
-    if right is not None and right.color == "white" and right.style == "dashed":
-        return 0
-    return None
+TURN_ARC_START_M = 0.5  # town design: a junction's connectors start at its stop bars' far edge (0.5 m deep)
 
 
 @lru_cache(maxsize=16)
@@ -93,10 +80,12 @@ def turn_path(command: int, setback_m: float, lane_offset_m: float, step_m: floa
     right = command == 2
     radius = setback_m - lane_offset_m if right else setback_m + lane_offset_m
     side = 1.0 if right else -1.0
-    approach = np.stack([np.arange(-29.5, 0.5, step_m), np.zeros(len(np.arange(-29.5, 0.5, step_m)))], axis=1)
+    x0 = TURN_ARC_START_M
+    before = np.arange(x0 - 30.0, x0, step_m)
+    approach = np.stack([before, np.zeros(len(before))], axis=1)
     theta = np.arange(0.0, math.pi / 2, step_m / radius)
-    arc = np.stack([0.5 + radius * np.sin(theta), side * (radius - radius * np.cos(theta))], axis=1)
-    end = np.array([0.5 + radius, side * radius])
+    arc = np.stack([x0 + radius * np.sin(theta), side * (radius - radius * np.cos(theta))], axis=1)
+    end = np.array([x0 + radius, side * radius])
     along = np.arange(0.0, 30.0, step_m)
     exit_ = np.stack([np.full(len(along), end[0]), end[1] + side * along], axis=1)
     path = np.concatenate([approach, arc, exit_])
@@ -275,12 +264,23 @@ class AgentDriver:
             raise ValueError("The agent's stereo distance needs the stereo pair: use DriveConfig(observe_stereo=True, "
                              "camera=CameraConfig(stereo=True)), or distance='geometry'.")
         self._setup(cfg.camera, cfg.world.dt_s)
-        self.controller.reset()
         self.adas.reset()
-        self.sort.reset()
         self.timings = []
         self.view = None
         self._frame = 0
+        self._restart()
+
+    def on_intervention(self) -> None:
+        """The safety driver took over and put the car back on its lane: what was tracked and dead-reckoned
+        (stop line, lights, objects, the junction's arc) describes the place the car left, so it starts afresh,
+        as a car's system does when it is engaged again. The episode's timings and warnings stay."""
+        self._setup(self.camera, self.dt)
+        self._restart()
+
+    def _restart(self) -> None:
+        """Forget every tracked and dead-reckoned state."""
+        self.controller.reset()
+        self.sort.reset()
         self._lights: list[Detection] = []
         self._history: dict[int, deque[tuple[float, float, float]]] = {}
         self._lost: dict[int, PerceivedObject] = {}  # objects lost in our path, remembered for a while
@@ -290,9 +290,8 @@ class AgentDriver:
         self._road_offset = 0.0  # metres right of the approach lane's centre (measured, then dead-reckoned)
         self._approach_yaw = 0.0  # the heading the car had while it last drove along its lane
         self._pos = np.zeros(2)  # dead-reckoned position of the car's centre (x ahead at yaw 0, y right)
-        self._lane_k: int | None = None  # 0 = inner lane (next to the centre line), 1 = outer, from the lines' paint
-        # the stop bar ahead (x, y, road yaw, our lane there, the command of the turn once it has begun)
-        self._junction: tuple[float, float, float, int, int] | None = None
+        # the stop bar ahead (x, y, road yaw) and the command of the turn once it has begun (0: not yet)
+        self._junction: tuple[float, float, float, int] | None = None
         self._turning = False  # following a junction turn's arc this frame
 
     # ------------------------------------------------------------------ perception helpers
@@ -396,7 +395,7 @@ class AgentDriver:
         if command not in (1, 2) or abs(steer) < self.config.straight_steer:
             self._approach_yaw = self._yaw
 
-    def _measure_road(self, centre: np.ndarray | None, confidence: float, lanes: LaneResult | None = None) -> None:
+    def _measure_road(self, centre: np.ndarray | None, confidence: float) -> None:
         """Keep the approach lane's heading (in the odometry frame) and our offset from its centre, from a
         confident lane fit taken well before the stop line."""
         ctl = self.controller
@@ -404,9 +403,6 @@ class AgentDriver:
                 or (ctl.stop_line is not None and ctl.stop_line < self.config.road_clear_m)):
             return
         z0 = -self.camera.mount_forward_m
-        k = lane_index_of(lanes) if lanes is not None else None
-        if k is not None:
-            self._lane_k = k
         heading = self._yaw + math.atan(float(np.polyval(np.polyder(centre), z0)))
         self._road_yaw = heading if self._road_yaw is None else self._road_yaw + 0.2 * (heading - self._road_yaw)
         self._road_offset = -float(np.polyval(centre, z0))
@@ -434,7 +430,7 @@ class AgentDriver:
         u = np.array([math.cos(self._road_yaw), math.sin(self._road_yaw)])
         right = np.array([-u[1], u[0]])
         bar = self._pos - self._road_offset * right + ahead * u
-        self._junction = (float(bar[0]), float(bar[1]), self._road_yaw, -1 if self._lane_k is None else self._lane_k, 0)
+        self._junction = (float(bar[0]), float(bar[1]), self._road_yaw, 0)
 
     def _turn_steer(self, command: int, speed: float) -> float | None:
         """Turning at a junction (no lines to follow), the steer that pursues the town's turn arc from our lane
@@ -443,15 +439,17 @@ class AgentDriver:
         self._turning = False
         if self._junction is None or not cfg.turn_guidance:
             return None
-        bx, by, road_yaw, k, started = self._junction
+        bx, by, road_yaw, started = self._junction
         if started:  # a turn under way is finished, whatever the route says next (leaving the junction, the
             command = started  # command already announces the next one)
         elif command not in (1, 2):
             if ctl.ignore_light_m > 0:  # through this junction another way: its bar is behind us
                 self._junction = None
             return None
-        if k < 0:
-            k = 0 if command == 1 else 1  # the lane a turn is taken from
+        # Town rule: left turns from the inner lane (0), right turns from the outer one (1). Taken from the other
+        # lane, this arc still ends in a lane of the road turned into: the arc is placed from our own lane, and
+        # a right turn's radius from the outer lane (or a left turn's from the inner) is the tighter one.
+        k = 0 if command == 1 else 1
         u = np.array([math.cos(road_yaw), math.sin(road_yaw)])
         heading = self._yaw - road_yaw
         half = EgoVehicle.LENGTH / 2
@@ -462,7 +460,7 @@ class AgentDriver:
                          - half * math.sin(heading)])
         path, arc_end = turn_path(command, cfg.junction_setback_m, (k + 0.5) * cfg.lane_width_m)
         lookahead = cfg.turn_lookahead_m + cfg.turn_lookahead_s * speed
-        if here[0] < path[0, 0] + 30.0 - lookahead:  # the arc starts 30 m into the path (0.5 m past the bar)
+        if here[0] < TURN_ARC_START_M - lookahead:  # not yet: the lookahead point is still before the arc
             return None
         step = float(np.hypot(*(path[1] - path[0])))
         nearest = int(np.argmin(np.sum((path - here) ** 2, axis=1)))
@@ -470,7 +468,7 @@ class AgentDriver:
             self._junction = None
             return None
         if not started:
-            self._junction = (bx, by, road_yaw, k, command)
+            self._junction = (bx, by, road_yaw, command)
         target = path[min(len(path) - 1, nearest + int(round(lookahead / step)))]
         alpha = math.atan2(target[1] - here[1], target[0] - here[0]) - heading
         alpha = math.atan2(math.sin(alpha), math.cos(alpha))
@@ -556,7 +554,7 @@ class AgentDriver:
         light = self._light()
         lap("distance")
         centre = lane_centre_of(lanes, -self.camera.mount_forward_m)
-        self._measure_road(centre, lanes.confidence, lanes)
+        self._measure_road(centre, lanes.confidence)
         hold = self._junction_hold(command)
         turn = self._turn_steer(command, speed)
         net_steer = pilot

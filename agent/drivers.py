@@ -30,6 +30,9 @@ class Driver(Protocol):
     def act(self, observation: dict[str, Any]) -> np.ndarray:
         """``[steer, throttle_brake]`` in [-1, 1] for this observation."""
 
+    # Optional: ``on_intervention()``, called by the evaluation after the safety driver has put the car back
+    # on its lane (a driver that tracks or dead-reckons state starts it afresh there).
+
 
 _REGISTRY: dict[str, Callable[..., Driver]] = {}
 

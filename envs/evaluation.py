@@ -84,6 +84,9 @@ def run_episode(env: DriveEnv, driver: Driver, seed: int, video: Any = None, pro
         if needs_intervention(info) and not world.route_done:
             trace.interventions.append(info["time_s"])
             world.put_back_on_route()
+            restart = getattr(driver, "on_intervention", None)  # a driver with state re-engages afresh
+            if restart is not None:
+                restart()
         if video is not None:
             video.append_data(video_frame(env, driver, info))
         if progress is not None:

@@ -14,7 +14,9 @@ The intervention rule: a safety driver takes over when the car is more than 1 m 
 (measured outside the band between the centres of its direction's lanes, so that a lane change is not
 a departure), makes an episode-ending infraction (collision, leaving the road) or deviates from the
 route. Each take-over counts once and puts the car back on its route lane at a standstill, clear of
-other cars, and the episode goes on.
+other cars, and the episode goes on; a driver with an ``on_intervention()`` method is told, so that what
+it tracked or dead-reckoned about the place the car left starts afresh (as a car's system does when it
+is engaged again).
 """
 
 from __future__ import annotations

@@ -252,22 +252,6 @@ def test_turn_path_is_the_towns_quarter_circle_into_the_same_lane() -> None:
         assert path[-1][0] == pytest.approx(0.5 + radius) and side * path[-1][1] > radius + 25.0  # ... and follows it
 
 
-def test_lane_index_from_the_lines_paint() -> None:
-    from agent.agent_driver import lane_index_of
-    from agent.lanes import LaneLine
-
-    def line(color: str, style: str) -> LaneLine:
-        return LaneLine(np.zeros(3), (2.0, 20.0), 0.9, 100, color, style)
-
-    def lanes(left, right):
-        return SimpleNamespace(left=left, right=right)
-
-    assert lane_index_of(lanes(line("yellow", "solid"), line("white", "dashed"))) == 0
-    assert lane_index_of(lanes(line("white", "dashed"), line("white", "solid"))) == 1
-    assert lane_index_of(lanes(None, line("white", "dashed"))) == 0
-    assert lane_index_of(lanes(line("white", "unknown"), None)) is None
-
-
 @needs_models
 @pytest.mark.parametrize("command", [1, 2])
 def test_a_commanded_turn_follows_the_junctions_arc_into_the_same_lane(command: int) -> None:
@@ -296,7 +280,7 @@ def test_a_commanded_turn_follows_the_junctions_arc_into_the_same_lane(command: 
     driver.reset(SimpleNamespace(config=env.config))
     ctl = driver.controller
     ctl.stop_line, ctl.stop_line_measured = 9.0, True  # as the stop-line detector reads it
-    driver._road_yaw, driver._road_offset, driver._lane_k = 0.0, 0.0, k  # as the lane fit measures the lane
+    driver._road_yaw, driver._road_offset = 0.0, 0.0  # as the lane fit measures the lane
     driver._note_junction(StopLine(9.0 + ctl.config.camera_to_front_m, 0.5, 0.9, 0))
     h0, steer, worst, guided = world.ego.heading, 0.0, 0.0, 0
     for _ in range(300):  # up to 15 s at about 3 m/s, until 8 m into the road turned into
@@ -316,4 +300,18 @@ def test_a_commanded_turn_follows_the_junctions_arc_into_the_same_lane(command: 
     assert world.ego_lane is not None and world.ego_lane[0][:2] == goal
     turned = math.remainder(world.ego.heading - h0, 2 * math.pi)
     assert turned == pytest.approx((-1 if command == 1 else 1) * math.pi / 2, abs=0.15)
+    env.close()
+
+
+@needs_models
+def test_after_an_intervention_the_agent_forgets_what_it_dead_reckoned() -> None:
+    env, world, driver = blind_world_and_agent()
+    ctl = driver.controller
+    ctl.stop_line, ctl.stop_line_measured, ctl.light_state = 9.0, True, "red"
+    driver._road_yaw, driver._pos = 0.1, np.array([30.0, 2.0])
+    driver._note_junction(SimpleNamespace(distance_m=10.0))
+    assert driver._junction is not None
+    driver.on_intervention()
+    assert driver._junction is None and driver._road_yaw is None and not driver._pos.any()
+    assert ctl.stop_line is None and ctl.light_state is None
     env.close()

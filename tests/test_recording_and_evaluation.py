@@ -50,6 +50,30 @@ def test_autopilot_drives_seeded_routes_with_traffic_cleanly():
     assert min(scores) >= 98.0
 
 
+def test_the_safety_driver_puts_the_car_back_and_tells_the_driver():
+    class Swerver:
+        """Steers hard right at speed: off its lane within seconds, again after every intervention."""
+
+        name, privileged = "swerver", False
+
+        def __init__(self) -> None:
+            self.restarts = 0
+
+        def reset(self, env) -> None:
+            pass
+
+        def act(self, observation) -> np.ndarray:
+            return np.array([0.5, 0.6], np.float32)
+
+        def on_intervention(self) -> None:
+            self.restarts += 1
+
+    driver = Swerver()
+    trace = run_episode(DriveEnv(replace(BLIND, max_time_s=12.0)), driver, 100)
+    assert len(trace.interventions) >= 1
+    assert driver.restarts == len(trace.interventions)
+
+
 def test_noise_injection_perturbs_but_labels_stay_clean():
     env = DriveEnv(BLIND)
     obs, _ = env.reset(seed=3)
