@@ -56,11 +56,14 @@ class DetectorConfig:
     width: int = 32  # channels at stride 4; doubled at each stride
     num_classes: int = len(CLASSES)
     strides: tuple[int, ...] = STRIDES  # (8, 16), or (4, 8, 16) with a head on the stride-4 map for small objects
+    s4_blocks: int = 0  # residual blocks on the stride-4 path before its head (0: the first stride-4 model)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "strides", tuple(int(s) for s in self.strides))
         if self.strides not in ((8, 16), (4, 8, 16)):
             raise ValueError(f"Detector strides must be (8, 16) or (4, 8, 16), not {self.strides}.")
+        if self.s4_blocks and 4 not in self.strides:
+            raise ValueError("s4_blocks needs the stride-4 head (strides 4, 8, 16).")
 
 
 class Detector(nn.Module):
@@ -83,6 +86,9 @@ class Detector(nn.Module):
             # Stride 4: pedestrians 2-4 px wide need finer cells than stride 8 to be placed within IoU 0.5.
             self.lateral4 = conv(2 * c, c, k=1)
             self.fuse4 = conv(c, c)  # on f4 + upsampled p8 (FPN's sum: the stride-4 map is costly per layer)
+            # Optional depth at stride 4: f4 is only two convs from the pixels, and p8 arrives upsampled
+            # (constant over 2x2), so a 3 px pedestrian's edges are placed by very shallow features.
+            self.refine4 = nn.Sequential(*(Residual(c) for _ in range(self.config.s4_blocks)))
             self.head4 = nn.Conv2d(c, 5 + nc, 1)
         self._init_bias()
 
@@ -91,7 +97,11 @@ class Detector(nn.Module):
         return ([self.head4] if 4 in self.config.strides else []) + [self.head8, self.head16]
 
     def _init_bias(self) -> None:
-        """Objectness starts near 0.01 and classes near 0.05 (RetinaNet's prior), so early losses are sane."""
+        """Objectness starts near 0.01 and classes near 0.05 (RetinaNet's prior), so early losses are sane.
+        The stride-4 refinement blocks start as the identity (last BN's scale 0), so weights of a model
+        without them (``train.py detector train --init``) give the same outputs before training."""
+        for block in getattr(self, "refine4", []):
+            nn.init.zeros_(block.body[-1].weight)
         for head in self.heads():
             with torch.no_grad():
                 head.bias.zero_()
@@ -105,7 +115,7 @@ class Detector(nn.Module):
         p8 = self.fuse8(torch.cat([f8, self.up(self.lateral(f16))], 1))
         out = [self.head8(p8), self.head16(f16)]
         if 4 in self.config.strides:
-            p4 = self.fuse4(f4 + self.up(self.lateral4(p8)))
+            p4 = self.refine4(self.fuse4(f4 + self.up(self.lateral4(p8))))
             out.insert(0, self.head4(p4))
         return out
 

@@ -42,20 +42,26 @@ def size_range(stride: int, strides: tuple[int, ...]) -> tuple[float, float]:
 
 
 # --------------------------------------------------------------------------- augmentation
-def augment(img: np.ndarray, boxes: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def augment(img: np.ndarray, boxes: np.ndarray, rng: np.random.Generator,
+            scale_prob: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Flip, scale, translate and HSV-jitter one frame and its boxes (all objects, labels and ignores).
 
     Returns the image, the boxes clipped to it, and which boxes survive (at least 40% of their area stays
     in the frame and they stay 2 px wide and tall; the others become ignore regions). The hue jitter is kept
-    to a few degrees: a light's state *is* its hue.
+    to a few degrees: a light's state *is* its hue. Only a ``scale_prob`` share of frames is rescaled (0.75x
+    to 1.3x, sub-pixel translation, bilinear resampling); the others are shifted by whole pixels, so they stay
+    as sharp as the camera's frames and their pixel-exact boxes stay pixel-exact (a 3 px wide pedestrian
+    needs its box within about a pixel for IoU 0.5).
     """
     h, w = img.shape[:2]
     boxes = boxes.copy()
     if rng.random() < 0.5:
         img = img[:, ::-1]
         boxes[:, [0, 2]] = w - boxes[:, [2, 0]]
-    scale = float(rng.uniform(0.75, 1.3))
+    scale = float(rng.uniform(0.75, 1.3))  # drawn every time, so scale_prob 1 keeps the old random stream
     tx, ty = float(rng.uniform(-0.1, 0.1) * w), float(rng.uniform(-0.1, 0.1) * h)
+    if scale_prob < 1.0 and rng.random() >= scale_prob:
+        scale, tx, ty = 1.0, float(round(tx)), float(round(ty))
     m = np.array([[scale, 0, (1 - scale) * w / 2 + tx], [0, scale, (1 - scale) * h / 2 + ty]], np.float32)
     img = cv2.warpAffine(np.ascontiguousarray(img), m, (w, h), flags=cv2.INTER_LINEAR, borderValue=(114, 114, 114))
     area0 = np.prod(boxes[:, 2:] - boxes[:, :2], axis=1) * scale * scale
@@ -122,9 +128,22 @@ def giou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return iou - (hull - union) / hull.clamp(min=1e-9)
 
 
+def box_iou_paired(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """IoU of paired boxes (x0, y0, x1, y1)."""
+    lt, rb = torch.max(a[:, :2], b[:, :2]), torch.min(a[:, 2:], b[:, 2:])
+    inter = (rb - lt).clamp(min=0).prod(1)
+    union = (a[:, 2:] - a[:, :2]).prod(1) + (b[:, 2:] - b[:, :2]).prod(1) - inter
+    return inter / union.clamp(min=1e-9)
+
+
 def yolo_loss(maps: list[torch.Tensor], targets: list[list[dict[str, np.ndarray]]],
-              strides: tuple[int, ...] = STRIDES) -> tuple[torch.Tensor, dict]:
-    """The YOLO loss family over a batch; ``targets[image][level]`` from ``build_targets``."""
+              strides: tuple[int, ...] = STRIDES, obj_iou: float = 0.0) -> tuple[torch.Tensor, dict]:
+    """The YOLO loss family over a batch; ``targets[image][level]`` from ``build_targets``.
+
+    ``obj_iou`` is YOLOv5's ``gr``: a positive cell's objectness target is ``1 - obj_iou + obj_iou * IoU``
+    of its predicted box (detached), so among the cells that see one object the best-placed box scores highest
+    and survives NMS; 0 gives every positive the target 1.
+    """
     bce = torch.nn.functional.binary_cross_entropy_with_logits
     nc = len(CLASSES)
     lbox, lcls, lobj = maps[0].new_zeros(()), maps[0].new_zeros(()), maps[0].new_zeros(())
@@ -145,10 +164,14 @@ def yolo_loss(maps: list[torch.Tensor], targets: list[list[dict[str, np.ndarray]
             xy = (torch.sigmoid(p[:, :2]) * 2 - 0.5 + grid) * s
             wh = torch.exp(p[:, 2:4].clamp(-6, 6)) * s
             pbox = torch.cat([xy - wh / 2, xy + wh / 2], 1)
-            lbox = lbox + (1 - giou(pbox, tbox)).sum()
+            g = giou(pbox, tbox)
+            lbox = lbox + (1 - g).sum()
             onehot = torch.nn.functional.one_hot(tcls, nc).float()
             lcls = lcls + bce(p[:, 5:], onehot, reduction="sum") / nc
-            obj_target[ii, pp] = 1.0
+            if obj_iou:
+                obj_target[ii, pp] = 1.0 - obj_iou + obj_iou * box_iou_paired(pbox.detach(), tbox)
+            else:
+                obj_target[ii, pp] = 1.0
             n_pos += len(pos)
         lobj = lobj + OBJ_BALANCE[s] * (bce(t[..., 4], obj_target, reduction="none") * weight).mean()
     n_pos = max(n_pos, 1)
@@ -163,14 +186,14 @@ def load_images(samples: list[Sample], desc: str) -> np.ndarray:
 
 
 def make_batch(images: np.ndarray, samples: list[Sample], idx: np.ndarray, rng: np.random.Generator | None,
-               strides: tuple[int, ...] = STRIDES):
+               strides: tuple[int, ...] = STRIDES, scale_prob: float = 1.0):
     """Images as a float tensor and per-image targets, augmented when ``rng`` is given."""
     xs, tgs = [], []
     for k in idx:
         s = samples[k]
         img, boxes, ignore = images[k], s.boxes, s.ignore.copy()
         if rng is not None:
-            img, boxes, ok = augment(img, boxes, rng)
+            img, boxes, ok = augment(img, boxes, rng, scale_prob)
             ignore = ignore | ~ok
         xs.append(img.transpose(2, 0, 1))
         tgs.append(build_targets(boxes, s.cls, ignore, strides))
@@ -216,6 +239,8 @@ def save_checkpoint(path: Path, model: Detector, meta: dict) -> None:
     state = {k: v.clone() for k, v in model.state_dict().items()}
     tmp = path.with_suffix(".tmp")
     config = {"width": model.config.width, "num_classes": model.config.num_classes, "strides": list(model.config.strides)}
+    if model.config.s4_blocks:  # only when used, so older readers still load the models without them
+        config["s4_blocks"] = model.config.s4_blocks
     torch.save({"state_dict": state, "config": config,
                 "classes": CLASSES, "input_hw": INPUT_HW, **meta}, tmp)
     tmp.replace(path)
@@ -227,16 +252,32 @@ def train(args: argparse.Namespace) -> int:
     torch.manual_seed(args.seed)
     torch.set_num_threads(max(1, args.threads))
     rng = np.random.default_rng(args.seed)
-    train_s, val_s = load_split(args.data, "train"), load_split(args.data, "val")
+    train_s = [x for name in str(getattr(args, "train_splits", "train")).split(",") for x in load_split(args.data, name)]
+    val_s = load_split(args.data, "val")
     train_x, val_x = load_images(train_s, "train"), load_images(val_s, "val")
     strides = tuple(int(v) for v in str(getattr(args, "strides", "8,16")).split(","))
-    model = Detector(DetectorConfig(width=getattr(args, "width", 32), strides=strides))
+    model = Detector(DetectorConfig(width=getattr(args, "width", 32), strides=strides,
+                                    s4_blocks=getattr(args, "s4_blocks", 0)))
+    obj_iou, scale_prob = getattr(args, "obj_iou", 0.0), getattr(args, "scale_prob", 1.0)
+    if getattr(args, "init", ""):
+        if args.resume:
+            raise ValueError("Pass --resume or --init, not both.")
+        # Warm start: every tensor whose name and shape match; new layers keep their initialisation (the
+        # stride-4 refinement blocks start as the identity, so the model starts as the one it comes from).
+        src = torch.load(args.init, map_location="cpu", weights_only=False)["state_dict"]
+        own = model.state_dict()
+        taken = {k: v for k, v in src.items() if k in own and own[k].shape == v.shape}
+        model.load_state_dict(taken, strict=False)
+        print(f"--init {args.init}: {len(taken)} of {len(own)} tensors taken; new: "
+              f"{sorted({k.split('.')[0] for k in own if k not in taken})}")
     if args.resume:
         ckpt = torch.load(args.resume, map_location="cpu", weights_only=False)
         cfg = ckpt.get("config", {})
-        if tuple(cfg.get("strides", STRIDES)) != strides or cfg.get("width", 32) != model.config.width:
-            raise ValueError(f"--resume {args.resume} has strides {tuple(cfg.get('strides', STRIDES))} and width "
-                             f"{cfg.get('width', 32)}; pass the same --strides and --width.")
+        if (tuple(cfg.get("strides", STRIDES)) != strides or cfg.get("width", 32) != model.config.width
+                or cfg.get("s4_blocks", 0) != model.config.s4_blocks):
+            raise ValueError(f"--resume {args.resume} has strides {tuple(cfg.get('strides', STRIDES))}, width "
+                             f"{cfg.get('width', 32)} and s4_blocks {cfg.get('s4_blocks', 0)}; pass the same "
+                             "--strides, --width and --s4-blocks (or --init to warm-start a different shape).")
         model.load_state_dict(ckpt["state_dict"])
     ema = EMA(model)
     decay, no_decay = [], []
@@ -265,8 +306,8 @@ def train(args: argparse.Namespace) -> int:
                             else 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * (step - warmup) / max(total - warmup, 1))))
             for g in opt.param_groups:
                 g["lr"] = lr
-            x, tgs = make_batch(train_x, train_s, order[b * args.batch:(b + 1) * args.batch], rng, strides)
-            loss, parts = yolo_loss(model(x), tgs, strides)
+            x, tgs = make_batch(train_x, train_s, order[b * args.batch:(b + 1) * args.batch], rng, strides, scale_prob)
+            loss, parts = yolo_loss(model(x), tgs, strides, obj_iou)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)

@@ -29,11 +29,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--train-frames", type=int, default=6000)
     p.add_argument("--val-frames", type=int, default=1200)
     p.add_argument("--test-frames", type=int, default=1200)
-    p.add_argument("--splits", default="train,val,test", help="which splits to (re)generate, comma-separated")
+    p.add_argument("--peds-frames", type=int, default=6000, help="frames of the extra train_peds split")
+    p.add_argument("--peds-count", type=int, default=60, help="pedestrians per town in train_peds (default world: 24)")
+    p.add_argument("--splits", default="train,val,test",
+                   help="which splits to (re)generate, comma-separated; train_peds: extra training towns 30-59 "
+                   "with more pedestrians")
     p.add_argument("--seed", type=int, default=0)
 
     p = sub.add_parser("train", help="train the detector on a generated dataset")
     p.add_argument("--data", default=DEFAULT_DATA)
+    p.add_argument("--train-splits", default="train", help="training splits, comma-separated (e.g. train,train_peds)")
     p.add_argument("--out", default=DEFAULT_CKPT, help="best checkpoint (by val mAP@0.5)")
     p.add_argument("--epochs", type=int, default=30)
     p.add_argument("--batch", type=int, default=32)
@@ -44,6 +49,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", default="", help="continue from this checkpoint's weights")
     p.add_argument("--strides", default="4,8,16", help="head strides: 4,8,16 (the shipped model) or 8,16 (no stride-4 head)")
     p.add_argument("--width", type=int, default=32, help="backbone channels at stride 4 (doubled at each stride)")
+    p.add_argument("--s4-blocks", type=int, default=0, help="residual blocks on the stride-4 path before its head")
+    p.add_argument("--init", default="", help="warm start: this checkpoint's weights where names and shapes match "
+                   "(unlike --resume, the model may have more layers, e.g. --s4-blocks)")
+    p.add_argument("--obj-iou", type=float, default=0.0,
+                   help="objectness target of a positive: 1 - g + g * IoU of its box (YOLOv5's gr); 0: always 1")
+    p.add_argument("--scale-prob", type=float, default=1.0,
+                   help="share of training frames rescaled (0.75-1.3x); the rest are shifted by whole pixels")
 
     p = sub.add_parser("evaluate", help="AP per class, light state vs HSV baseline, on the held-out split")
     p.add_argument("--data", default=DEFAULT_DATA)
@@ -76,13 +88,15 @@ def _dataset(args: argparse.Namespace) -> int:
     summary_path = root / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
     wanted = set(args.splits.split(","))
-    for spec in default_splits(args.train_frames, args.val_frames, args.test_frames):
+    for spec in default_splits(args.train_frames, args.val_frames, args.test_frames, args.peds_frames, args.peds_count):
         if spec.name not in wanted:
             continue
         t_split = time.perf_counter()
         summary[spec.name] = generate_split(root, spec, args.seed)
         summary[spec.name]["towns"] = list(spec.town_seeds)
         summary[spec.name]["weathers"] = list(spec.weathers)
+        if spec.pedestrian_count is not None:
+            summary[spec.name]["pedestrian_count"] = spec.pedestrian_count
         summary[spec.name]["seconds"] = round(time.perf_counter() - t_split, 1)
     write_dataset_yaml(root)
     summary["seed"] = args.seed

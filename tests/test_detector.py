@@ -154,6 +154,45 @@ def test_stride_4_head_targets_export_and_checkpoints_without_strides(tmp_path):
     assert load_detector(tmp_path / "old.pt").config.strides == (8, 16)
 
 
+def test_stride_4_refinement_blocks_start_as_the_identity_and_export(tmp_path):
+    from agent.detector import export_detector, load_detector
+    from agent.detector_train_loop import save_checkpoint
+
+    torch.manual_seed(2)
+    plain = Detector(DetectorConfig(strides=(4, 8, 16))).eval()
+    deeper = Detector(DetectorConfig(strides=(4, 8, 16), s4_blocks=2)).eval()
+    own = deeper.state_dict()
+    missing, _ = deeper.load_state_dict({k: v for k, v in plain.state_dict().items() if k in own}, strict=False)
+    assert missing and all(k.startswith("refine4.") for k in missing)  # what --init leaves to the new blocks
+    x = torch.rand(1, 3, 160, 320)
+    with torch.no_grad():
+        assert all(torch.equal(a, b) for a, b in zip(plain(x), deeper(x), strict=True))
+    save_checkpoint(tmp_path / "b2.pt", deeper, {})
+    assert load_detector(tmp_path / "b2.pt").config.s4_blocks == 2
+    assert export_detector(tmp_path / "b2.pt", tmp_path / "b2.onnx") < 1e-4
+    with pytest.raises(ValueError, match="s4_blocks"):
+        DetectorConfig(strides=(8, 16), s4_blocks=1)
+
+
+def test_iou_aware_objectness_and_pixel_exact_shifts():
+    from agent.detector_train_loop import augment
+
+    torch.manual_seed(0)
+    model = Detector(DetectorConfig(width=8, strides=(4, 8, 16)))
+    tg = [build_targets(np.array([[100, 60, 103, 72]], np.float32), np.array([2]), np.array([False]), (4, 8, 16))]
+    maps = model(torch.rand(1, 3, 160, 320))
+    plain, _ = yolo_loss(maps, tg, (4, 8, 16))
+    aware, _ = yolo_loss(maps, tg, (4, 8, 16), obj_iou=0.5)
+    assert torch.isfinite(aware) and not torch.equal(plain, aware)  # lower targets for badly placed boxes
+    # scale_prob 0: every frame is only flipped and shifted by whole pixels (and colour-jittered), so a 3 px
+    # box stays 3 px wide and on the pixel grid.
+    img = np.random.default_rng(0).integers(0, 255, (160, 320, 3), dtype=np.uint8)
+    boxes = np.array([[100, 60, 103, 72]], np.float32)
+    for seed in range(5):
+        out, b, ok = augment(img, boxes, np.random.default_rng(seed), scale_prob=0.0)
+        assert ok.all() and np.allclose(b[0, 2:] - b[0, :2], (3, 12)) and np.allclose(b, np.round(b))
+
+
 def test_overlay_draws_boxes_labels_ids_and_distances():
     frame = np.zeros((160, 320, 3), np.uint8)
     dets = [Detection((100, 60, 160, 100), 0, 0.9), Detection((10, 10, 20, 40), 3, 0.8)]
