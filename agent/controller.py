@@ -161,6 +161,29 @@ class Decision:
         return np.array([self.steer, self.throttle_brake], np.float32)
 
 
+class _Unconfirmed:
+    """A stop-line reading that disagrees with the tracked one: believed once it has been seen again, frame after
+    frame, where odometry puts it (within a metre)."""
+
+    def __init__(self) -> None:
+        self.clear()
+
+    def clear(self) -> None:
+        self.value: float | None = None
+        self.count = 0
+
+    def travel(self, metres: float) -> None:
+        if self.value is not None:
+            self.value -= metres
+
+    def see(self, reading: float) -> int:
+        """One more disagreeing reading; returns how many frames in a row have agreed with it."""
+        agrees = self.value is not None and abs(reading - self.value) < 1.0
+        self.count = self.count + 1 if agrees else 1
+        self.value = reading
+        return self.count
+
+
 class Controller:
     """The rules (see module docstring). Call ``reset()`` per episode and ``step(scene, steer, dt)`` per frame."""
 
@@ -176,11 +199,9 @@ class Controller:
         self.last_accel = 0.0
         self.stop_line: float | None = None  # bumper to the stop line, metres
         self.stop_line_measured = False  # True once a bar was seen (not only inferred from the light)
-        self._farther_line: float | None = None  # a reading farther than the tracked line, not yet believed
-        self._farther_count = 0
+        self._farther = _Unconfirmed()  # a bar reading farther than the tracked line
         self._line_unseen_s = 0.0  # since the tracked bar was last measured
-        self._odd_light_line: float | None = None  # a stop line inferred from a light, far from the tracked one
-        self._odd_light_count = 0
+        self._odd_light = _Unconfirmed()  # a stop line inferred from a light, far from the tracked one
         self.ignore_light_m = 0.0  # travel left during which lights are ignored (inside a junction)
         self.light_state: str | None = None
         self._light_candidate: str | None = None
@@ -258,22 +279,18 @@ class Controller:
             self.ignore_light_m = max(0.0, self.ignore_light_m - travelled)
         if self.stop_line is not None:
             self.stop_line -= travelled
-        if self._farther_line is not None:
-            self._farther_line -= travelled
-        if self._odd_light_line is not None:
-            self._odd_light_line -= travelled
+        self._farther.travel(travelled)
+        self._odd_light.travel(travelled)
         measured = None if scene.stop_line_m is None else scene.stop_line_m - cfg.camera_to_front_m
         if (measured is not None and self.stop_line_measured and self.stop_line is not None
                 and measured > self.stop_line + cfg.line_jump_m):
             # A bar cannot move away: a farther "bar" is the zebra beyond it (close in always; farther out
             # it is believed only when it is seen again where odometry puts it, frame after frame).
-            agrees = self._farther_line is not None and abs(measured - self._farther_line) < 1.0
-            self._farther_count = self._farther_count + 1 if agrees else 1
-            self._farther_line = measured
-            if self.stop_line < 5.0 or self._farther_count < cfg.line_jump_frames:
+            seen = self._farther.see(measured)
+            if self.stop_line < 5.0 or seen < cfg.line_jump_frames:
                 measured = None
         else:
-            self._farther_line, self._farther_count = None, 0
+            self._farther.clear()
         if measured is not None and self.ignore_light_m <= 0:
             self.stop_line = measured
             self.stop_line_measured = True
@@ -288,17 +305,13 @@ class Controller:
               and scene.light in LIGHT_STATES):
             inferred = scene.light_distance_m - cfg.light_beyond_stop_line_m - cfg.camera_to_front_m \
                 - cfg.light_fallback_margin_m
-            if (self.stop_line is None and inferred >= -1.0) or (
-                    self.stop_line is not None and abs(inferred - self.stop_line) <= cfg.line_jump_m):
-                self.stop_line, self._odd_light_count = inferred, 0
-            else:
-                # A reading far from the tracked one, or one that puts the car past a line it never saw (seed 513:
-                # a "light" 12 m ahead for one frame), is believed only when seen again where odometry puts it.
-                agrees = self._odd_light_line is not None and abs(inferred - self._odd_light_line) < 1.0
-                self._odd_light_count = self._odd_light_count + 1 if agrees else 1
-                self._odd_light_line = inferred
-                if self._odd_light_count >= cfg.line_jump_frames:
-                    self.stop_line, self._odd_light_count = inferred, 0
+            # A reading far from the tracked one, or one that puts the car past a line it never saw (seed 513: a
+            # "light" 12 m ahead for one frame), is believed only when seen again where odometry puts it.
+            if ((self.stop_line is None and inferred >= -1.0)
+                    or (self.stop_line is not None and abs(inferred - self.stop_line) <= cfg.line_jump_m)
+                    or self._odd_light.see(inferred) >= cfg.line_jump_frames):
+                self.stop_line = inferred
+                self._odd_light.clear()
         if self.stop_line is not None and self.stop_line < -1.0:  # the bumper is past the line: in the junction
             self.stop_line, self.stop_line_measured = None, False
             self.ignore_light_m = cfg.junction_ignore_m
