@@ -292,7 +292,6 @@ class AgentDriver:
         self._pos = np.zeros(2)  # dead-reckoned position of the car's centre (x ahead at yaw 0, y right)
         # the stop bar ahead (x, y, road yaw) and the command of the turn once it has begun (0: not yet)
         self._junction: tuple[float, float, float, int] | None = None
-        self._turning = False  # following a junction turn's arc this frame
 
     # ------------------------------------------------------------------ perception helpers
     def _objects(self, tracks: list[Track], t: float, depth: np.ndarray | None) -> list[PerceivedObject]:
@@ -436,7 +435,6 @@ class AgentDriver:
         """Turning at a junction (no lines to follow), the steer that pursues the town's turn arc from our lane
         to the same lane of the road we turn into; None when this does not apply."""
         cfg, ctl = self.config, self.controller
-        self._turning = False
         if self._junction is None or not cfg.turn_guidance:
             return None
         bx, by, road_yaw, started = self._junction
@@ -474,7 +472,6 @@ class AgentDriver:
         alpha = math.atan2(math.sin(alpha), math.cos(alpha))
         # Pure pursuit: the arc from the rear axle through the target has curvature 2 sin(alpha) / lookahead.
         delta = math.atan(2.0 * EgoVehicle.LENGTH * math.sin(alpha) / lookahead)
-        self._turning = True
         return float(np.clip(delta / EgoVehicle.MAX_STEER_RAD, -1.0, 1.0))
 
     def _light(self) -> LightSeen | None:

@@ -22,7 +22,7 @@ The box of a label is the bounding box of the object's *visible* pixels, clipped
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -320,8 +320,6 @@ def generate_split(root, spec: SplitSpec, seed: int, progress: bool = True) -> d
     rng = np.random.default_rng((seed, sum(map(ord, spec.name))))
     config = DriveConfig(render_camera=False, terminate_on_route_deviation=False, terminate_on_infraction=True)
     if spec.pedestrian_count is not None:
-        from dataclasses import replace
-
         config = replace(config, world=replace(config.world, pedestrian_count=spec.pedestrian_count))
     env = DriveEnv(config)
     camera = env.config.camera

@@ -117,23 +117,20 @@ def build_targets(boxes: np.ndarray, cls: np.ndarray, ignore: np.ndarray,
     return out
 
 
-def giou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Generalised IoU of paired boxes (x0, y0, x1, y1)."""
+def iou_and_giou(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """IoU and generalised IoU of paired boxes (x0, y0, x1, y1)."""
     lt, rb = torch.max(a[:, :2], b[:, :2]), torch.min(a[:, 2:], b[:, 2:])
     inter = (rb - lt).clamp(min=0).prod(1)
     area_a, area_b = (a[:, 2:] - a[:, :2]).prod(1), (b[:, 2:] - b[:, :2]).prod(1)
     union = area_a + area_b - inter
     iou = inter / union.clamp(min=1e-9)
     hull = (torch.max(a[:, 2:], b[:, 2:]) - torch.min(a[:, :2], b[:, :2])).clamp(min=0).prod(1)
-    return iou - (hull - union) / hull.clamp(min=1e-9)
+    return iou, iou - (hull - union) / hull.clamp(min=1e-9)
 
 
-def box_iou_paired(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """IoU of paired boxes (x0, y0, x1, y1)."""
-    lt, rb = torch.max(a[:, :2], b[:, :2]), torch.min(a[:, 2:], b[:, 2:])
-    inter = (rb - lt).clamp(min=0).prod(1)
-    union = (a[:, 2:] - a[:, :2]).prod(1) + (b[:, 2:] - b[:, :2]).prod(1) - inter
-    return inter / union.clamp(min=1e-9)
+def giou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Generalised IoU of paired boxes (x0, y0, x1, y1)."""
+    return iou_and_giou(a, b)[1]
 
 
 def yolo_loss(maps: list[torch.Tensor], targets: list[list[dict[str, np.ndarray]]],
@@ -164,12 +161,12 @@ def yolo_loss(maps: list[torch.Tensor], targets: list[list[dict[str, np.ndarray]
             xy = (torch.sigmoid(p[:, :2]) * 2 - 0.5 + grid) * s
             wh = torch.exp(p[:, 2:4].clamp(-6, 6)) * s
             pbox = torch.cat([xy - wh / 2, xy + wh / 2], 1)
-            g = giou(pbox, tbox)
+            iou, g = iou_and_giou(pbox, tbox)
             lbox = lbox + (1 - g).sum()
             onehot = torch.nn.functional.one_hot(tcls, nc).float()
             lcls = lcls + bce(p[:, 5:], onehot, reduction="sum") / nc
             if obj_iou:
-                obj_target[ii, pp] = 1.0 - obj_iou + obj_iou * box_iou_paired(pbox.detach(), tbox)
+                obj_target[ii, pp] = 1.0 - obj_iou + obj_iou * iou.detach()
             else:
                 obj_target[ii, pp] = 1.0
             n_pos += len(pos)
