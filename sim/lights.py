@@ -8,10 +8,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 
 from sim.objects import LightState
 from sim.town import Arm, Town
+
+_GREEN, _YELLOW, _RED = int(LightState.GREEN), int(LightState.YELLOW), int(LightState.RED)  # the kernel's constants
 
 
 @dataclass(frozen=True)
@@ -49,14 +52,15 @@ class TrafficLights:
     def update(self, time_s: float) -> None:
         self.time_s = time_s
         t = self.timing
-        self._phase = (time_s + self._offset - self._axis_shift) % t.cycle_s
-        states = np.full(len(self._phase), int(LightState.RED))
-        states[self._phase < t.green_s + t.yellow_s] = int(LightState.YELLOW)
-        states[self._phase < t.green_s] = int(LightState.GREEN)
+        self._phase = np.empty(len(self._offset))
+        states = np.empty(len(self._offset), np.int64)
+        light_phases(time_s, self._offset, self._axis_shift, t.cycle_s, t.green_s, t.green_s + t.yellow_s,
+                     self._phase, states)
         for index, (state, until) in self._forced.items():
             if time_s < until:
                 states[index] = int(state)
-        if not self._state_list or not np.array_equal(states, self._states):
+        # the arrays have one length and dtype, so equal bytes mean equal states
+        if not self._state_list or states.tobytes() != self._states.tobytes():
             self._state_list = [LightState(int(s)) for s in states]
         self._states = states
 
@@ -78,3 +82,24 @@ class TrafficLights:
         """Hold one light in a state until a time (scenarios: 'a red light that turns green')."""
         self._forced[approach] = (state, until_s)
         self.update(self.time_s)
+
+
+@nb.njit(cache=True, nogil=True)
+def light_phases(time_s: float, offset: np.ndarray, axis_shift: np.ndarray, cycle_s: float, green_s: float,
+                 green_yellow_s: float, phase: np.ndarray, states: np.ndarray) -> None:
+    """Each approach's place in its cycle, ``(time_s + offset - axis_shift) % cycle_s``, into ``phase``, and its
+    state into ``states``: green before ``green_s``, yellow before ``green_yellow_s``, red after.
+
+    One compiled loop instead of a dozen NumPy calls on a few dozen numbers (the calls cost more than the
+    arithmetic). The same operations in the same order as the NumPy expression; the float remainder is
+    Python's (fmod, then the divisor added when the signs differ), as NumPy's ``%`` computes it.
+    """
+    for k in range(offset.shape[0]):
+        ph = (time_s + offset[k] - axis_shift[k]) % cycle_s
+        phase[k] = ph
+        if ph < green_s:
+            states[k] = _GREEN
+        elif ph < green_yellow_s:
+            states[k] = _YELLOW
+        else:
+            states[k] = _RED

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import numba as nb
 import numpy as np
 
 from sim.lights import TrafficLights
@@ -23,6 +24,8 @@ FRONT_MARGIN_M = 2.0  # ... and of the space just ahead of its bumper, which its
 DETOUR_AFTER_S = 1.5  # barred this long by a standing car, a pedestrian walks round its rear
 DETOUR_CLEARANCE_M = 0.9  # distance kept from the car's end while walking round it
 DEFAULT_HALF_SIZE = (2.3, 0.95)  # a car's half length and half width
+MOVING_CAR_AHEAD_M = 1.2  # a moving car bars the way when it is near the point this far ahead of a pedestrian
+MOVING_CAR_CLEAR_M2 = 2.8 ** 2  # ... within 2.8 m (squared)
 SHIRT_COLORS = [(0.80, 0.15, 0.15), (0.15, 0.35, 0.75), (0.95, 0.85, 0.20), (0.20, 0.60, 0.30),
                 (0.90, 0.90, 0.90), (0.25, 0.25, 0.28), (0.85, 0.45, 0.10), (0.55, 0.25, 0.60)]
 
@@ -129,7 +132,12 @@ class PedestrianCrowd:
         # looks from where it stands before its own step, which is where the loop below finds it).
         looking = [ped for ped in self.peds
                    if ped.state == "crossing" and ped.yields and (tick + ped.object_id) % 2 == 0]
-        in_the_way = dict(zip(map(id, looking), self._cars_in_the_way(looking, vehicles, speeds), strict=True))
+        in_the_way: dict[int, tuple[bool, int]] = {}
+        if looking:
+            where = np.array([(ped.position[0], ped.position[1], ped.heading) for ped in looking], dtype=float)
+            moving, standing = cars_in_the_way(where, vehicles, speeds, headings, sizes)
+            in_the_way = dict(zip(map(id, looking), zip(moving.tolist(), standing.tolist(), strict=True),
+                                  strict=True))
         for ped in self.peds:
             cw = self.town.crosswalks[ped.crosswalk]
             ped.moving = False
@@ -145,7 +153,7 @@ class PedestrianCrowd:
                     ped.state, ped.target = "crossing", there.copy()
             elif ped.state == "crossing":
                 if id(ped) in in_the_way:
-                    self._look_out(ped, in_the_way[id(ped)], vehicles, speeds, headings, sizes, 2 * dt)
+                    self._look_out(ped, *in_the_way[id(ped)], vehicles, headings, sizes, 2 * dt)
                 if ped.blocked:
                     continue  # a car is in the way: wait on the crossing
                 if ped.detour:
@@ -162,37 +170,21 @@ class PedestrianCrowd:
             elif ped.state == "walking" and self._advance(ped, dt):
                 ped.state, ped.target = "waiting", None
 
-    def _look_out(self, ped: Pedestrian, moving_car: bool, vehicles: np.ndarray, speeds: np.ndarray,
+    def _look_out(self, ped: Pedestrian, moving_car: bool, standing: int, vehicles: np.ndarray,
                   headings: np.ndarray, sizes: np.ndarray, dt: float) -> None:
         """Wait for a moving car close to where the next steps go, and for a standing car whose body bars
         them (one that stopped with its nose on the crossing); after ``DETOUR_AFTER_S`` of the latter, walk
-        round its rear instead of waiting for ever (the car may be waiting for the pedestrian)."""
-        ped.blocked = moving_car  # ``_cars_in_the_way``, worked out for all who look this tick at once
-        standing = None if ped.blocked else self._standing_car_in_the_way(ped, vehicles, speeds, headings, sizes)
-        if standing is None:
+        round its rear instead of waiting for ever (the car may be waiting for the pedestrian).
+        ``moving_car`` and ``standing`` (a vehicle index, -1: none): ``cars_in_the_way``, worked out for all
+        who look this tick at once."""
+        ped.blocked = moving_car
+        if ped.blocked or standing < 0:
             ped.blocked_s = 0.0
             return
         ped.blocked, ped.blocked_s = True, ped.blocked_s + dt
         if ped.blocked_s >= DETOUR_AFTER_S:
             ped.detour = self._detour(ped, vehicles[standing], float(headings[standing]), sizes[standing])
             ped.blocked, ped.blocked_s = False, 0.0
-
-    @staticmethod
-    def _standing_car_in_the_way(ped: Pedestrian, vehicles: np.ndarray, speeds: np.ndarray, headings: np.ndarray,
-                                 sizes: np.ndarray) -> int | None:
-        """Index of a standing vehicle whose body (plus a margin, more ahead of it) the next step would enter."""
-        if len(vehicles) == 0:
-            return None
-        ahead = ped.position + STEP_AHEAD_M * np.array([math.cos(ped.heading), math.sin(ped.heading)])
-        d = ahead - vehicles
-        near = np.nonzero((d[:, 0] ** 2 + d[:, 1] ** 2 < 64.0) & (speeds <= 0.5))[0]
-        for k in near:
-            c, s = math.cos(headings[k]), math.sin(headings[k])
-            along, across = d[k, 0] * c + d[k, 1] * s, -d[k, 0] * s + d[k, 1] * c
-            front = FRONT_MARGIN_M if along > 0 else BODY_MARGIN_M
-            if -sizes[k, 0] - BODY_MARGIN_M < along < sizes[k, 0] + front and abs(across) < sizes[k, 1] + BODY_MARGIN_M:
-                return int(k)
-        return None
 
     @staticmethod
     def _detour(ped: Pedestrian, centre: np.ndarray, heading: float, half_size: np.ndarray) -> list[np.ndarray]:
@@ -206,20 +198,6 @@ class PedestrianCrowd:
         side = math.copysign(max(abs(y), half_size[1] + DETOUR_CLEARANCE_M), y)  # step aside first if ahead of it
         back = -(half_size[0] + DETOUR_CLEARANCE_M)
         return [centre + ex * x + ey * side, centre + ex * back + ey * side, centre + ex * back - ey * side]
-
-    @staticmethod
-    def _cars_in_the_way(peds: list[Pedestrian], vehicles: np.ndarray, speeds: np.ndarray) -> list[bool]:
-        """For each pedestrian, whether a moving car (over 0.5 m/s) is within 2.8 m of the point 1.2 m ahead
-        of it: where its next steps go. Standing cars: ``_standing_car_in_the_way``."""
-        if not peds:
-            return []
-        if len(vehicles) == 0:
-            return [False] * len(peds)
-        ahead = np.array([[math.cos(p.heading), math.sin(p.heading)] for p in peds])
-        points = np.array([p.position for p in peds]) + 1.2 * ahead
-        d = vehicles[None, :, :] - points[:, None, :]
-        hit = (d[:, :, 0] ** 2 + d[:, :, 1] ** 2 < 2.8 ** 2) & (speeds > 0.5)[None, :]
-        return hit.any(axis=1).tolist()
 
     @classmethod
     def _advance(cls, ped: Pedestrian, dt: float) -> bool:
@@ -242,3 +220,43 @@ class PedestrianCrowd:
         ped.position = np.array([px + dx / dist * step, py + dy / dist * step])
         ped.moving = True
         return False
+
+
+@nb.njit(cache=True, nogil=True)
+def cars_in_the_way(peds: np.ndarray, vehicles: np.ndarray, speeds: np.ndarray, headings: np.ndarray,
+                    sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What bars each pedestrian's next steps; ``peds`` rows are (x, y, heading).
+
+    Returns, per pedestrian: whether a moving car (over 0.5 m/s) is within 2.8 m of the point
+    ``MOVING_CAR_AHEAD_M`` ahead of it; and the index of the first standing vehicle (0.5 m/s or less) within
+    8 m of the point ``STEP_AHEAD_M`` ahead whose body (``sizes``: half length, half width) plus
+    ``BODY_MARGIN_M`` all round, ``FRONT_MARGIN_M`` ahead of its bumper, holds that point (-1: none).
+    One compiled loop for all pedestrians who look in a tick: the per-pedestrian NumPy calls on a few
+    dozen numbers cost more than the arithmetic. Every value goes through the operations of the NumPy
+    formulation it replaced (``tests/test_world_speed_parity.py`` keeps that as the oracle), in the same
+    order, with libm's cos and sin as ``math`` has them.
+    """
+    n, m = peds.shape[0], vehicles.shape[0]
+    moving = np.zeros(n, np.bool_)
+    standing = np.full(n, -1, np.int64)
+    for i in range(n):
+        c, s = math.cos(peds[i, 2]), math.sin(peds[i, 2])
+        mx, my = peds[i, 0] + MOVING_CAR_AHEAD_M * c, peds[i, 1] + MOVING_CAR_AHEAD_M * s
+        sx, sy = peds[i, 0] + STEP_AHEAD_M * c, peds[i, 1] + STEP_AHEAD_M * s
+        for k in range(m):
+            if speeds[k] > 0.5:
+                dx, dy = vehicles[k, 0] - mx, vehicles[k, 1] - my
+                if dx * dx + dy * dy < MOVING_CAR_CLEAR_M2:
+                    moving[i] = True
+                    break
+        for k in range(m):
+            dx, dy = sx - vehicles[k, 0], sy - vehicles[k, 1]
+            if not (dx * dx + dy * dy < 64.0 and speeds[k] <= 0.5):
+                continue
+            ck, sk = math.cos(headings[k]), math.sin(headings[k])
+            along, across = dx * ck + dy * sk, -dx * sk + dy * ck
+            front = FRONT_MARGIN_M if along > 0 else BODY_MARGIN_M
+            if -sizes[k, 0] - BODY_MARGIN_M < along < sizes[k, 0] + front and abs(across) < sizes[k, 1] + BODY_MARGIN_M:
+                standing[i] = k
+                break
+    return moving, standing

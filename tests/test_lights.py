@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.lights import LightTiming, TrafficLights
+from sim.lights import LightTiming, TrafficLights, light_phases
 from sim.objects import LightState
 from sim.town import OPPOSITE
 
@@ -48,3 +48,23 @@ def test_phase_durations_follow_the_timing(town):
         # red lasts the other axis's green and yellow plus two all-red gaps
         expected = {LightState.GREEN: 10.0, LightState.YELLOW: 2.0, LightState.RED: timing.cycle_s - 12.0}[state]
         assert abs(n * dt - expected) <= dt + 1e-9
+
+
+def test_compiled_phases_match_the_numpy_formula():
+    """``light_phases`` gives the phases and states of the NumPy expression it replaced, bit for bit."""
+    rng = np.random.default_rng(7)
+    timing = LightTiming()
+    offset = np.concatenate([rng.uniform(0.0, timing.cycle_s, 60), [0.0, timing.half_cycle_s, timing.cycle_s]])
+    shift = np.where(rng.random(len(offset)) < 0.5, 0.0, timing.half_cycle_s)
+    times = np.concatenate([np.round(np.arange(0.0, 400.0, 0.05), 9), rng.uniform(0.0, 1e5, 2000),
+                            np.arange(0.0, 200.0) * timing.half_cycle_s])
+    phase, states = np.empty(len(offset)), np.empty(len(offset), np.int64)
+    for time_s in times.tolist():
+        light_phases(time_s, offset, shift, timing.cycle_s, timing.green_s, timing.green_s + timing.yellow_s,
+                     phase, states)
+        want = (time_s + offset - shift) % timing.cycle_s
+        plain = np.full(len(want), int(LightState.RED))
+        plain[want < timing.green_s + timing.yellow_s] = int(LightState.YELLOW)
+        plain[want < timing.green_s] = int(LightState.GREEN)
+        assert phase.tobytes() == want.tobytes()
+        assert states.tolist() == plain.tolist()

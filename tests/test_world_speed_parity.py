@@ -12,13 +12,13 @@ import pytest
 import sim.traffic as traffic
 from sim.geometry import circle_polygon_intersect, polygons_intersect, rect_corners, wrap_to_pi
 from sim.objects import ObjectSnapshot, SemanticClass, snapshot_of
-from sim.pedestrians import PedestrianCrowd
+from sim.pedestrians import BODY_MARGIN_M, FRONT_MARGIN_M, STEP_AHEAD_M, cars_in_the_way
 from sim.traffic import Agents, TownVehicle, crosswalk_gap, path_gap, step_town_vehicles
 from sim.world import StaticObstacles, World, WorldConfig
 
 
 def car_in_the_way(ped, vehicles: np.ndarray, speeds: np.ndarray) -> bool:
-    """The one-pedestrian-at-a-time rule that ``PedestrianCrowd._cars_in_the_way`` batches."""
+    """The one-pedestrian-at-a-time rule for moving cars that ``cars_in_the_way`` compiles."""
     if len(vehicles) == 0:
         return False
     d = vehicles - (ped.position + 1.2 * np.array([math.cos(ped.heading), math.sin(ped.heading)]))
@@ -138,18 +138,43 @@ def test_batched_integration_matches_one_by_one(world):
             assert type(a.heading) is type(b.heading) and type(a.speed) is type(b.speed)
 
 
+def standing_car_in_the_way(ped, vehicles: np.ndarray, speeds: np.ndarray, headings: np.ndarray,
+                            sizes: np.ndarray) -> int:
+    """The one-pedestrian-at-a-time NumPy rule for standing cars that ``cars_in_the_way`` compiles (-1: none)."""
+    if len(vehicles) == 0:
+        return -1
+    ahead = ped.position + STEP_AHEAD_M * np.array([math.cos(ped.heading), math.sin(ped.heading)])
+    d = ahead - vehicles
+    near = np.nonzero((d[:, 0] ** 2 + d[:, 1] ** 2 < 64.0) & (speeds <= 0.5))[0]
+    for k in near:
+        c, s = math.cos(headings[k]), math.sin(headings[k])
+        along, across = d[k, 0] * c + d[k, 1] * s, -d[k, 0] * s + d[k, 1] * c
+        front = FRONT_MARGIN_M if along > 0 else BODY_MARGIN_M
+        if -sizes[k, 0] - BODY_MARGIN_M < along < sizes[k, 0] + front and abs(across) < sizes[k, 1] + BODY_MARGIN_M:
+            return int(k)
+    return -1
+
+
 def test_pedestrians_look_out_for_cars_as_one_by_one(world):
-    crowd = world.crowd
     rng = np.random.default_rng(4)
-    for _ in range(200):
-        vehicles = rng.uniform(-150, 150, (12, 2))
-        speeds = rng.uniform(0, 2, 12)
-        peds = copy.deepcopy(crowd.peds)
+    moving_hits = standing_hits = 0
+    for trial in range(400):
+        n = 12 if trial % 10 else 0  # now and then no vehicles at all
+        vehicles = rng.uniform(-150, 150, (n, 2))
+        speeds = np.where(rng.random(n) < 0.5, rng.uniform(0, 0.5, n), rng.uniform(0, 2, n))
+        headings = rng.uniform(-4, 4, n)
+        sizes = np.where(rng.random((n, 1)) < 0.3, [3.4, 1.15], [2.25, 0.95])
+        peds = copy.deepcopy(world.crowd.peds)
         for p in peds:
-            p.position = vehicles[int(rng.integers(12))] + rng.normal(0, 2.5, 2)
-            p.heading = float(rng.uniform(-math.pi, math.pi))
-        assert PedestrianCrowd._cars_in_the_way(peds, vehicles, speeds) == [
-            car_in_the_way(p, vehicles, speeds) for p in peds]
+            p.position = vehicles[int(rng.integers(n))] + rng.normal(0, 2.5, 2) if n else rng.normal(0, 2.5, 2)
+            p.heading = float(rng.uniform(-math.pi, math.pi)) if rng.random() < 0.8 else 0.0
+        where = np.array([(p.position[0], p.position[1], p.heading) for p in peds], dtype=float)
+        moving, standing = cars_in_the_way(where, vehicles, speeds, headings, sizes)
+        assert moving.tolist() == [car_in_the_way(p, vehicles, speeds) for p in peds]
+        assert standing.tolist() == [standing_car_in_the_way(p, vehicles, speeds, headings, sizes) for p in peds]
+        moving_hits += int(moving.sum())
+        standing_hits += int((standing >= 0).sum())
+    assert moving_hits > 500 and standing_hits > 500  # both rules do fire
 
 
 def test_npc_lane_memo_is_only_used_within_a_decision(world):
