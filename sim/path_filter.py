@@ -151,3 +151,26 @@ def any_within(points: np.ndarray, cx: float, cy: float, radius_m: float) -> boo
         if dx * dx + dy * dy <= r2:
             return True
     return False
+
+
+@nb.njit(cache=True, nogil=True)
+def clearly_nearest_lane(px: float, py: float, rows: np.ndarray) -> int:
+    """The lane row whose centre line the point is nearest to, by |lateral| as ``lane.local_coordinates``
+    gives it (straight: distance across the line; circular: distance from the arc's radius), if every other
+    lane is farther by more than twice ``MARGIN_M``; else -1 (too close to call, or a lane kind without a cheap
+    formula). The formulas here differ from highway-env's by rounding only, far below the margin, so a row
+    returned here is the one the exact comparison picks."""
+    best, best_lat, second = -1, np.inf, np.inf
+    for j in range(rows.shape[0]):
+        dx, dy = px - rows[j, 1], py - rows[j, 2]
+        if rows[j, 0] == KIND_STRAIGHT:
+            lat = abs(dy * rows[j, 3] - dx * rows[j, 4])
+        elif rows[j, 0] == KIND_CIRCULAR:
+            lat = abs(np.sqrt(dx * dx + dy * dy) - rows[j, 6])
+        else:
+            return -1
+        if lat < best_lat:
+            best, best_lat, second = j, lat, best_lat
+        elif lat < second:
+            second = lat
+    return best if best_lat + 2 * MARGIN_M < second else -1

@@ -24,7 +24,7 @@ from highway_env.vehicle.kinematics import Vehicle
 
 from sim.geometry import wrap_to_pi
 from sim.objects import LightState, ObjectSnapshot, SemanticClass, snapshot_of
-from sim.path_filter import any_within, path_candidates, path_rows
+from sim.path_filter import any_within, clearly_nearest_lane, path_candidates, path_rows
 from sim.routes import random_next_edge
 from sim.town import OPPOSITE, Approach, Command, Town, lanes_for
 
@@ -252,10 +252,15 @@ class TownVehicle(IDMVehicle):
         return hit
 
     def _locate(self) -> None:
+        """The lane of the target edge whose centre line is nearest (the first of equals). The exact lateral
+        offsets are compared only when the cheap bound cannot tell (mid lane change): the nearest lane's
+        coordinates are asked for later anyway, the other lane's mostly not."""
         frm, to, _ = self.target_lane_index
         lanes = self.town.network.graph[frm][to]
-        lats = [abs(self._lane_coords(lane)[1]) for lane in lanes]
-        k = lats.index(min(lats))
+        k = clearly_nearest_lane(float(self.position[0]), float(self.position[1]), path_rows(lanes))
+        if k < 0:
+            lats = [abs(self._lane_coords(lane)[1]) for lane in lanes]
+            k = lats.index(min(lats))
         self.lane_index = (frm, to, k)
         self.lane = lanes[k]
 

@@ -9,6 +9,7 @@ import math
 import numpy as np
 
 import sim.render as render
+import sim.render_kernels as kernels
 from envs.drive_env import DriveConfig, DriveEnv
 from sim.objects import SemanticClass, snapshot_of
 from sim.render import CameraConfig
@@ -64,3 +65,18 @@ def test_one_point_ground_lookup_equals_the_array_lookup(town):
     xmin, ymin, xmax, ymax = town.extent
     xs, ys = rng.uniform(xmin - 20, xmax + 20, 5000), rng.uniform(ymin - 20, ymax + 20, 5000)
     assert gm.lookup(xs, ys).tolist() == [gm.lookup_point(x, y) for x, y in zip(xs.tolist(), ys.tolist(), strict=True)]
+
+
+def test_sorted_boxes_equal_the_numpy_sort():
+    rng = np.random.default_rng(2)
+    for n in list(range(0, 65)) * 5:
+        seen = np.empty(64, np.int64)
+        seen[:n] = rng.permutation(np.arange(1, 20000))[:n]
+        box = rng.integers(0, 640, (64, 5))
+        order = np.argsort(seen[:n])
+        b = box[order]
+        want = (seen[order], b[:, 0], b[:, 1], b[:, 2], b[:, 3], b[:, 4])
+        got = kernels.sorted_boxes(seen, box, n)
+        assert len(got) == 6
+        for g, w in zip(got, want, strict=True):
+            assert g.dtype == w.dtype and g.tolist() == w.tolist()

@@ -12,6 +12,7 @@ import pytest
 import sim.traffic as traffic
 from sim.geometry import circle_polygon_intersect, polygons_intersect, rect_corners, wrap_to_pi
 from sim.objects import ObjectSnapshot, SemanticClass, snapshot_of
+from sim.path_filter import MARGIN_M, clearly_nearest_lane, path_rows
 from sim.pedestrians import BODY_MARGIN_M, FRONT_MARGIN_M, STEP_AHEAD_M, cars_in_the_way
 from sim.traffic import Agents, TownVehicle, crosswalk_gap, path_gap, step_town_vehicles
 from sim.world import StaticObstacles, World, WorldConfig
@@ -199,3 +200,22 @@ def test_rect_corners_and_snapshots_are_what_the_plain_constructions_give():
     fast, plain_snap = snapshot_of(*args), ObjectSnapshot(*args)
     assert type(fast) is ObjectSnapshot and fast == plain_snap and hash(fast) == hash(plain_snap)
     assert repr(fast) == repr(plain_snap) and vars(fast) == vars(plain_snap)
+
+
+def test_clearly_nearest_lane_is_the_exact_nearest(town):
+    """Where the cheap bound names a lane, it is the one the exact lateral offsets pick (the first of equals)."""
+    rng = np.random.default_rng(6)
+    edges = [lanes for tos in town.network.graph.values() for lanes in tos.values()]
+    named = 0
+    for _ in range(6000):
+        lanes = edges[int(rng.integers(len(edges)))]
+        lane = lanes[int(rng.integers(len(lanes)))]
+        point = lane.position(float(rng.uniform(-5, lane.length + 5)), float(rng.normal(0, 2.5)))
+        lats = [abs(other.local_coordinates(point)[1]) for other in lanes]
+        k = clearly_nearest_lane(float(point[0]), float(point[1]), path_rows(lanes))
+        if k >= 0:
+            assert k == lats.index(min(lats))
+            named += 1
+        else:
+            assert abs(lats[0] - lats[1]) < 2 * MARGIN_M + 1e-6
+    assert named > 4000
