@@ -326,6 +326,7 @@ class SceneRenderer:
         self._no_collisions(p.createMultiBody(baseMass=0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=vs, **self._cid))
         self._ground_palette: dict[str, np.ndarray] = {}
         self._setups: dict[tuple[str, CameraConfig], _FrameSetup] = {}
+        self._last_setup: tuple[str, CameraConfig, _FrameSetup] | None = None  # the pair asked for last
 
     def _surface_palette(self, lighting: str, preset: LightingPreset) -> np.ndarray:
         """RGB (float, 0..255) of each ``Surface`` as TinyRenderer would shade it flat under a preset.
@@ -663,6 +664,9 @@ class SceneRenderer:
 
     def _setup(self, lighting: str, camera: CameraConfig) -> _FrameSetup:
         """Everything of a frame that depends only on the camera and the lighting, built once per pair."""
+        last = self._last_setup
+        if last is not None and last[0] is lighting and last[1] is camera:
+            return last[2]  # the same objects as last frame (hashing a camera config costs more than this test)
         key = (lighting, camera)
         hit = self._setups.get(key)
         if hit is None:
@@ -681,6 +685,7 @@ class SceneRenderer:
                 geo_tail=(camera.focal_px, float(k[0, 2]), float(k[1, 2]), float(gm.origin[0]), float(gm.origin[1]),
                           gm.texels_per_m, Z_SLAB, Z_GROUND),
                 glow_sigma=max(0.8, camera.width / 220.0) if preset.glow > 0 else 0.0, intrinsics=k)
+        self._last_setup = (lighting, camera, hit)
         return hit
 
     def close(self) -> None:

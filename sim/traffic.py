@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 
 import numpy as np
 from highway_env.road.lane import AbstractLane, CircularLane
@@ -24,7 +24,7 @@ from highway_env.vehicle.kinematics import Vehicle
 
 from sim.geometry import wrap_to_pi
 from sim.objects import LightState, ObjectSnapshot, SemanticClass, snapshot_of
-from sim.path_filter import any_within, clearly_nearest_lane, path_candidates, path_rows
+from sim.path_filter import any_within, clearly_nearest_lane, lanes_may_hold, path_candidates, path_rows
 from sim.routes import random_next_edge
 from sim.town import OPPOSITE, Approach, Command, Town, lanes_for
 
@@ -103,11 +103,12 @@ def path_gap(path: list[tuple[AbstractLane, float]], my_s: float, my_half: float
         return None, 0.0
     # Only agents near the origin that could touch the path go on to the exact (slow) test below.
     path_heading = float(path[0][0].heading_at(my_s - path[0][1]))
-    tolerances = np.array([vehicle_lateral_m, pedestrian_lateral_m, STANDING_PEDESTRIAN_LATERAL_M])
+    tolerances = _lateral_tolerances(vehicle_lateral_m, pedestrian_lateral_m)
+    rows = path_rows([lane for lane, _ in path])
     near = path_candidates(agents.positions, agents.ids, skip_id, float(origin[0]), float(origin[1]),
                            (lookahead_m + 8.0) ** 2, agents.headings, agents.speeds, agents.half_lengths,
-                           agents.is_pedestrian, agents.on_crossing, path_rows([lane for lane, _ in path]),
-                           path_heading, tolerances, PEDESTRIAN_LOOKAHEAD_S)
+                           agents.is_pedestrian, agents.on_crossing, rows, path_heading, tolerances,
+                           PEDESTRIAN_LOOKAHEAD_S)
     best: float | None = None
     best_speed = 0.0
     for k in near:
@@ -126,20 +127,35 @@ def path_gap(path: list[tuple[AbstractLane, float]], my_s: float, my_half: float
         # blocks the whole lane it is in or stepping into.
         walking = agents.speeds[k] > 0.1 or bool(agents.on_crossing[k])
         tol = (pedestrian_lateral_m if walking else STANDING_PEDESTRIAN_LATERAL_M) if ped else vehicle_lateral_m
-        gap_k, speed_k = _gap_on_path(path, points, ped, k, agents, my_s, my_half, tol)
+        gap_k, speed_k = _gap_on_path(path, rows, points, ped, k, agents, my_s, my_half, tol)
         if gap_k is not None and (best is None or gap_k < best):
             best, best_speed = gap_k, speed_k
     return best, best_speed
 
 
-def _gap_on_path(path: list[tuple[AbstractLane, float]], points: list[tuple[np.ndarray, float]], ped: bool, k: int,
-                 agents: Agents, my_s: float, my_half: float, tol: float) -> tuple[float | None, float]:
+@lru_cache(maxsize=16)
+def _lateral_tolerances(vehicle_lateral_m: float, pedestrian_lateral_m: float) -> np.ndarray:
+    """``path_candidates``' tolerances (vehicle, walking pedestrian, standing pedestrian), built once per pair
+    rather than on every call (read-only: the array is shared)."""
+    tolerances = np.array([vehicle_lateral_m, pedestrian_lateral_m, STANDING_PEDESTRIAN_LATERAL_M])
+    tolerances.setflags(write=False)
+    return tolerances
+
+
+def _gap_on_path(path: list[tuple[AbstractLane, float]], rows: np.ndarray, points: list[tuple[np.ndarray, float]],
+                 ped: bool, k: int, agents: Agents, my_s: float, my_half: float,
+                 tol: float) -> tuple[float | None, float]:
     """Bumper gap to agent ``k`` (at any of ``points``, each with its distance to the agent's bumper)
-    along the path, and its speed along the path."""
+    along the path, and its speed along the path. ``rows``: the path's ``path_rows``."""
     best: float | None = None
     best_speed = 0.0
+    pad = float(agents.half_lengths[k])
     for pos, half in points:
-        for lane, offset in path:
+        # A lane the conservative compiled bound rules out fails the exact test below as well: skip its geometry.
+        maybe = lanes_may_hold(float(pos[0]), float(pos[1]), rows, tol, pad).tolist()
+        for (lane, offset), ok in zip(path, maybe, strict=True):
+            if not ok:
+                continue
             s, lat = lane.local_coordinates(pos)
             if abs(lat) > tol or s < -agents.half_lengths[k] or s > lane.length + agents.half_lengths[k]:
                 continue

@@ -67,6 +67,7 @@ def test_path_and_crosswalk_gaps_match_the_plain_search(town, world, monkeypatch
             for p, ix, s0, a, o, la in cases]
     monkeypatch.setattr(traffic, "path_candidates", plain_candidates)
     monkeypatch.setattr(traffic, "any_within", lambda *_: True)
+    monkeypatch.setattr(traffic, "lanes_may_hold", lambda px, py, rows, lat, pad: np.ones(len(rows), bool))
     plain = [(path_gap(p, s0, 2.25, a, -1, o, la), crosswalk_gap(town, p, ix, s0, 2.25, a, la))
              for p, ix, s0, a, o, la in cases]
     assert fast == plain
