@@ -736,16 +736,17 @@ def _in_view(objects: Sequence[ObjectSnapshot], view: tuple[float, float, float,
     if view is None or not objects:
         return [True] * len(objects)
     x, y, heading, hfov_deg, range_m = view
-    radii = []
+    discs = []  # x, y and radius of each object, gathered in one pass into one array
     for o in objects:
         r = _RADII.get((o.length_m, o.width_m))
         if r is None:
             if len(_RADII) > 1024:
                 _RADII.clear()
             r = _RADII[(o.length_m, o.width_m)] = 0.5 * math.hypot(o.length_m, o.width_m) + 1.0
-        radii.append(r)
-    return kernels.in_view_wedge(np.array([(o.x, o.y) for o in objects]), np.array(radii), float(x), float(y),
-                                 float(heading), math.radians(hfov_deg) / 2, float(range_m), math.radians(5)).tolist()
+        discs.append((o.x, o.y, r))
+    xyr = np.array(discs)
+    return kernels.in_view_wedge(xyr[:, :2], xyr[:, 2], float(x), float(y), float(heading), math.radians(hfov_deg) / 2,
+                                 float(range_m), math.radians(5)).tolist()
 
 
 def _ground_map(town: Town) -> GroundMap:

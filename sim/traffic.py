@@ -24,7 +24,7 @@ from highway_env.vehicle.kinematics import Vehicle
 
 from sim.geometry import wrap_to_pi
 from sim.objects import LightState, ObjectSnapshot, SemanticClass, snapshot_of
-from sim.path_filter import any_within, clearly_nearest_lane, lanes_may_hold, path_candidates, path_rows
+from sim.path_filter import clearly_nearest_lane, lanes_may_hold, path_candidates, path_rows, zone_holds
 from sim.routes import random_next_edge
 from sim.town import OPPOSITE, Approach, Command, Town, lanes_for
 
@@ -192,12 +192,14 @@ def crosswalk_gap(town: Town, path: list[tuple[AbstractLane, float]], path_lanes
             if enter < my_s + my_half:
                 continue  # already on it: clear it rather than stop on it
             centre, u, half_depth, half_width, across = frames[cw]
-            if not any_within(crossing, float(centre[0]), float(centre[1]), math.hypot(half_depth + 1.0,
-                                                                                       half_width + 1.0)):
-                continue  # nobody within the corners of the zone tested below
-            d = crossing - centre
-            on = (np.abs(d @ u) <= half_depth + 1.0) & (np.abs(d @ across) <= half_width + 1.0)
-            if on.any():
+            # Someone in the zone (the crossing widened by 1 m)? A compiled test answers unless a person is
+            # within MARGIN_M of the zone's edge; then the exact NumPy test below decides.
+            held = zone_holds(crossing, float(centre[0]), float(centre[1]), float(u[0]), float(u[1]),
+                              float(across[0]), float(across[1]), half_depth + 1.0, half_width + 1.0)
+            if held < 0:
+                d = crossing - centre
+                held = int(((np.abs(d @ u) <= half_depth + 1.0) & (np.abs(d @ across) <= half_width + 1.0)).any())
+            if held:
                 return enter - my_s - my_half
     return None
 

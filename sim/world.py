@@ -18,6 +18,7 @@ from sim.ego import EgoVehicle
 from sim.geometry import circle_polygon_intersect, polygons_intersect, rect_corners, wrap_to_pi
 from sim.lights import LightTiming, TrafficLights
 from sim.objects import LightState, ObjectSnapshot, SemanticClass
+from sim.path_filter import points_within
 from sim.pedestrians import PedestrianCrowd
 from sim.routes import command_at, edge_length, random_route, route_length, shortest_route
 from sim.town import Command, Edge, LaneLocation, Town, TownConfig, generate_town
@@ -137,8 +138,7 @@ def _maybe_within(items: list, positions: np.ndarray | None, centre: np.ndarray,
         return []
     if positions is None:
         positions = np.concatenate([item.position for item in items]).reshape(-1, 2)
-    d = positions - centre
-    keep = d[:, 0] ** 2 + d[:, 1] ** 2 < (radius_m + 0.01) ** 2
+    keep = points_within(positions, float(centre[0]), float(centre[1]), (radius_m + 0.01) ** 2)
     return [item for item, k in zip(items, keep.tolist(), strict=True) if k]
 
 

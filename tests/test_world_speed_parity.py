@@ -12,7 +12,7 @@ import pytest
 import sim.traffic as traffic
 from sim.geometry import circle_polygon_intersect, polygons_intersect, rect_corners, wrap_to_pi
 from sim.objects import ObjectSnapshot, SemanticClass, snapshot_of
-from sim.path_filter import MARGIN_M, clearly_nearest_lane, path_rows
+from sim.path_filter import MARGIN_M, clearly_nearest_lane, path_rows, points_within, zone_holds
 from sim.pedestrians import BODY_MARGIN_M, FRONT_MARGIN_M, STEP_AHEAD_M, cars_in_the_way
 from sim.traffic import Agents, TownVehicle, crosswalk_gap, path_gap, step_town_vehicles
 from sim.world import StaticObstacles, World, WorldConfig
@@ -66,7 +66,7 @@ def test_path_and_crosswalk_gaps_match_the_plain_search(town, world, monkeypatch
     fast = [(path_gap(p, s0, 2.25, a, -1, o, la), crosswalk_gap(town, p, ix, s0, 2.25, a, la))
             for p, ix, s0, a, o, la in cases]
     monkeypatch.setattr(traffic, "path_candidates", plain_candidates)
-    monkeypatch.setattr(traffic, "any_within", lambda *_: True)
+    monkeypatch.setattr(traffic, "zone_holds", lambda *_: -1)
     monkeypatch.setattr(traffic, "lanes_may_hold", lambda px, py, rows, lat, pad: np.ones(len(rows), bool))
     plain = [(path_gap(p, s0, 2.25, a, -1, o, la), crosswalk_gap(town, p, ix, s0, 2.25, a, la))
              for p, ix, s0, a, o, la in cases]
@@ -220,3 +220,28 @@ def test_clearly_nearest_lane_is_the_exact_nearest(town):
         else:
             assert abs(lats[0] - lats[1]) < 2 * MARGIN_M + 1e-6
     assert named > 4000
+
+
+def test_points_within_and_zone_holds_match_numpy():
+    rng = np.random.default_rng(8)
+    sure = unsure = 0
+    for _ in range(3000):
+        n = int(rng.integers(0, 12))
+        points = rng.uniform(-20, 20, (n, 2)) + rng.uniform(-500, 500, 2)
+        centre = points[0] + rng.normal(0, 4, 2) if n else rng.uniform(-500, 500, 2)
+        radius = float(rng.uniform(0.5, 8))
+        d = points - centre
+        assert points_within(points, float(centre[0]), float(centre[1]), (radius + 0.01) ** 2).tolist() == (
+            d[:, 0] ** 2 + d[:, 1] ** 2 < (radius + 0.01) ** 2).tolist()
+        angle = float(rng.uniform(-math.pi, math.pi))
+        u, across = np.array([math.cos(angle), math.sin(angle)]), np.array([-math.sin(angle), math.cos(angle)])
+        half_u, half_v = float(rng.uniform(1, 4)), float(rng.uniform(2, 8))
+        exact = bool(((np.abs(d @ u) <= half_u) & (np.abs(d @ across) <= half_v)).any())
+        held = zone_holds(points, float(centre[0]), float(centre[1]), float(u[0]), float(u[1]), float(across[0]),
+                          float(across[1]), half_u, half_v)
+        if held < 0:
+            unsure += 1
+        else:
+            assert bool(held) == exact
+            sure += 1
+    assert sure > 2000 and unsure > 50
