@@ -22,6 +22,7 @@ from highway_env.utils import wrap_to_pi as hwe_wrap_to_pi
 from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
+from sim.ego import EgoVehicle
 from sim.geometry import wrap_to_pi
 from sim.objects import LightState, ObjectSnapshot, SemanticClass, snapshot_of
 from sim.path_filter import clearly_nearest_lane, lanes_may_hold, path_candidates, path_rows, zone_holds
@@ -452,14 +453,15 @@ class TownVehicle(IDMVehicle):
                            float(self.heading), self.LENGTH, self.WIDTH, self.HEIGHT, self.color)
 
 
-def step_town_vehicles(vehicles: list[TownVehicle], dt: float) -> None:
-    """``TownVehicle.step`` for many vehicles in one go (highway-env's bicycle model).
+def step_vehicles(vehicles: list[TownVehicle | EgoVehicle], dt: float) -> None:
+    """``step`` of many NPCs (``TownVehicle``) and the ego (``EgoVehicle``) in one go (highway-env's bicycle model).
 
     The per-vehicle NumPy calls on single numbers cost more than the arithmetic, so the trigonometry
     runs once over all vehicles. Each value goes through the same operations in the same order as
     in ``Vehicle.step``, and NumPy's ufuncs give an element of an array what they give one number,
     so every state stays bit for bit what the one-by-one step gave; the types stay too (heading a
-    NumPy float, speed a Python float, the position array updated in place).
+    NumPy float, speed a Python float, the position array updated in place). Then each kind finishes as
+    its own ``step`` does: an NPC counts its decision timer and never reverses; the ego clamps its speed.
     """
     if not vehicles:
         return
@@ -475,7 +477,10 @@ def step_town_vehicles(vehicles: list[TownVehicle], dt: float) -> None:
     position += np.stack([speed * np.cos(course), speed * np.sin(course)], axis=1) * dt
     heading += speed * np.sin(beta) / half_length * dt
     for v, (x, y), h in zip(vehicles, position.tolist(), heading, strict=True):
-        v.timer += dt
         v.position[0], v.position[1] = x, y  # Python floats hold the float64 values exactly
         v.heading = h
-        v.speed = max(v.speed + v.action["acceleration"] * dt, 0.0)
+        if type(v) is EgoVehicle:  # EgoVehicle.step: Vehicle.step, then its speed clamp
+            v.speed = min(v.MAX_SPEED, max(0.0, float(v.speed + v.action["acceleration"] * dt)))
+        else:  # TownVehicle.step: IDMVehicle's timer, Vehicle.step, then no reversing
+            v.timer += dt
+            v.speed = max(v.speed + v.action["acceleration"] * dt, 0.0)

@@ -22,7 +22,7 @@ from sim.path_filter import points_within
 from sim.pedestrians import PedestrianCrowd
 from sim.routes import command_at, edge_length, random_route, route_length, shortest_route
 from sim.town import Command, Edge, LaneLocation, Town, TownConfig, generate_town
-from sim.traffic import CAR_COLORS, Agents, TownVehicle, step_town_vehicles
+from sim.traffic import CAR_COLORS, Agents, TownVehicle, step_vehicles
 
 PEDESTRIAN_ID_BASE = 1000
 EGO_ID = 999
@@ -293,13 +293,13 @@ class World:
                 npc.decide(agents, states, self.config.enable_lane_change)
         self.ego.apply(action)
         before = self.ego.position.copy()
-        batch: list[TownVehicle] = []
+        batch: list[TownVehicle | EgoVehicle] = []
         for v in self.road.vehicles:
-            if type(v) is TownVehicle and v.impact is None:
+            if (type(v) is TownVehicle or type(v) is EgoVehicle) and v.impact is None:
                 batch.append(v)  # integrated together below
             else:
                 v.step(dt)
-        step_town_vehicles(batch, dt)
+        step_vehicles(batch, dt)
         self.distance_m += math.hypot(*(self.ego.position - before))
         vehicles = [self.ego] + self.npcs
         vpos = np.concatenate([v.position for v in vehicles]).reshape(-1, 2)
