@@ -42,6 +42,7 @@ INFRACTION_REWARD = {"red_light": -5.0, "wrong_way": -2.0, "route_deviation": -2
 # Lower-case names by value, one table per enum (IntEnum members of different enums compare equal as ints).
 _CLASS_NAMES = {int(c): c.name.lower() for c in SemanticClass}
 _LIGHT_NAMES = {int(s): s.name.lower() for s in LightState}
+_COMMAND_NAMES = {int(c): c.name.lower() for c in Command}
 
 
 @dataclass(frozen=True)
@@ -314,8 +315,8 @@ class DriveEnv(gym.Env):
             "lane_index": None if lane is None else list(lane[0]),
             "lane_offset_m": world.lane_offset_m(),
             "lane_band_offset_m": world.lane_band_offset_m(),
-            "command": Command(world.command()).name.lower(),
-            "next_light": None if nl is None else {"approach": nl.approach, "state": LightState(nl.state).name.lower(),
+            "command": _COMMAND_NAMES[world.command()],
+            "next_light": None if nl is None else {"approach": nl.approach, "state": _LIGHT_NAMES[nl.state],
                                                    "distance_m": float(nl.distance_m)},
             "objects": self._visible_objects(),
             "infractions": [inf.__dict__.copy() for inf in new_infractions],

@@ -189,6 +189,7 @@ class World:
         self.distance_m = 0.0
         self._snapshots: list[ObjectSnapshot] = []
         self._snapshots_key: tuple = ()
+        self._command: tuple[list[Edge], int, int, float, Command] | None = None  # see command()
 
     # ---------------------------------------------------------------- population
     @property
@@ -467,7 +468,15 @@ class World:
         return self.route_total_m - self.route_progress_m < 5.0
 
     def command(self) -> Command:
-        return command_at(self.town, self.route, self.route_index, self.route_s)
+        """The route command here (``command_at``). Kept while the route and the place on it stay the same:
+        the env asks for it twice a step."""
+        last = self._command
+        if (last is not None and last[0] is self.route and last[1] == len(self.route) and last[2] == self.route_index
+                and last[3] == self.route_s):
+            return last[4]
+        command = command_at(self.town, self.route, self.route_index, self.route_s)
+        self._command = (self.route, len(self.route), self.route_index, self.route_s, command)
+        return command
 
     def lane_band_offset_m(self) -> float:
         """How far the car is outside the band between its direction's lane centres (0 inside it, e.g.

@@ -16,6 +16,7 @@ from sim.geometry import circle_polygon_intersect, polygons_intersect, rect_corn
 from sim.objects import ObjectSnapshot, SemanticClass, snapshot_of
 from sim.path_filter import MARGIN_M, clearly_nearest_lane, path_rows, points_within, zone_holds
 from sim.pedestrians import BODY_MARGIN_M, FRONT_MARGIN_M, STEP_AHEAD_M, cars_in_the_way
+from sim.routes import command_at
 from sim.traffic import Agents, TownVehicle, crosswalk_gap, path_gap, step_vehicles
 from sim.world import StaticObstacles, World, WorldConfig
 
@@ -254,3 +255,14 @@ def test_points_within_and_zone_holds_match_numpy():
             assert bool(held) == exact
             sure += 1
     assert sure > 2000 and unsure > 50
+
+
+def test_kept_command_follows_the_route_position(town):
+    w = World(town, WorldConfig(npc_count=4, pedestrian_count=4), 11)
+    for _ in range(400):
+        w.step(np.array([0.0, 0.5]))
+        assert w.command() == w.command() == command_at(town, w.route, w.route_index, w.route_s)
+    for index in range(len(w.route)):  # moved without a step (as the safety driver does)
+        for s in (0.0, 5.0, 60.0):
+            w.route_index, w.route_s = index, s
+            assert w.command() == command_at(town, w.route, index, s)
