@@ -139,11 +139,11 @@ class PedestrianCrowd:
             in_the_way = dict(zip(map(id, looking), zip(moving.tolist(), standing.tolist(), strict=True),
                                   strict=True))
         for ped in self.peds:
-            cw = self.town.crosswalks[ped.crosswalk]
             ped.moving = False
             if ped.state == "waiting":
                 if (tick + ped.object_id) % 4:
                     continue
+                cw = self.town.crosswalks[ped.crosswalk]
                 there = cw.end if ped.at_start else cw.start
                 crossing_time = self._crossing_length[ped.crosswalk] / ped.speed_mps + 1.0
                 if not ped.jaywalk and self.jaywalk_probability > 0 and self.rng.random() < self.jaywalk_probability * dt:

@@ -241,11 +241,11 @@ class World:
         if self.config.npc_teleport_min_m <= 0:
             return False
         moved = False
+        lane_info, jam_s, limit = self.town.lane_info, self._jam_s, self.config.npc_jam_teleport_s
         for k, npc in enumerate(self.npcs):
-            info = self.town.lane_info.get(npc.lane_index)
-            jammed = npc.speed < 0.1 and (npc.crashed or (info is not None and info.kind == "connector"))
-            self._jam_s[npc.object_id] = self._jam_s.get(npc.object_id, 0.0) + dt if jammed else 0.0
-            if self._jam_s[npc.object_id] >= self.config.npc_jam_teleport_s:
+            jammed = npc.speed < 0.1 and (npc.crashed or getattr(lane_info.get(npc.lane_index), "kind", None) == "connector")
+            jam_s[npc.object_id] = jam_s.get(npc.object_id, 0.0) + dt if jammed else 0.0
+            if jam_s[npc.object_id] >= limit:
                 self._jam_s[npc.object_id] = 0.0
                 self._teleport(k)
                 moved = True
@@ -288,9 +288,9 @@ class World:
         # NPC positions are agents' rows 1.. (the same numbers); the same per-element arithmetic, for all at once.
         d = agents.positions[1:len(self.npcs) + 1] - self.ego.position
         far_all = (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] > near_r2).tolist()
+        far_every, near_every = max(1, self.config.npc_far_decision_every), max(1, self.config.npc_decision_every)
         for npc, far in zip(self.npcs, far_all, strict=True):
-            every = max(1, self.config.npc_far_decision_every if far else self.config.npc_decision_every)
-            if (self.step_count + npc.object_id) % every == 0:
+            if (self.step_count + npc.object_id) % (far_every if far else near_every) == 0:
                 npc.decide(agents, states, self.config.enable_lane_change)
         self.ego.apply(action)
         before = self.ego.position.copy()
