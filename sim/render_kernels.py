@@ -82,6 +82,9 @@ def shade_frame(rgba: np.ndarray, buf: np.ndarray, seg: np.ndarray, class_lut: n
             r0 = r
             break
     any_emit = False
+    col_t = np.empty(w)  # each column's (c - cx) / focal, the ray's slope across, computed once per column
+    for c in range(w):
+        col_t[c] = (c - cx) / focal
     n_ids, last_id, last = 0, 0, -1  # the object boxes, as in _fill_boxes
     for r in range(h):
         t = (r - cy) / focal
@@ -101,7 +104,7 @@ def shade_frame(rgba: np.ndarray, buf: np.ndarray, seg: np.ndarray, class_lut: n
             oid = id_lut[key]
             v0, v1, v2 = np.float32(rgba[r, c, 0]), np.float32(rgba[r, c, 1]), np.float32(rgba[r, c, 2])
             if r >= r0 and z_hi_row < d:
-                sc = (c - cx) / focal
+                sc = col_t[c]
                 ray_x = fx + t * dx + sc * rx
                 ray_y = fy + t * dy + sc * ry
                 surf = _texel(texels, ex + z_hi_row * ray_x, -(ey + z_hi_row * ray_y), ox, oy, per_m)
