@@ -271,8 +271,10 @@ class AgentDriver:
         if self.config.distance == "stereo" and not cfg.observe_stereo:
             raise ValueError("The agent's stereo distance needs the stereo pair: use DriveConfig(observe_stereo=True, "
                              "camera=CameraConfig(stereo=True)), or distance='geometry'.")
-        self._mirror_camera = cfg.blind_spot_camera
-        self._look = env.blind_spot_frame if cfg.render_camera and self.config.blind_spot.enabled else None
+        # The mirror cameras, where the env has them (a recorded episode or a plain camera source has not).
+        self._mirror_camera = getattr(cfg, "blind_spot_camera", BLIND_SPOT_CAMERA)
+        look = getattr(env, "blind_spot_frame", None)
+        self._look = look if getattr(cfg, "render_camera", False) and self.config.blind_spot.enabled else None
         self._setup(cfg.camera, cfg.world.dt_s)
         self.adas.reset()
         self.timings = []
