@@ -163,6 +163,7 @@ class AgentView:
     warnings: list[str]
     lane_centre: np.ndarray | None
     lane_width_m: float
+    blind_spot: tuple[bool, bool] = (False, False)  # a vehicle in the left, right mirror camera's zone lately
 
 
 class BoxGeometry:
@@ -622,7 +623,8 @@ class AgentDriver:
         times["total"] = (self._now() - t_start) * 1000.0
         self.timings.append(times)
         self.view = AgentView(image, t, speed, command, lanes, stop, objects, tracks, light, decision, warnings,
-                              centre, lanes.lane_width_m)
+                              centre, lanes.lane_width_m,
+                              (self.blind_spot.holding(t, "left"), self.blind_spot.holding(t, "right")))
         return decision.action()
 
     # ------------------------------------------------------------------ reports

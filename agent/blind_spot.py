@@ -28,7 +28,7 @@ VEHICLES = ("car", "truck")
 
 @dataclass(frozen=True)
 class BlindSpotConfig:
-    enabled: bool = True
+    enabled: bool = False  # off by default: see the module docstring (its holds cost more than they saved so far)
     look_every: int = 2  # frames between looks on the side of a pending lane change
     idle_every: int = 5  # otherwise, frames between looks (left and right in turn)
     score_threshold: float = 0.4

@@ -8,10 +8,11 @@ import math
 import numpy as np
 import pytest
 
-from agent.agent_driver import BoxGeometry
+from agent.agent_driver import DEFAULT_DETECTOR, BoxGeometry
 from agent.autolabel import CLASSES
 from agent.blind_spot import BlindSpot, BlindSpotConfig, MirrorMount
 from agent.detector import Detection
+from agent.pilotnet_driver import DEFAULT_MODEL
 from envs.drive_env import BLIND_SPOT_CAMERA, BLIND_SPOT_MOUNT_M, BLIND_SPOT_YAW_DEG, DriveConfig, DriveEnv
 from sim.render import CameraConfig
 
@@ -83,3 +84,30 @@ def test_looking_through_the_mirror_camera_leaves_the_env_frames_unchanged() -> 
     plain.close()
     looking.close()
 
+
+
+@pytest.mark.skipif(not (DEFAULT_MODEL.is_file() and DEFAULT_DETECTOR.is_file()), reason="shipped models missing")
+def test_agent_looks_in_the_mirrors_and_the_overlay_lights_the_side() -> None:
+    from dataclasses import replace
+
+    from agent.agent_overlay import BLIND_SPOT_RGB, draw_agent
+    from agent.drivers import make_driver
+
+    env = DriveEnv(DriveConfig())
+    try:
+        obs, _ = env.reset(seed=3)
+        driver = make_driver("agent")
+        driver.reset(env)
+        looks = []
+        driver._look = lambda side, look=env.blind_spot_frame: looks.append(side) or look(side)
+        for _ in range(11):
+            obs, *_ = env.step(driver.act(obs))
+        assert len(looks) >= 3 and set(looks) == {"left", "right"}  # in turn every 5th frame, more when changing
+        assert "blind_spot" in driver.timings[0] and driver.timings[0]["blind_spot"] > 0.0
+        view = replace(driver.view, blind_spot=(False, True))
+        picture = draw_agent(view, driver.lanes.birdseye)
+        h, w = picture.shape[:2]
+        amber = np.all(picture == np.array(BLIND_SPOT_RGB, np.uint8), axis=2)
+        assert amber[:, w - 30:].sum() > 50 and amber[:, :30].sum() == 0
+    finally:
+        env.close()
