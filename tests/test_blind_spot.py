@@ -96,7 +96,8 @@ def test_agent_looks_in_the_mirrors_and_the_overlay_lights_the_side() -> None:
     env = DriveEnv(DriveConfig())
     try:
         obs, _ = env.reset(seed=3)
-        driver = make_driver("agent")
+        assert make_driver("agent").config.blind_spot.enabled is False  # off by default (agent.blind_spot)
+        driver = make_driver("agent", blind_spot=BlindSpotConfig(enabled=True))
         driver.reset(env)
         looks = []
         driver._look = lambda side, look=env.blind_spot_frame: looks.append(side) or look(side)
@@ -111,3 +112,14 @@ def test_agent_looks_in_the_mirrors_and_the_overlay_lights_the_side() -> None:
         assert amber[:, w - 30:].sum() > 50 and amber[:, :30].sum() == 0
     finally:
         env.close()
+
+
+@pytest.mark.skipif(not (DEFAULT_MODEL.is_file() and DEFAULT_DETECTOR.is_file()), reason="shipped models missing")
+def test_with_the_mirror_look_the_agent_lets_the_overtaking_car_pass_before_its_turn() -> None:
+    from agent.drivers import make_driver
+    from envs.scenarios import run_scenario
+
+    # Without the look, PilotNet moves into the car beside (measured: a collision in this scenario).
+    driver = make_driver("agent", blind_spot=BlindSpotConfig(enabled=True))
+    result = run_scenario("overtaken_before_turn", driver, DriveConfig())
+    assert result.passed, result.detail
