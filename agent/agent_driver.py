@@ -32,6 +32,7 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -41,6 +42,7 @@ import numpy as np
 
 from agent.adas import Adas, AdasConfig
 from agent.autolabel import CLASSES, LIGHT_CLASSES
+from agent.blind_spot import BlindSpot, BlindSpotConfig, MirrorMount
 from agent.controller import Controller, ControllerConfig, Decision, PerceivedObject, Scene
 from agent.detector import Detection, OnnxDetector
 from agent.drivers import register
@@ -48,6 +50,7 @@ from agent.lanes import BirdsEye, LaneDetector, LaneResult
 from agent.pilotnet_driver import DEFAULT_MODEL, PilotNetModel
 from agent.stop_line import StopLine, StopLineDetector
 from agent.tracking import Sort, SortConfig, Track
+from envs.drive_env import BLIND_SPOT_CAMERA, BLIND_SPOT_MOUNT_M, BLIND_SPOT_YAW_DEG
 from sim.ego import EgoVehicle
 from sim.render import CameraConfig
 
@@ -64,7 +67,7 @@ DEPTH_PRIOR_M = {"car": 1.9, "truck": 2.3}
 LIGHT_HOUSING_M = 2.1  # a signal head's height (three lamps)
 LIGHT_HEAD_HEIGHT_M = 5.2  # town design: signal heads hang 5.2 m above the road on mast arms
 TRACKED = ("car", "truck", "pedestrian")
-STAGES = ("pilotnet", "detector", "tracking", "lanes", "stop_line", "distance", "control", "adas")
+STAGES = ("blind_spot", "pilotnet", "detector", "tracking", "lanes", "stop_line", "distance", "control", "adas")
 
 
 TURN_ARC_START_M = 0.5  # town design: a junction's connectors start at its stop bars' far edge (0.5 m deep)
@@ -130,6 +133,7 @@ class AgentConfig:
     row_sigma_px: float = 1.0  # box-edge uncertainty, for the geometry fusion
     prior_sigma: float = 0.12  # relative spread of the height prior
     controller: ControllerConfig = field(default_factory=ControllerConfig)
+    blind_spot: BlindSpotConfig = field(default_factory=BlindSpotConfig)
     adas: AdasConfig = field(default_factory=AdasConfig)
     sort: SortConfig = field(default_factory=SortConfig)
 
@@ -159,6 +163,7 @@ class AgentView:
     warnings: list[str]
     lane_centre: np.ndarray | None
     lane_width_m: float
+    blind_spot: tuple[bool, bool] = (False, False)  # a vehicle in the left, right mirror camera's zone lately
 
 
 class BoxGeometry:
@@ -243,6 +248,8 @@ class AgentDriver:
         self.sort = Sort(self.config.sort)
         self.timings: list[dict[str, float]] = []
         self.view: AgentView | None = None
+        self._look: Callable[[str], np.ndarray] | None = None  # the blind-spot camera, where there is one
+        self._mirror_camera = BLIND_SPOT_CAMERA
         self._setup(CameraConfig(), 0.05)
 
     def _setup(self, camera: CameraConfig, dt: float) -> None:
@@ -251,6 +258,8 @@ class AgentDriver:
         self.lanes = LaneDetector(camera)
         self.stop = StopLineDetector(camera)
         self.geometry = BoxGeometry(camera, self.config.row_sigma_px, self.config.prior_sigma)
+        self.blind_spot = BlindSpot(BoxGeometry(self._mirror_camera, self.config.row_sigma_px, self.config.prior_sigma),
+                                    MirrorMount(*BLIND_SPOT_MOUNT_M, BLIND_SPOT_YAW_DEG), self.config.blind_spot)
         self.stereo = None
         if self.config.distance == "stereo":
             from agent.stereo import StereoDepth
@@ -263,6 +272,10 @@ class AgentDriver:
         if self.config.distance == "stereo" and not cfg.observe_stereo:
             raise ValueError("The agent's stereo distance needs the stereo pair: use DriveConfig(observe_stereo=True, "
                              "camera=CameraConfig(stereo=True)), or distance='geometry'.")
+        # The mirror cameras, where the env has them (a recorded episode or a plain camera source has not).
+        self._mirror_camera = getattr(cfg, "blind_spot_camera", BLIND_SPOT_CAMERA)
+        look = getattr(env, "blind_spot_frame", None)
+        self._look = look if getattr(cfg, "render_camera", False) and self.config.blind_spot.enabled else None
         self._setup(cfg.camera, cfg.world.dt_s)
         self.adas.reset()
         self.timings = []
@@ -281,6 +294,7 @@ class AgentDriver:
         """Forget every tracked and dead-reckoned state."""
         self.controller.reset()
         self.sort.reset()
+        self.blind_spot.reset()
         self._lights: list[Detection] = []
         self._history: dict[int, deque[tuple[float, float, float]]] = {}
         self._lost: dict[int, PerceivedObject] = {}  # objects lost in our path, remembered for a while
@@ -474,6 +488,29 @@ class AgentDriver:
         delta = math.atan(2.0 * EgoVehicle.LENGTH * math.sin(alpha) / lookahead)
         return float(np.clip(delta / EgoVehicle.MAX_STEER_RAD, -1.0, 1.0))
 
+    def _blind_spot_check(self, t: float, command: int) -> str | None:
+        """Look through a mirror camera when it is time (``agent.blind_spot``); the side of a pending lane change
+        that is held, else None. Pending: a left or right command, no junction turn placed yet, and no solid line
+        seen on that side last frame (a solid line there is the road's edge or centre line: no lane to go to)."""
+        if self._look is None:
+            return None
+        cfg = self.config.blind_spot
+        side = {1: "left", 2: "right"}.get(command)
+        if side is not None and self._junction is not None:
+            side = None
+        if side is not None and self.view is not None:
+            line = self.view.lanes.left if side == "left" else self.view.lanes.right
+            if line is not None and line.style == "solid":
+                side = None
+        look = None
+        if side is not None and self._frame % cfg.look_every == 0:
+            look = side
+        elif side is None and self._frame % cfg.idle_every == 0:
+            look = ("left", "right")[(self._frame // cfg.idle_every) % 2]
+        if look is not None:
+            self.blind_spot.update(t, look, self.detector(self._look(look)))
+        return side if self.blind_spot.holding(t, side) else None
+
     def _light(self) -> LightSeen | None:
         """Our light: the nearest confident light box whose head hangs near our lane.
 
@@ -523,7 +560,9 @@ class AgentDriver:
         speed = float(observation["speed"][0])
         command = int(observation["command"])
         t = self._frame * self.dt
-        pilot = float(self.net.steer(image, command))
+        held = self._blind_spot_check(t, command)
+        lap("blind_spot")
+        pilot = float(self.net.steer(image, 0 if held else command))  # held: follow the lane, do not change it
         lap("pilotnet")
         run = self._frame % self.config.detect_every == 0
         self._frame += 1
@@ -560,9 +599,10 @@ class AgentDriver:
         elif turn is not None:
             pilot = turn
         lane_range = min(30.0, max((ln.z_range_m[1] for ln in (lanes.left, lanes.right) if ln is not None), default=30.0))
+        caps = [(self.blind_spot.reason(held), self.config.blind_spot.yield_speed_mps)] if held else []
         scene = Scene(speed, objects, light.state if light else None, light.distance_m if light else None,
                       stop.distance_m if stop is not None else None, centre, max(lane_range, 8.0),
-                      turning=command in (1, 2))
+                      turning=command in (1, 2), speed_caps=caps)
         decision = self.controller.step(scene, pilot, self.dt)
         if hold is not None:  # the steering was overridden too: say so, and keep what PilotNet proposed
             decision.pilot_steer = net_steer
@@ -570,6 +610,8 @@ class AgentDriver:
         elif turn is not None:
             decision.pilot_steer = net_steer
             decision.reason += "; turning along the junction's arc"
+        if held and not decision.reason.startswith("vehicle in the"):
+            decision.reason += f"; {self.blind_spot.reason(held)}"
         self._note_junction(stop)  # the bar as measured this frame, where the car is this frame
         self._odometry(speed, decision.steer, command)
         lap("control")
@@ -581,7 +623,8 @@ class AgentDriver:
         times["total"] = (self._now() - t_start) * 1000.0
         self.timings.append(times)
         self.view = AgentView(image, t, speed, command, lanes, stop, objects, tracks, light, decision, warnings,
-                              centre, lanes.lane_width_m)
+                              centre, lanes.lane_width_m,
+                              (self.blind_spot.holding(t, "left"), self.blind_spot.holding(t, "right")))
         return decision.action()
 
     # ------------------------------------------------------------------ reports

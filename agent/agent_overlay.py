@@ -1,6 +1,6 @@
 """The full agent's overlay, as in the seeds' figures: the lane area (green, or red when an object is in it),
 tracked boxes with ids and distances, the light state, the steering (PilotNet's and the one applied), the
-controller's reason, and the ADAS warnings.
+controller's reason, the ADAS warnings and the blind-spot indicators.
 
 Drawing is split from the driver so that videos, sheets and the README picture all draw the same thing
 from an ``AgentView`` (the driver keeps the last one).
@@ -24,6 +24,7 @@ if TYPE_CHECKING:
 LANE_FREE = (60, 220, 90)
 LANE_BLOCKED = (235, 40, 40)
 LIGHT_RGB = {"red": (255, 40, 40), "yellow": (255, 210, 0), "green": (40, 230, 90)}
+BLIND_SPOT_RGB = (255, 170, 0)
 FONT = cv2.FONT_HERSHEY_SIMPLEX
 
 
@@ -111,7 +112,13 @@ def draw_agent(view: AgentView, birdseye: BirdsEye, scale: int = 2) -> np.ndarra
     sx = int(w // 2 + decision.steer * bar_half)
     cv2.line(out, (sx, bar_y - 8), (sx, bar_y + 8), (255, 220, 60), 3, cv2.LINE_AA)
     _text(out, f"steer {decision.steer:+.2f}", (w // 2 + bar_half + 8, bar_y + 5), (255, 220, 60), 0.4)
-    # Warnings: red banners above the steering bar.
+    # Blind-spot indicators (as in a door mirror): an amber arrow at the picture's edge on a side whose mirror
+    # camera saw a vehicle beside or behind lately.
+    for lit, sign, x in ((view.blind_spot[0], -1, 10), (view.blind_spot[1], 1, w - 10)):
+        if lit:
+            tip = np.array([[x, h // 2], [x - sign * 14, h // 2 - 12], [x - sign * 14, h // 2 + 12]], np.int32)
+            cv2.fillPoly(out, [tip], BLIND_SPOT_RGB, cv2.LINE_AA)
+        # Warnings: red banners above the steering bar.
     for k, text in enumerate(view.warnings):
         y = h - 36 - 22 * k
         (tw, th), _ = cv2.getTextSize(text, FONT, 0.5, 1)

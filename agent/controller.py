@@ -55,7 +55,7 @@ LIGHT_STATES = ("red", "yellow", "green")
 class ControllerConfig:
     speed_limit_mps: float = 8.0  # cruise speed: the town's limit
     lateral_accel_mps2: float = 2.0  # in a bend, cruise at most sqrt(a / curvature) (the autopilot's comfort)
-    max_accel_mps2: float = 2.0  # gentle acceleration
+    max_accel_mps2: float = 3.0  # gentle acceleration
     jerk_mps3: float = 4.0  # how fast the acceleration may rise
     comfortable_brake_mps2: float = 3.0  # normal braking limit
     max_brake_mps2: float = 8.0  # the car's full brake, for constraints comfort cannot meet
@@ -88,7 +88,7 @@ class ControllerConfig:
     junction_ignore_m: float = 30.0  # after crossing the stop line, the junction's light no longer applies
     wheelbase_m: float = 4.6  # highway-env's bicycle model: curvature = tan(delta) / length
     max_steer_rad: float = 0.6
-    idm_a_mps2: float = 2.0  # IDM a
+    idm_a_mps2: float = 3.0  # IDM a
     idm_b_mps2: float = 2.5  # IDM b (comfortable deceleration in the dynamic term)
     idm_delta: float = 4.0
 
@@ -124,6 +124,7 @@ class Scene:
     lane_centre: np.ndarray | None = None  # (a, b, c): lane centre x = a z^2 + b z + c, camera ground frame
     lane_range_m: float = 30.0  # how far the lane fit is valid; beyond, it is continued straight
     turning: bool = False  # the route command asks for a left or right turn at the next junction
+    speed_caps: list[tuple[str, float]] = field(default_factory=list)  # other limits: (reason, m/s)
 
 
 @dataclass
@@ -368,6 +369,9 @@ class Controller:
             constraints.append(Constraint(f"turning at a junction: {cfg.junction_turn_speed_mps:.1f} m/s", math.inf,
                                           cfg.junction_turn_speed_mps, 0.0, 0.0,
                                           self._idm(speed, min(target, cfg.junction_turn_speed_mps), None, 0.0, 0.0, 0.0)))
+        for why, cap in scene.speed_caps:
+            constraints.append(Constraint(why, math.inf, cap, 0.0, 0.0, self._idm(speed, min(target, cap), None, 0.0,
+                                                                                 0.0, 0.0)))
         light = self._light_constraint(speed, scene.turning)
         if light is not None:
             if math.isinf(light.gap_m):  # a speed cap, not a point to stop at

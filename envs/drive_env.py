@@ -8,6 +8,8 @@ Observation (a Dict):
   (int32 H x W x 2: semantic class, object id), ``stereo`` (uint8 2 x H x W x 3: left, right) and
   ``side`` (uint8 2 x H x W x 3: cameras ``side_camera_offset_m`` to the left and right of the centre one,
   as NVIDIA's data-collection car had, for behavioural-cloning data with a steering correction).
+  ``DriveEnv.blind_spot_frame(side)`` renders, on request, the camera under the left or right door mirror
+  looking back along the car's side (a blind-spot camera): drivers that change lanes look before they do.
 
 Action: Box([-1, -1], [1, 1]) = ``[steer, throttle_brake]``.
 
@@ -45,6 +47,26 @@ _LIGHT_NAMES = {int(s): s.name.lower() for s in LightState}
 _COMMAND_NAMES = {int(c): c.name.lower() for c in Command}
 
 
+# The blind-spot cameras: under each door mirror (1.0 m ahead of the car's centre, 1.0 m out, 1.0 m up), turned
+# 115 degrees from straight ahead with a 120-degree view: they see from 55 degrees off the car's axis (beside the
+# front wheel) round to 175 degrees (the next lane behind), where a forward camera is blind.
+BLIND_SPOT_CAMERA = CameraConfig(hfov_deg=120.0, mount_height_m=1.0, mount_forward_m=0.0, pitch_deg=-10.0, far_m=60.0)
+BLIND_SPOT_MOUNT_M = (1.0, 1.0)  # (ahead of the car's centre, out to the side)
+BLIND_SPOT_YAW_DEG = 115.0
+
+
+def blind_spot_pose(pose: tuple[float, float, float], side: str) -> tuple[float, float, float]:
+    """The (x, y, heading) of the blind-spot camera on ``side`` ("left" or "right") of a car at ``pose``;
+    the heading turns towards the side (right is +90 degrees, as ``SceneRenderer.camera_position`` has it)."""
+    if side not in ("left", "right"):
+        raise ValueError(f"Unknown side {side!r}; use 'left' or 'right'.")
+    x, y, h = pose
+    sign = 1.0 if side == "right" else -1.0
+    ahead, out = BLIND_SPOT_MOUNT_M
+    return (x + ahead * math.cos(h) - sign * out * math.sin(h), y + ahead * math.sin(h) + sign * out * math.cos(h),
+            h + sign * math.radians(BLIND_SPOT_YAW_DEG))
+
+
 @dataclass(frozen=True)
 class DriveConfig:
     """Everything an episode is made of. Defaults: the default town at noon with traffic."""
@@ -59,6 +81,7 @@ class DriveConfig:
     observe_stereo: bool = False
     observe_side_cameras: bool = False
     side_camera_offset_m: float = 0.6
+    blind_spot_camera: CameraConfig = field(default_factory=lambda: BLIND_SPOT_CAMERA)
     max_time_s: float = 180.0
     max_distance_m: float = 3000.0
     terminate_on_route_deviation: bool = True
@@ -179,6 +202,17 @@ class DriveEnv(gym.Env):
         if self.render_mode == "human":
             self.render()
         return obs, float(reward), terminated, truncated, info
+
+    def blind_spot_frame(self, side: str) -> np.ndarray:
+        """RGB from the blind-spot camera on ``side`` ("left" or "right") now, for a driver about to change
+        lanes (rendered on request: most frames need no look). The next step's own frame is the same as without it."""
+        world = self._require_world()
+        if self.renderer is None:
+            raise RuntimeError("The blind-spot camera needs the renderer: DriveConfig(render_camera=True).")
+        cam = self.config.blind_spot_camera
+        x, y, heading = blind_spot_pose(self._pose(), side)
+        self.renderer.sync(world.object_snapshots(), world.lights.states, view=(x, y, heading, cam.hfov_deg, cam.far_m))
+        return self.renderer.render((x, y, heading), cam, self.weather).rgb
 
     def render(self) -> np.ndarray | None:
         """Camera view beside a top-down map around the ego (``rgb_array``), or shown in a window (``human``)."""

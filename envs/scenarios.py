@@ -28,6 +28,7 @@ from sim.world import World, cached_town
 START_BEFORE_STOP_M = 55.0
 APPROACH_NODE = (1, 1)
 APPROACH_ARM = Arm.W  # traffic arrives from the west arm, driving east
+OVERTAKER_BEHIND_M = 6.0  # centre to centre: without a look in the mirror, PilotNet moves into it
 
 
 @dataclass
@@ -239,6 +240,19 @@ def _check_yellow(log: Log, ctx: dict[str, Any]) -> tuple[bool, str]:
     return went, f"went on through the yellow (too close to stop comfortably): {went}"
 
 
+def _overtaken(world: World, ap: Approach) -> dict[str, Any]:
+    """A faster car in the next lane (the one a right turn needs), a little behind us: it comes alongside as
+    the route announces the turn, out of the forward camera's view."""
+    town = world.town
+    ego_s = town.lane((ap.edge[0], ap.edge[1], 0)).local_coordinates(world.ego.position)[0]
+    npc = world.spawn_npc((ap.edge[0], ap.edge[1], 1), max(ego_s - OVERTAKER_BEHIND_M, 2.0), SemanticClass.CAR,
+                          color=(0.85, 0.85, 0.8), target_speed=9.0)
+    assert npc is not None
+    npc.speed = 8.0
+    world.ego.speed = 7.0
+    return {"lead": npc}
+
+
 def _check_turn(log: Log, ctx: dict[str, Any]) -> tuple[bool, str]:
     goal = ctx["goal"]
     reached = goal in log.edges
@@ -263,6 +277,8 @@ SCENARIOS: dict[str, Scenario] = {
     "yellow_too_close": Scenario("the light turns yellow 7 m before the stop line at 8 m/s: go on", 12.0,
                                  _yellow_close, _check_yellow, hook=_yellow_hook),
     "turn_left": Scenario("a left turn at the junction, by command", 20.0, _quiet, _check_turn, turn=Command.LEFT),
+    "overtaken_before_turn": Scenario("a right turn from the inner lane while a faster car overtakes in the outer one: "
+                                      "no collision", 24.0, _overtaken, _check_turn, turn=Command.RIGHT),
 }
 
 
