@@ -1,6 +1,6 @@
 """The scenario suite: seed 004's eight test cases (section 3.11), plus a yellow light too close to
-stop for and a turn by command. Each scenario is deterministic (fixed town, placement, seed) and has a
-pass/fail rule checked on what happened.
+stop for, a turn by command, and a turn announced while a car overtakes in the lane the turn needs.
+Each scenario is deterministic (fixed town, placement, seed) and has a pass/fail rule checked on what happened.
 
 All of them take place on the same approach to a four-way junction of the default town: the ego starts
 on lane 0, ``START_BEFORE_STOP_M`` before the stop line, with no other traffic unless the scenario adds it.
