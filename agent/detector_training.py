@@ -30,10 +30,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--val-frames", type=int, default=1200)
     p.add_argument("--test-frames", type=int, default=1200)
     p.add_argument("--peds-frames", type=int, default=6000, help="frames of the extra train_peds split")
-    p.add_argument("--peds-count", type=int, default=60, help="pedestrians per town in train_peds (default world: 24)")
+    p.add_argument("--peds-count", type=int, default=60,
+                   help="pedestrians per town in train_peds and train_peds2 (default world: 24)")
+    p.add_argument("--peds2-frames", type=int, default=6000, help="frames of the extra train_peds2 split")
     p.add_argument("--splits", default="train,val,test",
-                   help="which splits to (re)generate, comma-separated; train_peds: extra training towns 30-59 "
-                   "with more pedestrians")
+                   help="which splits to (re)generate, comma-separated; train_peds, train_peds2: extra training "
+                   "towns 30-59 and 60-99 with more pedestrians")
     p.add_argument("--seed", type=int, default=0)
 
     p = sub.add_parser("train", help="train the detector on a generated dataset")
@@ -88,7 +90,8 @@ def _dataset(args: argparse.Namespace) -> int:
     summary_path = root / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
     wanted = set(args.splits.split(","))
-    for spec in default_splits(args.train_frames, args.val_frames, args.test_frames, args.peds_frames, args.peds_count):
+    for spec in default_splits(args.train_frames, args.val_frames, args.test_frames, args.peds_frames, args.peds_count,
+                               args.peds2_frames):
         if spec.name not in wanted:
             continue
         t_split = time.perf_counter()
