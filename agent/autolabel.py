@@ -286,15 +286,17 @@ class SplitSpec:
 
 
 def default_splits(train_frames: int = 6000, val_frames: int = 1200, test_frames: int = 1200,
-                   peds_frames: int = 6000, peds_count: int = 60) -> list[SplitSpec]:
+                   peds_frames: int = 6000, peds_count: int = 60, peds2_frames: int = 6000) -> list[SplitSpec]:
     """Training towns 0-29; validation (checkpoint choice) towns 100-109; test (the reported figures) towns
     200-209. Neither held-out set shares a town with training; all four weathers are in each.
-    ``train_peds`` is extra training data: towns 30-59 with ``peds_count`` pedestrians per town (the world's
-    default is 24), for the detector's weakest class; only generated when asked for by name."""
+    ``train_peds`` and ``train_peds2`` are extra training data: towns 30-59 and 60-99 with ``peds_count``
+    pedestrians per town (the world's default is 24), for the detector's weakest class; only generated when
+    asked for by name."""
     return [SplitSpec("train", tuple(range(30)), WEATHERS, train_frames),
             SplitSpec("val", tuple(range(100, 110)), WEATHERS, val_frames),
             SplitSpec("test", tuple(range(200, 210)), WEATHERS, test_frames),
-            SplitSpec("train_peds", tuple(range(30, 60)), WEATHERS, peds_frames, pedestrian_count=peds_count)]
+            SplitSpec("train_peds", tuple(range(30, 60)), WEATHERS, peds_frames, pedestrian_count=peds_count),
+            SplitSpec("train_peds2", tuple(range(60, 100)), WEATHERS, peds2_frames, pedestrian_count=peds_count)]
 
 
 def generate_split(root, spec: SplitSpec, seed: int, progress: bool = True) -> dict:

@@ -330,10 +330,13 @@ def train(args: argparse.Namespace) -> int:
             f.write(json.dumps(entry) + "\n")
         msg = "  ".join(f"{k} {v:.3f}" for k, v in entry["val_ap50"].items())
         print(f"epoch {epoch + 1}: val mAP@0.5 {score:.3f}, mAP@0.5:0.95 {rep['map50_95']:.3f} | {msg}")
+        meta = {"epoch": epoch + 1, "val_map50": score, "seed": args.seed, "command": "train.py detector train",
+                "args": vars(args) | {"run": None}}
+        if getattr(args, "save_epochs", False):
+            save_checkpoint(out.with_suffix(f".e{epoch + 1}.pt"), ema.model, meta)
         if score > best:
             best = score
-            save_checkpoint(out, ema.model, {"epoch": epoch + 1, "val_map50": score, "seed": args.seed,
-                                             "command": "train.py detector train", "args": vars(args) | {"run": None}})
+            save_checkpoint(out, ema.model, meta)
             print(f"  best so far: saved {out}")
         if stop:
             print(f"Time limit of {args.time_limit_min} min reached after {step} steps.")

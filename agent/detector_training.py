@@ -30,10 +30,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--val-frames", type=int, default=1200)
     p.add_argument("--test-frames", type=int, default=1200)
     p.add_argument("--peds-frames", type=int, default=6000, help="frames of the extra train_peds split")
-    p.add_argument("--peds-count", type=int, default=60, help="pedestrians per town in train_peds (default world: 24)")
+    p.add_argument("--peds-count", type=int, default=60,
+                   help="pedestrians per town in train_peds and train_peds2 (default world: 24)")
+    p.add_argument("--peds2-frames", type=int, default=6000, help="frames of the extra train_peds2 split")
     p.add_argument("--splits", default="train,val,test",
-                   help="which splits to (re)generate, comma-separated; train_peds: extra training towns 30-59 "
-                   "with more pedestrians")
+                   help="which splits to (re)generate, comma-separated; train_peds, train_peds2: extra training "
+                   "towns 30-59 and 60-99 with more pedestrians")
     p.add_argument("--seed", type=int, default=0)
 
     p = sub.add_parser("train", help="train the detector on a generated dataset")
@@ -54,6 +56,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    "(unlike --resume, the model may have more layers, e.g. --s4-blocks)")
     p.add_argument("--obj-iou", type=float, default=0.0,
                    help="objectness target of a positive: 1 - g + g * IoU of its box (YOLOv5's gr); 0: always 1")
+    p.add_argument("--save-epochs", action="store_true",
+                   help="also save every epoch's EMA weights next to --out (NAME.eN.pt), to choose by another val figure")
     p.add_argument("--scale-prob", type=float, default=1.0,
                    help="share of training frames rescaled (0.75-1.3x); the rest are shifted by whole pixels")
 
@@ -88,7 +92,8 @@ def _dataset(args: argparse.Namespace) -> int:
     summary_path = root / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
     wanted = set(args.splits.split(","))
-    for spec in default_splits(args.train_frames, args.val_frames, args.test_frames, args.peds_frames, args.peds_count):
+    for spec in default_splits(args.train_frames, args.val_frames, args.test_frames, args.peds_frames, args.peds_count,
+                               args.peds2_frames):
         if spec.name not in wanted:
             continue
         t_split = time.perf_counter()

@@ -237,3 +237,18 @@ def test_decoded_detector_has_one_output_row_per_cell():
     out = DecodedDetector(Detector().eval())(torch.rand(1, 3, 160, 320))
     assert out.shape == (1, 1000, 5 + len(CLASSES))
     assert torch.all(out[..., 2] > out[..., 0]) and torch.all((out[..., 4:] >= 0) & (out[..., 4:] <= 1))
+
+
+def test_training_splits_share_no_town_with_val_or_test():
+    from agent.autolabel import WEATHERS, default_splits
+
+    specs = {s.name: s for s in default_splits()}
+    assert set(specs) == {"train", "val", "test", "train_peds", "train_peds2"}
+    held_out = set(specs["val"].town_seeds) | set(specs["test"].town_seeds)
+    training = [specs[n] for n in ("train", "train_peds", "train_peds2")]
+    for spec in training:
+        assert not set(spec.town_seeds) & held_out, spec.name
+        assert spec.weathers == WEATHERS
+    assert not set(specs["train_peds"].town_seeds) & set(specs["train_peds2"].town_seeds)
+    assert specs["train_peds2"].town_seeds == tuple(range(60, 100))
+    assert specs["train_peds"].pedestrian_count == specs["train_peds2"].pedestrian_count == 60
