@@ -599,7 +599,8 @@ class AgentDriver:
         elif turn is not None:
             pilot = turn
         lane_range = min(30.0, max((ln.z_range_m[1] for ln in (lanes.left, lanes.right) if ln is not None), default=30.0))
-        caps = [(self.blind_spot.reason(held), self.config.blind_spot.yield_speed_mps)] if held else []
+        caps = ([(self.blind_spot.reason(held), self.config.blind_spot.yield_speed_mps)]
+                if held and self.blind_spot.alongside(held) else [])  # let it pass; a follower is merged in front of
         scene = Scene(speed, objects, light.state if light else None, light.distance_m if light else None,
                       stop.distance_m if stop is not None else None, centre, max(lane_range, 8.0),
                       turning=command in (1, 2), speed_caps=caps)

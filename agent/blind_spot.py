@@ -36,16 +36,19 @@ VEHICLES = ("car", "truck")
 
 @dataclass(frozen=True)
 class BlindSpotConfig:
-    enabled: bool = False  # off by default: see the module docstring (its holds cost more than they saved so far)
+    enabled: bool = True
     look_every: int = 2  # frames between looks on the side of a pending lane change
     idle_every: int = 5  # otherwise, frames between looks (left and right in turn)
     score_threshold: float = 0.4
     zone_ahead_m: float = 3.0  # the zone, from the car's centre: this far ahead ...
-    zone_behind_m: float = 20.0  # ... to this far behind (a car 20 m back closing at 3 m/s is beside in 5 s)
+    zone_behind_m: float = 6.0  # ... to this far behind: a vehicle farther back, or one that follows rather than
+    #                              overtakes and falls back there, is merged in front of (it brakes for us)
+    beside_m: float = -3.0  # seen at least this far forward, a vehicle is alongside or about to be
     zone_near_m: float = 1.5  # ... and from this far out from the car's centre line (its side is 0.95 m out)
     zone_far_m: float = 6.0  # ... to this far (the next lane's centre is 3.5 m out)
-    memory_s: float = 3.0  # a vehicle seen in the zone holds the change this long after it was last seen
-    yield_speed_mps: float = 5.0  # while held, cruise no faster (town traffic runs at 8 m/s and passes)
+    memory_s: float = 3.0  # a vehicle last seen alongside holds the change this long (it fills the picture there)
+    behind_memory_s: float = 1.0  # ... one last seen behind, this long
+    yield_speed_mps: float = 5.0  # while one is alongside, cruise no faster (town traffic runs at 8 m/s and passes)
 
 
 @dataclass(frozen=True)
@@ -99,9 +102,15 @@ class BlindSpot:
                 if math.isfinite(ahead) and self.in_zone(ahead, out):
                     found.append((ahead, out))
         if found:
-            self.until_s[side] = t + self.config.memory_s
             self.nearest[side] = max(found)  # the one farthest forward: the one we would move into
+            beside = self.nearest[side][0] >= self.config.beside_m
+            self.until_s[side] = t + (self.config.memory_s if beside else self.config.behind_memory_s)
         return found
+
+    def alongside(self, side: str) -> bool:
+        """Was the last vehicle seen on ``side`` alongside (or about to be), rather than following?"""
+        near = self.nearest.get(side)
+        return near is not None and near[0] >= self.config.beside_m
 
     def holding(self, t: float, side: str | None) -> bool:
         """Is a lane change towards ``side`` held at time ``t``?"""
