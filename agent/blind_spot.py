@@ -6,18 +6,17 @@ lane a turn needs as soon as the route announces the turn, and on two evaluation
 car. The agent looks through the blind-spot cameras (``DriveEnv.blind_spot_frame``), left and right in turn
 every few frames, and more often on the side of a pending lane change (a left or right command, no turn under
 way yet, no solid line on that side), and runs the detector on the picture. A vehicle seen in the zone beside
-and behind holds a lane change towards it (PilotNet is asked to follow its lane) and eases the car off so the
-other one passes, until ``memory_s`` after it was last seen there: a car right beside fills the mirror camera's
-picture and is not detected, but it crossed the zone behind first, and the route may announce the turn only
-when it is already alongside.
+and up to 6 m behind holds a lane change towards it (PilotNet is asked to follow its lane): for ``memory_s``
+after it was last seen alongside, and the car eases off so the other one passes (a car right beside fills the
+mirror camera's picture and is not detected, but it crossed the zone behind first, and the route may announce
+the turn only when it is already alongside); for ``behind_memory_s`` after it was last seen behind.
 
-Off by default (``BlindSpotConfig.enabled``; ``make_driver("agent", blind_spot=BlindSpotConfig(enabled=True))``
-turns it on). It passes the ``overtaken_before_turn`` scenario, which the agent fails without it, and it removed
-the two blind lane changes of the 20-route tables; but on the held-out routes it held a lane change behind a truck
-that slowed for the junction as the car did, and the turn then taken from the inner lane hit the truck (route 500),
-and on the fresh routes the changed timing met two red lights badly (a light taken for ours during a turn begun
-before the line). The zone behind (20 m) and the speed cap while holding are too broad: a car that follows
-rather than overtakes should be merged in front of.
+On by default (``BlindSpotConfig(enabled=False)`` turns it off). It passes the ``overtaken_before_turn``
+scenario, which the agent fails without it, and removed the blind lane changes of the 20-route tables. Its first
+version held a change for any vehicle up to 20 m behind and capped the speed while holding: it held a change
+behind a truck that slowed for the junction as the car did, and the turn then taken from the inner lane hit the
+truck. Now the zone ends 6 m behind, a vehicle last seen behind holds the change for 1 s only, and only one
+alongside caps the speed: a car that follows rather than overtakes is merged in front of (it brakes for us).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
     python bench/bench_agent.py                       # 600 frames, town 0 with traffic, detector every frame
     python bench/bench_agent.py --detect-every 2      # detector on every other frame (SORT predicts between)
     python bench/bench_agent.py --stereo              # distances by stereo matching (renders the pair too)
-    python bench/bench_agent.py --blind-spot          # with the look in the mirror cameras (renders them too)
+    python bench/bench_agent.py --no-blind-spot       # without the look in the mirror cameras (renders them)
 
 The agent drives (closed loop, its own actions), in the default town with its default traffic, at 320x160.
 "Whole loop" is ``env.step`` (simulation and rendering) plus ``driver.act`` (every perception stage and
@@ -43,8 +43,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stereo", action="store_true", help="distances from the stereo pair (renders it: slower)")
     ap.add_argument("--pin", action="store_true", help="pin the process to one CPU core")
     ap.add_argument("--model", type=Path, default=None, help="PilotNet model (default data/models/pilotnet.pt)")
-    ap.add_argument("--blind-spot", action="store_true",
-                    help="with the mirror-camera look before lane changes (agent.blind_spot; off by default)")
+    ap.add_argument("--no-blind-spot", action="store_true",
+                    help="without the mirror-camera look before lane changes (agent.blind_spot; on by default)")
     args = ap.parse_args(argv)
     cv2.setNumThreads(1)
     if args.pin and hasattr(os, "sched_setaffinity"):
@@ -55,8 +55,8 @@ def main(argv: list[str] | None = None) -> int:
                     "clock": "cpu"}
     if args.model is not None:
         kwargs["model"] = args.model
-    if args.blind_spot:
-        kwargs["blind_spot"] = BlindSpotConfig(enabled=True)
+    if args.no_blind_spot:
+        kwargs["blind_spot"] = BlindSpotConfig(enabled=False)
     driver = make_driver("agent", **kwargs)
     env = DriveEnv(config, render_mode="rgb_array")
     obs, _ = env.reset(seed=args.seed)

@@ -52,15 +52,21 @@ def test_a_vehicle_in_the_zone_holds_the_change_for_a_while(spot: BlindSpot) -> 
     assert not spot.holding(0.0, "right")
     people = Detection(mirror_box(spot, "right", -4.0, 3.5).box, CLASSES.index("pedestrian"), 0.9)
     assert spot.update(0.1, "right", [people]) == []
-    found = spot.update(0.2, "right", [mirror_box(spot, "right", -6.0, 3.5)])
-    assert len(found) == 1
+    found = spot.update(0.2, "right", [mirror_box(spot, "right", -2.0, 3.5)])  # alongside: held 3 s, eased off
+    assert len(found) == 1 and spot.alongside("right")
     assert spot.holding(0.3, "right") and not spot.holding(0.3, "left")
     assert spot.holding(0.2 + spot.config.memory_s - 0.05, "right")
     assert not spot.holding(0.2 + spot.config.memory_s + 0.05, "right")
+    spot.update(5.0, "right", [mirror_box(spot, "right", -5.0, 3.5)])  # following 2.7 m behind our rear: held 1 s
+    assert not spot.alongside("right")
+    assert spot.holding(5.0 + spot.config.behind_memory_s - 0.05, "right")
+    assert not spot.holding(5.0 + spot.config.behind_memory_s + 0.05, "right")
+    assert spot.update(7.0, "right", [mirror_box(spot, "right", -9.0, 3.5)]) == []  # farther back: merged in front of
     assert "right blind spot" in spot.reason("right")
-    spot.update(0.4, "left", [])  # each side has its own zone
-    assert spot.holding(0.5, "right") and not spot.holding(0.5, "left")
-    assert not spot.holding(0.5, None)
+    spot.update(7.1, "right", [mirror_box(spot, "right", 0.0, 3.5)])
+    spot.update(7.2, "left", [])  # each side has its own zone
+    assert spot.holding(7.3, "right") and not spot.holding(7.3, "left")
+    assert not spot.holding(7.3, None)
 
 
 def test_looking_through_the_mirror_camera_leaves_the_env_frames_unchanged() -> None:
@@ -96,7 +102,7 @@ def test_agent_looks_in_the_mirrors_and_the_overlay_lights_the_side() -> None:
     env = DriveEnv(DriveConfig())
     try:
         obs, _ = env.reset(seed=3)
-        assert make_driver("agent").config.blind_spot.enabled is False  # off by default (agent.blind_spot)
+        assert make_driver("agent").config.blind_spot.enabled is True  # on by default (agent.blind_spot)
         driver = make_driver("agent", blind_spot=BlindSpotConfig(enabled=True))
         driver.reset(env)
         looks = []
