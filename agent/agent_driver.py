@@ -599,7 +599,8 @@ class AgentDriver:
         elif turn is not None:
             pilot = turn
         lane_range = min(30.0, max((ln.z_range_m[1] for ln in (lanes.left, lanes.right) if ln is not None), default=30.0))
-        caps = ([(self.blind_spot.reason(held), self.config.blind_spot.yield_speed_mps)]
+        held_why = self.blind_spot.reason(held) if held else ""
+        caps = ([(held_why, self.config.blind_spot.yield_speed_mps)]
                 if held and self.blind_spot.alongside(held) else [])  # let it pass; a follower is merged in front of
         scene = Scene(speed, objects, light.state if light else None, light.distance_m if light else None,
                       stop.distance_m if stop is not None else None, centre, max(lane_range, 8.0),
@@ -611,8 +612,8 @@ class AgentDriver:
         elif turn is not None:
             decision.pilot_steer = net_steer
             decision.reason += "; turning along the junction's arc"
-        if held and not decision.reason.startswith("vehicle in the"):
-            decision.reason += f"; {self.blind_spot.reason(held)}"
+        if held and not decision.reason.startswith(held_why):  # the cap did not govern: say why PilotNet followed
+            decision.reason += f"; {held_why}"
         self._note_junction(stop)  # the bar as measured this frame, where the car is this frame
         self._odometry(speed, decision.steer, command)
         lap("control")

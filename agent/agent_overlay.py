@@ -118,7 +118,7 @@ def draw_agent(view: AgentView, birdseye: BirdsEye, scale: int = 2) -> np.ndarra
         if lit:
             tip = np.array([[x, h // 2], [x - sign * 14, h // 2 - 12], [x - sign * 14, h // 2 + 12]], np.int32)
             cv2.fillPoly(out, [tip], BLIND_SPOT_RGB, cv2.LINE_AA)
-        # Warnings: red banners above the steering bar.
+    # Warnings: red banners above the steering bar.
     for k, text in enumerate(view.warnings):
         y = h - 36 - 22 * k
         (tw, th), _ = cv2.getTextSize(text, FONT, 0.5, 1)

@@ -42,9 +42,9 @@ class BlindSpotConfig:
     zone_ahead_m: float = 3.0  # the zone, from the car's centre: this far ahead ...
     zone_behind_m: float = 6.0  # ... to this far behind: a vehicle farther back, or one that follows rather than
     #                              overtakes and falls back there, is merged in front of (it brakes for us)
-    beside_m: float = -3.0  # seen at least this far forward, a vehicle is alongside or about to be
     zone_near_m: float = 1.5  # ... and from this far out from the car's centre line (its side is 0.95 m out)
     zone_far_m: float = 6.0  # ... to this far (the next lane's centre is 3.5 m out)
+    beside_m: float = -3.0  # seen at least this far forward, a vehicle is alongside or about to be
     memory_s: float = 3.0  # a vehicle last seen alongside holds the change this long (it fills the picture there)
     behind_memory_s: float = 1.0  # ... one last seen behind, this long
     yield_speed_mps: float = 5.0  # while one is alongside, cruise no faster (town traffic runs at 8 m/s and passes)

@@ -55,7 +55,7 @@ LIGHT_STATES = ("red", "yellow", "green")
 class ControllerConfig:
     speed_limit_mps: float = 8.0  # cruise speed: the town's limit
     lateral_accel_mps2: float = 2.0  # in a bend, cruise at most sqrt(a / curvature) (the autopilot's comfort)
-    max_accel_mps2: float = 3.0  # gentle acceleration
+    max_accel_mps2: float = 3.0  # acceleration limit: highway-env's IDM a, as the NPCs and the autopilot
     jerk_mps3: float = 4.0  # how fast the acceleration may rise
     comfortable_brake_mps2: float = 3.0  # normal braking limit
     max_brake_mps2: float = 8.0  # the car's full brake, for constraints comfort cannot meet
@@ -365,11 +365,10 @@ class Controller:
         constraints: list[Constraint] = []
         in_path: list[int] = []
         ids: dict[int, int] = {}  # constraint index -> track id
+        caps = list(scene.speed_caps)  # speed limits (reason, m/s): no point to stop at
         if scene.turning and (scene.lane_centre is None or abs(steer) > cfg.junction_turn_steer):
-            constraints.append(Constraint(f"turning at a junction: {cfg.junction_turn_speed_mps:.1f} m/s", math.inf,
-                                          cfg.junction_turn_speed_mps, 0.0, 0.0,
-                                          self._idm(speed, min(target, cfg.junction_turn_speed_mps), None, 0.0, 0.0, 0.0)))
-        for why, cap in scene.speed_caps:
+            caps.insert(0, (f"turning at a junction: {cfg.junction_turn_speed_mps:.1f} m/s", cfg.junction_turn_speed_mps))
+        for why, cap in caps:
             constraints.append(Constraint(why, math.inf, cap, 0.0, 0.0, self._idm(speed, min(target, cap), None, 0.0,
                                                                                  0.0, 0.0)))
         light = self._light_constraint(speed, scene.turning)

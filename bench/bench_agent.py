@@ -3,7 +3,7 @@
     python bench/bench_agent.py                       # 600 frames, town 0 with traffic, detector every frame
     python bench/bench_agent.py --detect-every 2      # detector on every other frame (SORT predicts between)
     python bench/bench_agent.py --stereo              # distances by stereo matching (renders the pair too)
-    python bench/bench_agent.py --no-blind-spot       # without the look in the mirror cameras (renders them)
+    python bench/bench_agent.py --no-blind-spot       # without the look in the mirror cameras (no mirror renders)
 
 The agent drives (closed loop, its own actions), in the default town with its default traffic, at 320x160.
 "Whole loop" is ``env.step`` (simulation and rendering) plus ``driver.act`` (every perception stage and
