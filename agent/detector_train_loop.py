@@ -134,16 +134,22 @@ def giou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def yolo_loss(maps: list[torch.Tensor], targets: list[list[dict[str, np.ndarray]]],
-              strides: tuple[int, ...] = STRIDES, obj_iou: float = 0.0) -> tuple[torch.Tensor, dict]:
+              strides: tuple[int, ...] = STRIDES, obj_iou: float = 0.0,
+              box_l1: float = 0.0) -> tuple[torch.Tensor, dict]:
     """The YOLO loss family over a batch; ``targets[image][level]`` from ``build_targets``.
 
     ``obj_iou`` is YOLOv5's ``gr``: a positive cell's objectness target is ``1 - obj_iou + obj_iou * IoU``
     of its predicted box (detached), so among the cells that see one object the best-placed box scores highest
     and survives NMS; 0 gives every positive the target 1.
+
+    ``box_l1`` adds the mean absolute error of the four box edges, in cells of the map's stride, with that
+    weight relative to the GIoU term: an unbiased pull on each edge. Under an uncertain centre, 1 - GIoU is
+    smallest for a box wider than the object, which costs the narrowest objects (pedestrians 2-3 px wide)
+    IoU 0.5.
     """
     bce = torch.nn.functional.binary_cross_entropy_with_logits
     nc = len(CLASSES)
-    lbox, lcls, lobj = maps[0].new_zeros(()), maps[0].new_zeros(()), maps[0].new_zeros(())
+    lbox, lcls, lobj, ll1 = (maps[0].new_zeros(()) for _ in range(4))
     n_pos = 0
     for level, (m, s) in enumerate(zip(maps, strides, strict=True)):
         n, ch, gh, gw = m.shape
@@ -163,6 +169,8 @@ def yolo_loss(maps: list[torch.Tensor], targets: list[list[dict[str, np.ndarray]
             pbox = torch.cat([xy - wh / 2, xy + wh / 2], 1)
             iou, g = iou_and_giou(pbox, tbox)
             lbox = lbox + (1 - g).sum()
+            if box_l1:
+                ll1 = ll1 + (pbox - tbox).abs().mean(1).sum() / s
             onehot = torch.nn.functional.one_hot(tcls, nc).float()
             lcls = lcls + bce(p[:, 5:], onehot, reduction="sum") / nc
             if obj_iou:
@@ -173,7 +181,11 @@ def yolo_loss(maps: list[torch.Tensor], targets: list[list[dict[str, np.ndarray]
         lobj = lobj + OBJ_BALANCE[s] * (bce(t[..., 4], obj_target, reduction="none") * weight).mean()
     n_pos = max(n_pos, 1)
     parts = {"box": lbox / n_pos, "obj": lobj, "cls": lcls / n_pos}
-    total = sum(LOSS_WEIGHTS[k] * v for k, v in parts.items()) * len(targets)
+    total = sum(LOSS_WEIGHTS[k] * v for k, v in parts.items())
+    if box_l1:
+        parts["l1"] = ll1 / n_pos
+        total = total + box_l1 * LOSS_WEIGHTS["box"] * parts["l1"]
+    total = total * len(targets)
     return total, {k: float(v.detach()) for k, v in parts.items()}
 
 
@@ -256,6 +268,7 @@ def train(args: argparse.Namespace) -> int:
     model = Detector(DetectorConfig(width=getattr(args, "width", 32), strides=strides,
                                     s4_blocks=getattr(args, "s4_blocks", 0)))
     obj_iou, scale_prob = getattr(args, "obj_iou", 0.0), getattr(args, "scale_prob", 1.0)
+    box_l1 = getattr(args, "box_l1", 0.0)
     if getattr(args, "init", ""):
         if args.resume:
             raise ValueError("Pass --resume or --init, not both.")
@@ -304,7 +317,7 @@ def train(args: argparse.Namespace) -> int:
             for g in opt.param_groups:
                 g["lr"] = lr
             x, tgs = make_batch(train_x, train_s, order[b * args.batch:(b + 1) * args.batch], rng, strides, scale_prob)
-            loss, parts = yolo_loss(model(x), tgs, strides, obj_iou)
+            loss, parts = yolo_loss(model(x), tgs, strides, obj_iou, box_l1)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)

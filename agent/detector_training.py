@@ -56,6 +56,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    "(unlike --resume, the model may have more layers, e.g. --s4-blocks)")
     p.add_argument("--obj-iou", type=float, default=0.0,
                    help="objectness target of a positive: 1 - g + g * IoU of its box (YOLOv5's gr); 0: always 1")
+    p.add_argument("--box-l1", type=float, default=0.0,
+                   help="weight of an L1 loss on the box edges in cells of their stride, added to GIoU (0: off); "
+                   "GIoU alone lets a 2-3 px wide pedestrian's box grow wide when its centre is uncertain")
     p.add_argument("--save-epochs", action="store_true",
                    help="also save every epoch's EMA weights next to --out (NAME.eN.pt), to choose by another val figure")
     p.add_argument("--scale-prob", type=float, default=1.0,

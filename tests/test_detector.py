@@ -193,6 +193,34 @@ def test_iou_aware_objectness_and_pixel_exact_shifts():
         assert ok.all() and np.allclose(b[0, 2:] - b[0, :2], (3, 12)) and np.allclose(b, np.round(b))
 
 
+def test_box_l1_pulls_a_too_wide_box_to_the_object_width():
+    """With the L1 edge term, the loss's gradient narrows a box 1.5x too wide for a 2 px pedestrian; off (0), the
+    loss is exactly GIoU's."""
+    torch.manual_seed(0)
+    model = Detector(DetectorConfig(width=8, strides=(4, 8, 16)))
+    tg = [build_targets(np.array([[100, 60, 102, 70]], np.float32), np.array([2]), np.array([False]), (4, 8, 16))]
+    maps = [m.detach().clone() for m in model(torch.rand(1, 3, 160, 320))]
+    pos = tg[0][0]["pos"]
+    gx = torch.from_numpy(pos % 80).float()
+    with torch.no_grad():  # stride-4 positives: boxes centred on the object, 3 px wide (1.5x), 10 px tall
+        flat = maps[0].view(1, maps[0].shape[1], -1)
+        flat[0, 0, pos] = torch.logit(((101.0 / 4 - gx + 0.5) / 2).clamp(0.01, 0.99))
+        flat[0, 1, pos] = 0.0  # centre y in the middle of the cell's row
+        flat[0, 2, pos] = float(np.log(3.0 / 4))
+        flat[0, 3, pos] = float(np.log(10.0 / 4))
+    maps[0].requires_grad_(True)
+    base, parts = yolo_loss(maps, tg, (4, 8, 16))
+    again, _ = yolo_loss(maps, tg, (4, 8, 16), box_l1=0.0)
+    assert torch.equal(base, again) and "l1" not in parts
+    loss, parts = yolo_loss(maps, tg, (4, 8, 16), box_l1=4.0)
+    assert loss > base and parts["l1"] > 0
+    (grad_plain,) = torch.autograd.grad(base, maps[0])
+    (grad_l1,) = torch.autograd.grad(loss, maps[0])
+    w_plain = grad_plain.view(1, grad_plain.shape[1], -1)[0, 2, pos]
+    w_l1 = grad_l1.view(1, grad_l1.shape[1], -1)[0, 2, pos]
+    assert (w_l1 > w_plain).all()  # a stronger push to shrink the width (gradient descent lowers log-width)
+
+
 def test_overlay_draws_boxes_labels_ids_and_distances():
     frame = np.zeros((160, 320, 3), np.uint8)
     dets = [Detection((100, 60, 160, 100), 0, 0.9), Detection((10, 10, 20, 40), 3, 0.8)]
