@@ -124,7 +124,7 @@ class Track:
     hits: int
     age: int  # frames since the track started
     time_since_update: int
-    label: int = -1  # class of the last matched detection (-1: unknown)
+    label: int = -1  # the class most of its matched detections had, ties to the latest (-1: unknown)
 
 
 class _State:
@@ -137,6 +137,15 @@ class _State:
         self.age = 0
         self.time_since_update = 0
         self.label = label
+        self.votes: dict[int, int] = {label: 1}
+
+    def vote(self, label: int) -> None:
+        """Count one more detection of ``label``. The track's class is the one seen most often (ties: the
+        latest), so a detector that calls a person beside a truck "truck" for a few frames does not turn a
+        pedestrian tracked for seconds into a vehicle, to which a driver's pedestrian rules no longer apply."""
+        self.votes[label] = self.votes.get(label, 0) + 1
+        if self.votes[label] >= self.votes.get(self.label, 0):
+            self.label = label
 
 
 # --------------------------------------------------------------------------- SORT
@@ -190,7 +199,7 @@ class Sort:
             tr.time_since_update = 0
             tr.hits += 1
             tr.hit_streak += 1
-            tr.label = int(labs[d])
+            tr.vote(int(labs[d]))
             matched_tracks.add(t)
         for t, tr in enumerate(self._tracks):
             if t not in matched_tracks:
