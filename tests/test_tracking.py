@@ -76,20 +76,21 @@ def test_sort_deletes_lost_tracks_and_waits_for_min_hits() -> None:
 
 
 def test_a_track_keeps_the_class_most_of_its_detections_had() -> None:
-    """A pedestrian tracked for 10 frames and then called a truck (2) for 3 stays a pedestrian (1); a truck
+    """A pedestrian (class 2) tracked for 10 frames and then called a truck (1) for 3 stays a pedestrian; a truck
     seen as a truck for longer than it was a pedestrian becomes one; a new track takes its first label."""
     sort = Sort(SortConfig(max_age=3, min_hits=1))
     box = np.array([[100, 50, 110, 80]], float)
-    labels = [1] * 10 + [2] * 3
+    labels = [2] * 10 + [1] * 3
     for lab in labels:
         (track,) = sort.update(box, np.array([lab]))
-    assert track.label == 1
+    assert track.label == 2
     for _ in range(8):
-        (track,) = sort.update(box, np.array([2]))
-    assert track.label == 2  # 11 truck votes against 10
+        (track,) = sort.update(box, np.array([1]))
+    assert track.label == 1  # 11 truck votes against 10
     other = Sort(SortConfig(min_hits=1))
     (first,) = other.update(box, np.array([0]))
     assert first.label == 0
+
 
 def test_skip_tracker_runs_the_detector_every_k_frames() -> None:
     frames = moving_boxes(20)
