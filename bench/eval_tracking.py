@@ -236,9 +236,11 @@ def _with_detector(path: Path, sequences, config: SortConfig, mh) -> None:
     except Exception as exc:  # the detector is someone else's work; say why it could not be used
         print(f"trained detector: cannot load {path} ({exc}); skipped")
         return
-    log = path.with_name(path.stem + ".log.jsonl")
-    if log.exists():
-        print(f"trained detector {path}: last log line {log.read_text().strip().splitlines()[-1][:160]}")
+    import torch
+
+    # The checkpoint's own record: a log file beside it may belong to an earlier run of the same name.
+    meta = torch.load(path, map_location="cpu", weights_only=False)
+    print(f"trained detector {path}: epoch {meta.get('epoch')}, val mAP@0.5 {meta.get('val_map50', float('nan')):.3f}")
     movers = {"car", "truck", "pedestrian"}
 
     def boxes_of(image: np.ndarray) -> np.ndarray:
