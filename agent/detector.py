@@ -57,6 +57,7 @@ class DetectorConfig:
     num_classes: int = len(CLASSES)
     strides: tuple[int, ...] = STRIDES  # (8, 16), or (4, 8, 16) with a head on the stride-4 map for small objects
     s4_blocks: int = 0  # residual blocks on the stride-4 path before its head (0: the first stride-4 model)
+    s4_pixels: bool = False  # add the raw pixels of each 4x4 cell (space-to-depth, 1x1 conv) to the stride-4 path
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "strides", tuple(int(s) for s in self.strides))
@@ -64,6 +65,8 @@ class DetectorConfig:
             raise ValueError(f"Detector strides must be (8, 16) or (4, 8, 16), not {self.strides}.")
         if self.s4_blocks and 4 not in self.strides:
             raise ValueError("s4_blocks needs the stride-4 head (strides 4, 8, 16).")
+        if self.s4_pixels and 4 not in self.strides:
+            raise ValueError("s4_pixels needs the stride-4 head (strides 4, 8, 16).")
 
 
 class Detector(nn.Module):
@@ -89,6 +92,10 @@ class Detector(nn.Module):
             # Optional depth at stride 4: f4 is only two convs from the pixels, and p8 arrives upsampled
             # (constant over 2x2), so a 3 px pedestrian's edges are placed by very shallow features.
             self.refine4 = nn.Sequential(*(Residual(c) for _ in range(self.config.s4_blocks)))
+            if self.config.s4_pixels:
+                # The 48 pixel values of each 4x4 cell, projected: which of a cell's four columns a 2 px wide
+                # pedestrian fills is what IoU 0.5 needs, and two strided convs blur it (YOLOv5's "Focus" idea).
+                self.pixels4 = nn.Sequential(nn.PixelUnshuffle(4), nn.Conv2d(48, c, 1, bias=False), nn.BatchNorm2d(c))
             self.head4 = nn.Conv2d(c, 5 + nc, 1)
         self._init_bias()
 
@@ -98,10 +105,13 @@ class Detector(nn.Module):
 
     def _init_bias(self) -> None:
         """Objectness starts near 0.01 and classes near 0.05 (RetinaNet's prior), so early losses are sane.
-        The stride-4 refinement blocks start as the identity (last BN's scale 0), so weights of a model
-        without them (``train.py detector train --init``) give the same outputs before training."""
+        The stride-4 refinement blocks start as the identity (last BN's scale 0) and the pixel projection as
+        zero, so weights of a model without them (``train.py detector train --init``) give the same outputs
+        before training."""
         for block in getattr(self, "refine4", []):
             nn.init.zeros_(block.body[-1].weight)
+        if hasattr(self, "pixels4"):
+            nn.init.zeros_(self.pixels4[-1].weight)
         for head in self.heads():
             with torch.no_grad():
                 head.bias.zero_()
@@ -115,7 +125,10 @@ class Detector(nn.Module):
         p8 = self.fuse8(torch.cat([f8, self.up(self.lateral(f16))], 1))
         out = [self.head8(p8), self.head16(f16)]
         if 4 in self.config.strides:
-            p4 = self.refine4(self.fuse4(f4 + self.up(self.lateral4(p8))))
+            p4 = self.fuse4(f4 + self.up(self.lateral4(p8)))
+            if self.config.s4_pixels:
+                p4 = p4 + self.pixels4(x)
+            p4 = self.refine4(p4)
             out.insert(0, self.head4(p4))
         return out
 

@@ -250,6 +250,8 @@ def save_checkpoint(path: Path, model: Detector, meta: dict) -> None:
     config = {"width": model.config.width, "num_classes": model.config.num_classes, "strides": list(model.config.strides)}
     if model.config.s4_blocks:  # only when used, so older readers still load the models without them
         config["s4_blocks"] = model.config.s4_blocks
+    if model.config.s4_pixels:
+        config["s4_pixels"] = True
     torch.save({"state_dict": state, "config": config,
                 "classes": CLASSES, "input_hw": INPUT_HW, **meta}, tmp)
     tmp.replace(path)
@@ -266,7 +268,8 @@ def train(args: argparse.Namespace) -> int:
     train_x, val_x = load_images(train_s, "train"), load_images(val_s, "val")
     strides = tuple(int(v) for v in str(getattr(args, "strides", "8,16")).split(","))
     model = Detector(DetectorConfig(width=getattr(args, "width", 32), strides=strides,
-                                    s4_blocks=getattr(args, "s4_blocks", 0)))
+                                    s4_blocks=getattr(args, "s4_blocks", 0),
+                                    s4_pixels=getattr(args, "s4_pixels", False)))
     obj_iou, scale_prob = getattr(args, "obj_iou", 0.0), getattr(args, "scale_prob", 1.0)
     box_l1 = getattr(args, "box_l1", 0.0)
     if getattr(args, "init", ""):
@@ -284,10 +287,12 @@ def train(args: argparse.Namespace) -> int:
         ckpt = torch.load(args.resume, map_location="cpu", weights_only=False)
         cfg = ckpt.get("config", {})
         if (tuple(cfg.get("strides", STRIDES)) != strides or cfg.get("width", 32) != model.config.width
-                or cfg.get("s4_blocks", 0) != model.config.s4_blocks):
+                or cfg.get("s4_blocks", 0) != model.config.s4_blocks
+                or cfg.get("s4_pixels", False) != model.config.s4_pixels):
             raise ValueError(f"--resume {args.resume} has strides {tuple(cfg.get('strides', STRIDES))}, width "
-                             f"{cfg.get('width', 32)} and s4_blocks {cfg.get('s4_blocks', 0)}; pass the same "
-                             "--strides, --width and --s4-blocks (or --init to warm-start a different shape).")
+                             f"{cfg.get('width', 32)}, s4_blocks {cfg.get('s4_blocks', 0)} and s4_pixels "
+                             f"{cfg.get('s4_pixels', False)}; pass the same --strides, --width, --s4-blocks and "
+                             "--s4-pixels (or --init to warm-start a different shape).")
         model.load_state_dict(ckpt["state_dict"])
     ema = EMA(model)
     decay, no_decay = [], []

@@ -52,6 +52,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--strides", default="4,8,16", help="head strides: 4,8,16 (the shipped model) or 8,16 (no stride-4 head)")
     p.add_argument("--width", type=int, default=32, help="backbone channels at stride 4 (doubled at each stride)")
     p.add_argument("--s4-blocks", type=int, default=0, help="residual blocks on the stride-4 path before its head")
+    p.add_argument("--s4-pixels", action="store_true",
+                   help="add each 4x4 cell's raw pixels (space-to-depth, 1x1 conv) to the stride-4 path")
     p.add_argument("--init", default="", help="warm start: this checkpoint's weights where names and shapes match "
                    "(unlike --resume, the model may have more layers, e.g. --s4-blocks)")
     p.add_argument("--obj-iou", type=float, default=0.0,

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from torch import nn
 
 from agent.autolabel import CLASSES, render_and_label
 from agent.detector import (
@@ -172,6 +173,33 @@ def test_stride_4_refinement_blocks_start_as_the_identity_and_export(tmp_path):
     assert export_detector(tmp_path / "b2.pt", tmp_path / "b2.onnx") < 1e-4
     with pytest.raises(ValueError, match="s4_blocks"):
         DetectorConfig(strides=(8, 16), s4_blocks=1)
+
+
+def test_stride_4_pixel_projection_starts_at_zero_and_sees_single_pixel_columns(tmp_path):
+    from agent.detector import export_detector, load_detector
+    from agent.detector_train_loop import save_checkpoint
+
+    torch.manual_seed(3)
+    blocks = Detector(DetectorConfig(strides=(4, 8, 16), s4_blocks=2)).eval()
+    pixels = Detector(DetectorConfig(strides=(4, 8, 16), s4_blocks=2, s4_pixels=True)).eval()
+    own = pixels.state_dict()
+    missing, _ = pixels.load_state_dict({k: v for k, v in blocks.state_dict().items() if k in own}, strict=False)
+    assert missing and all(k.startswith("pixels4.") for k in missing)
+    x = torch.rand(1, 3, 160, 320)
+    with torch.no_grad():
+        assert all(torch.equal(a, b) for a, b in zip(blocks(x), pixels(x), strict=True))
+        # A dark stripe 2 px wide in column 0-1 or 1-2 of the same 4x4 cell: the projection tells them apart.
+        nn.init.normal_(pixels.pixels4[-1].weight)
+        a, b = torch.ones(1, 3, 160, 320), torch.ones(1, 3, 160, 320)
+        a[..., 40:44, 80:82] = 0.0
+        b[..., 40:44, 81:83] = 0.0
+        pa, pb = pixels.pixels4(a)[0, :, 10, 20], pixels.pixels4(b)[0, :, 10, 20]
+        assert not torch.allclose(pa, pb)
+    save_checkpoint(tmp_path / "px.pt", pixels, {})
+    assert load_detector(tmp_path / "px.pt").config.s4_pixels
+    assert export_detector(tmp_path / "px.pt", tmp_path / "px.onnx") < 1e-4
+    with pytest.raises(ValueError, match="s4_pixels"):
+        DetectorConfig(strides=(8, 16), s4_pixels=True)
 
 
 def test_iou_aware_objectness_and_pixel_exact_shifts():
