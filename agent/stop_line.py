@@ -41,6 +41,8 @@ class StopLineConfig:
     #                            unless the bar continues one tracked from frames that had a lane (see detect)
     track_frames: int = 10  # frames a tracked bar may go unseen before it is forgotten
     beyond_lane_m: float = 6.0  # the bar may lie at most this far past the end of the detected lane lines
+    own_lane_margin_m: float = 0.6  # a left line this far right of the camera, or a right line this far left of
+    #                                 it, bounds another lane (see detect), not the corridor of our bar
 
 
 @dataclass
@@ -75,6 +77,11 @@ class StopLineDetector:
         del bev  # the bar is found in the camera image (see the module docstring)
         cfg = self.config
         have_lane = lanes is not None and lanes.detected
+        if have_lane and lanes is not None and not self._holds_car(lanes):
+            # Not the lane the car is in: at night the lane detector can lock onto the oncoming lane across the
+            # centre line (seed 509), where no bar of ours is painted and the zebra beyond the junction's near
+            # side, which spans the road, fills the corridor enough to pass for one (2.4 m too far).
+            lanes, have_lane = None, False
         following = self._track_m is not None and self._unseen <= cfg.track_frames
         # A new bar needs both lines of the lane (a lone line is often a kerb or a zebra's edge in a turn).
         both_lines = have_lane and lanes is not None and lanes.left is not None and lanes.right is not None
@@ -93,6 +100,13 @@ class StopLineDetector:
             return None
         self._track_m, self._unseen = found.distance_m, 0
         return found
+
+    def _holds_car(self, lanes: LaneResult) -> bool:
+        """Whether the detected lines bound the lane the camera is in (within the margin, for lane changes).
+        ``LaneResult.offset_m`` cannot tell: it is the offset in whichever lane holds the car."""
+        m = self.config.own_lane_margin_m
+        return ((lanes.left is None or float(lanes.left.x_at(0.0)) <= m)
+                and (lanes.right is None or float(lanes.right.x_at(0.0)) >= -m))
 
     def _find(self, rgb: np.ndarray, lanes: LaneResult | None) -> StopLine | None:
         cfg, be = self.config, self.birdseye

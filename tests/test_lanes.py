@@ -3,6 +3,7 @@ synthetic roads whose lines are placed in metres (so the expected offset and rad
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cv2
@@ -124,6 +125,19 @@ def test_stop_line_distance(distance_m: float) -> None:
     assert line is not None
     assert abs(line.distance_m - distance_m) < 0.5
     assert StopLineDetector(CAM).detect(synthetic_road([(0, 0, -1.75), (0, 0, 1.75)]), lanes) is None
+
+
+def test_stop_line_needs_the_lane_the_car_is_in() -> None:
+    """Lines that bound a lane beside the car (the oncoming one, locked onto at night) give no corridor for a bar,
+    even where that corridor would find one (here it still overlaps the painted bar)."""
+    img = synthetic_road([(0, 0, -1.75), (0, 0, 1.75)], stop_at_m=9.0)
+    lanes = LaneDetector(CAM).detect(img)
+    assert StopLineDetector(CAM).detect(img, lanes) is not None
+    assert lanes.left is not None and lanes.right is not None
+    over = np.array([0.0, 0.0, 2.5])  # both lines 2.5 m to the left: the right one 0.75 m left of the camera
+    beside = dataclasses.replace(lanes, left=dataclasses.replace(lanes.left, coeffs=lanes.left.coeffs - over),
+                                 right=dataclasses.replace(lanes.right, coeffs=lanes.right.coeffs - over))
+    assert StopLineDetector(CAM).detect(img, beside) is None
 
 
 def test_tusimple_metric() -> None:
