@@ -74,7 +74,6 @@ def test_sort_deletes_lost_tracks_and_waits_for_min_hits() -> None:
     assert counts == [0, 0, 1, 1]
 
 
-
 def test_a_track_keeps_the_class_most_of_its_detections_had() -> None:
     """A pedestrian (class 2) tracked for 10 frames and then called a truck (1) for 3 stays a pedestrian; a truck
     seen as a truck for longer than it was a pedestrian becomes one; a new track takes its first label."""
