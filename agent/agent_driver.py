@@ -6,7 +6,8 @@ environment renders it), its own speed and the route command. Each frame:
 1. **PilotNet** proposes the steering (``agent.pilotnet_driver.PilotNetModel``). Going straight through a
    junction, where there are no lines and PilotNet drifts, the car instead holds the approach lane's heading
    and its place across it, both measured from the lane fit before the stop line and dead-reckoned since.
-2. **Detector** (YOLO-style, ONNX Runtime) every ``detect_every`` frames; **SORT** tracks vehicles and
+2. **Detector** (YOLO-style, ONNX Runtime, then the pedestrian refiner of agent/ped_refiner.py) every
+   ``detect_every`` frames; **SORT** tracks vehicles and
    pedestrians (Kalman predictions on the frames in between); traffic lights are taken from the latest
    detections: the nearest light box hanging within ``light_max_lateral_m`` of the lane the car came along
    (its heading change since it began to turn is dead-reckoned from its own speed and steering) is ours.
@@ -59,6 +60,7 @@ if TYPE_CHECKING:
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DETECTOR = ROOT / "data" / "models" / "detector.onnx"
+DEFAULT_REFINER = ROOT / "data" / "models" / "ped_refiner.onnx"
 # Size priors (metres): typical heights, which unlike widths do not change with the viewing angle.
 HEIGHT_PRIOR_M = {"car": 1.5, "truck": 2.8, "pedestrian": 1.75}
 # The least depth a vehicle shows, whatever its yaw: its width (depth = L|sin| + W|cos| >= W). A vehicle wholly
@@ -227,7 +229,8 @@ class AgentDriver:
     privileged = False
 
     def __init__(self, model: str | Path = DEFAULT_MODEL, detector: str | Path = DEFAULT_DETECTOR,
-                 backend: str = "onnx", config: AgentConfig | None = None, threads: int = 1, **overrides: Any) -> None:
+                 backend: str = "onnx", config: AgentConfig | None = None, threads: int = 1,
+                 refiner: str | Path | None = DEFAULT_REFINER, **overrides: Any) -> None:
         from dataclasses import replace
 
         self.config = replace(config or AgentConfig(), **overrides) if overrides else (config or AgentConfig())
@@ -242,7 +245,7 @@ class AgentDriver:
         if not Path(detector).is_file():
             raise FileNotFoundError(f"Detector model {detector} not found; train and export one with "
                                     "`python train.py detector train` and `python train.py detector export`.")
-        self.detector = OnnxDetector(detector, self.config.score_threshold, threads=threads)
+        self.detector = OnnxDetector(detector, self.config.score_threshold, threads=threads, refiner=refiner)
         self.controller = Controller(self.config.controller, EgoVehicle.MAX_ACCEL_MPS2, EgoVehicle.MAX_BRAKE_MPS2)
         self.adas = Adas(self.config.adas)
         self.sort = Sort(self.config.sort)

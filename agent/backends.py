@@ -24,6 +24,7 @@ import numpy as np
 
 if TYPE_CHECKING:
     from agent.detector import Detection
+    from agent.ped_refiner import Refine
     from agent.profiles import Profile
 
 DETECTOR_INPUTS = ("image",)
@@ -247,10 +248,12 @@ class DetectorRunner:
     """Frames in, detections out (as ``OnnxDetector``), on any backend and at the profile's input size:
     a frame of another size is resized to it, and the boxes are scaled back to the frame's pixels."""
 
-    def __init__(self, backend: Backend, input_size: tuple[int, int] = (320, 160), score_threshold: float = 0.3) -> None:
+    def __init__(self, backend: Backend, input_size: tuple[int, int] = (320, 160), score_threshold: float = 0.3,
+                 refine: Refine | None = None) -> None:
         self.backend = backend
         self.input_size = input_size
         self.score_threshold = score_threshold
+        self.refine = refine  # the pedestrian refiner (agent/ped_refiner.py), on the frame's pixels
 
     def inputs(self, rgb: np.ndarray) -> dict[str, np.ndarray]:
         return detector_feeds(rgb, self.input_size)
@@ -265,9 +268,9 @@ class DetectorRunner:
         return pred
 
     def __call__(self, rgb: np.ndarray) -> list[Detection]:
-        from agent.detector import postprocess
+        from agent.detector import detect_and_refine
 
-        return postprocess(self.raw(rgb), self.score_threshold)
+        return detect_and_refine(self.raw(rgb), rgb, self.score_threshold, self.refine)
 
 
 def open_pilotnet(profile: Profile) -> PilotNetRunner:
@@ -276,4 +279,13 @@ def open_pilotnet(profile: Profile) -> PilotNetRunner:
 
 
 def open_detector(profile: Profile, score_threshold: float = 0.3) -> DetectorRunner:
-    return DetectorRunner(open_backend(profile, "detector"), profile.models["detector"].input_size, score_threshold)
+    """The profile's detector, followed by the shipped pedestrian refiner unless ``modules.refiner`` is disabled
+    (the refiner is small and runs on ONNX Runtime's CPU provider whatever the detector's backend)."""
+    refine = None
+    if profile.every("refiner"):
+        from agent.ped_refiner import DEFAULT_REFINER_ONNX, onnx_refine
+        from agent.profiles import resolve
+
+        refine = onnx_refine(resolve(DEFAULT_REFINER_ONNX), threads=1)
+    return DetectorRunner(open_backend(profile, "detector"), profile.models["detector"].input_size, score_threshold,
+                          refine)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -27,6 +28,9 @@ from torch import nn
 
 from agent.autolabel import CLASSES
 from agent.tracking import iou_matrix as box_iou  # one IoU for NMS, evaluation and tracking
+
+if TYPE_CHECKING:
+    from agent.ped_refiner import Refine
 
 STRIDES = (8, 16)  # the default (and every checkpoint without "strides" in its config); (4, 8, 16) adds a stride-4 head
 INPUT_HW = (160, 320)
@@ -242,37 +246,54 @@ def load_detector(path: str | Path) -> Detector:
     return model.eval()
 
 
-class TorchDetector:
-    """Frames in, detections out, with torch."""
+def detect_and_refine(raw: np.ndarray, rgb: np.ndarray, score_threshold: float,
+                      refine: Refine | None) -> list[Detection]:
+    """Post-processing, then the pedestrian refiner if there is one (it sees candidates down to its own
+    threshold, since its re-scoring can lift a pedestrian the detector alone scored too low)."""
+    if refine is None:
+        return postprocess(raw, score_threshold)
+    low = min(score_threshold, refine.config.lowest_candidate(score_threshold))
+    return refine(rgb, postprocess(raw, low), score_threshold)
 
-    def __init__(self, path: str | Path = "data/models/detector.pt", score_threshold: float = 0.3) -> None:
+
+class TorchDetector:
+    """Frames in, detections out, with torch; ``refiner``: a pedestrian refiner checkpoint (agent/ped_refiner.py)."""
+
+    def __init__(self, path: str | Path = "data/models/detector.pt", score_threshold: float = 0.3,
+                 refiner: str | Path | None = None) -> None:
+        from agent.ped_refiner import torch_refine
+
         self.model = DecodedDetector(load_detector(path)).eval()
         self.score_threshold = score_threshold
+        self.refine = torch_refine(refiner) if refiner else None
 
     def raw(self, rgb: np.ndarray) -> np.ndarray:
         with torch.no_grad():
             return self.model(torch.from_numpy(to_input(rgb)))[0].numpy()
 
     def __call__(self, rgb: np.ndarray) -> list[Detection]:
-        return postprocess(self.raw(rgb), self.score_threshold)
+        return detect_and_refine(self.raw(rgb), rgb, self.score_threshold, self.refine)
 
 
 class OnnxDetector:
-    """Frames in, detections out, through ONNX Runtime (the deployment path)."""
+    """Frames in, detections out, through ONNX Runtime (the deployment path); ``refiner``: an exported
+    pedestrian refiner (.onnx), run after the detector."""
 
     def __init__(self, path: str | Path = "data/models/detector.onnx", score_threshold: float = 0.3,
-                 threads: int = 0) -> None:
+                 threads: int = 0, refiner: str | Path | None = None) -> None:
         from agent.onnx_export import onnx_session
+        from agent.ped_refiner import onnx_refine
 
         self.session = onnx_session(path, threads)
         self.input_name = self.session.get_inputs()[0].name
         self.score_threshold = score_threshold
+        self.refine = onnx_refine(refiner, threads) if refiner else None
 
     def raw(self, rgb: np.ndarray) -> np.ndarray:
         return self.session.run(None, {self.input_name: to_input(rgb)})[0][0]
 
     def __call__(self, rgb: np.ndarray) -> list[Detection]:
-        return postprocess(self.raw(rgb), self.score_threshold)
+        return detect_and_refine(self.raw(rgb), rgb, self.score_threshold, self.refine)
 
 
 def export_detector(checkpoint: str | Path, out: str | Path, tolerance: float = 1e-4) -> float:

@@ -228,6 +228,17 @@ def light_state_report(samples: list[Sample], detections: list[list[Detection]],
 
 
 # --------------------------------------------------------------------------- command
+def resolve_refiner(choice: str, model: str) -> str | None:
+    """``auto``: the shipped pedestrian refiner in the model's format, if it is there; ``none``: no refiner."""
+    if choice == "none":
+        return None
+    if choice == "auto":
+        models = Path(__file__).resolve().parents[1] / "data" / "models"
+        path = models / ("ped_refiner.onnx" if model.endswith(".onnx") else "ped_refiner.pt")
+        return str(path) if path.is_file() else None
+    return choice
+
+
 def evaluate_command(args: argparse.Namespace) -> int:
     """``train.py detector evaluate``: print and save the full report for a .pt or .onnx model."""
     from agent.detector import OnnxDetector, TorchDetector
@@ -237,10 +248,12 @@ def evaluate_command(args: argparse.Namespace) -> int:
     # Low score threshold for AP (the whole precision-recall curve); the light-state report uses the
     # operating threshold the driving stack uses.
     make = OnnxDetector if model.endswith(".onnx") else TorchDetector
-    det_ap = make(model, score_threshold=0.01)
+    refiner = resolve_refiner(getattr(args, "refiner", "none"), model)
+    det_ap = make(model, score_threshold=0.01, refiner=refiner)
     images = [read_rgb(s.image) for s in tqdm(samples, desc="load", unit="frame", leave=False)]
     dets = predict(samples, det_ap, images=images)
-    report = {"model": model, "split": args.split, "frames": len(samples), "detection": detection_report(samples, dets)}
+    report = {"model": model, "refiner": refiner, "split": args.split, "frames": len(samples),
+              "detection": detection_report(samples, dets)}
     op = 0.3
     dets_op = [[d for d in ds if d.score >= op] for ds in dets]
     report["light_state"] = light_state_report(samples, dets_op, images)
@@ -254,7 +267,8 @@ def evaluate_command(args: argparse.Namespace) -> int:
 
 def print_report(report: dict) -> None:
     det = report["detection"]
-    print(f"{report['model']} on {report['split']} ({report['frames']} frames)")
+    refiner = f" + {report['refiner']}" if report.get("refiner") else " (no pedestrian refiner)"
+    print(f"{report['model']}{refiner} on {report['split']} ({report['frames']} frames)")
     print(f"{'class':<14}{'GT':>6}{'AP@0.5':>9}{'AP@.5:.95':>11}")
     for name, v in det["per_class"].items():
         print(f"{name:<14}{v['gt']:>6}{v['ap50']:>9.3f}{v['ap50_95']:>11.3f}")

@@ -4,6 +4,7 @@ Actions, in the order a new user runs them:
 
   dataset   drive the autopilot through many towns and weathers and write YOLO-layout labelled frames
   train     train the YOLO-style detector (agent/detector.py), keep the best checkpoint by val mAP@0.5
+  refiner   train the pedestrian refiner (agent/ped_refiner.py) on the trained detector's candidates
   evaluate  per-class AP@0.5 and AP@0.5:0.95 on the held-out towns, cars/pedestrians within 40 m,
             traffic-light state against the HSV baseline, accuracy against distance
   export    write the ONNX model, check it against torch, run it through ONNX Runtime
@@ -20,10 +21,12 @@ from pathlib import Path
 DEFAULT_DATA = "data/datasets/detector"
 DEFAULT_CKPT = "data/models/detector.pt"
 DEFAULT_ONNX = "data/models/detector.onnx"
+DEFAULT_REFINER = "data/models/ped_refiner.pt"
+DEFAULT_REFINER_ONNX = "data/models/ped_refiner.onnx"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    sub = parser.add_subparsers(dest="action", required=True, metavar="{dataset,train,evaluate,export,sheet}")
+    sub = parser.add_subparsers(dest="action", required=True, metavar="{dataset,train,refiner,evaluate,export,sheet}")
     p = sub.add_parser("dataset", help="generate the auto-labelled YOLO dataset")
     p.add_argument("--out", default=DEFAULT_DATA, help="dataset root (images/, labels/, dataset.yaml)")
     p.add_argument("--train-frames", type=int, default=6000)
@@ -66,26 +69,44 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--scale-prob", type=float, default=1.0,
                    help="share of training frames rescaled (0.75-1.3x); the rest are shifted by whole pixels")
 
+    p = sub.add_parser("refiner", help="train the second-stage pedestrian refiner on the detector's candidates")
+    p.add_argument("--data", default=DEFAULT_DATA)
+    p.add_argument("--detector", default=DEFAULT_CKPT, help="the trained detector whose candidates it refines")
+    p.add_argument("--train-splits", default="train,train_peds,train_peds2")
+    p.add_argument("--out", default=DEFAULT_REFINER, help="best checkpoint (by val pedestrian AP@0.5 within 40 m)")
+    p.add_argument("--epochs", type=int, default=6)
+    p.add_argument("--batch", type=int, default=256)
+    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--jitter", type=int, default=2, help="jittered copies of each labelled pedestrian per frame")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+
     p = sub.add_parser("evaluate", help="AP per class, light state vs HSV baseline, on the held-out split")
     p.add_argument("--data", default=DEFAULT_DATA)
     p.add_argument("--model", default=DEFAULT_CKPT, help=".pt checkpoint or .onnx model")
+    p.add_argument("--refiner", default="auto", help="pedestrian refiner: auto (data/models/ped_refiner.pt or .onnx, "
+                   "as the model), a path, or none (the one-stage detector alone)")
     p.add_argument("--split", default="test", help="test: towns 200-209, never used for training or model choice")
     p.add_argument("--report", default="out/detector/eval.json")
 
-    p = sub.add_parser("export", help="export the checkpoint to ONNX with a parity check")
+    p = sub.add_parser("export", help="export the checkpoint (and the refiner) to ONNX with a parity check")
     p.add_argument("--model", default=DEFAULT_CKPT)
     p.add_argument("--out", default=DEFAULT_ONNX)
+    p.add_argument("--refiner", default=DEFAULT_REFINER, help="refiner checkpoint to export too ('none': skip)")
+    p.add_argument("--refiner-out", default=DEFAULT_REFINER_ONNX)
 
     p = sub.add_parser("sheet", help="a sheet of detections on held-out dusk and night frames")
     p.add_argument("--data", default=DEFAULT_DATA)
     p.add_argument("--model", default=DEFAULT_ONNX)
     p.add_argument("--split", default="test")
     p.add_argument("--out", default="docs/detections_sheet.png")
+    p.add_argument("--refiner", default="auto", help="pedestrian refiner: auto, an .onnx path or none")
     p.add_argument("--frames", type=int, default=12)
 
 
 def run(args: argparse.Namespace) -> int:
-    actions = {"dataset": _dataset, "train": _train, "evaluate": _evaluate, "export": _export, "sheet": _sheet}
+    actions = {"dataset": _dataset, "train": _train, "refiner": _refiner, "evaluate": _evaluate, "export": _export,
+               "sheet": _sheet}
     return actions[args.action](args)
 
 
@@ -122,6 +143,12 @@ def _train(args: argparse.Namespace) -> int:
     return train(args)
 
 
+def _refiner(args: argparse.Namespace) -> int:
+    from agent.ped_refiner_training import train_refiner
+
+    return train_refiner(args)
+
+
 def _evaluate(args: argparse.Namespace) -> int:
     from agent.detector_eval import evaluate_command
 
@@ -133,6 +160,11 @@ def _export(args: argparse.Namespace) -> int:
 
     diff = export_detector(args.model, args.out)
     print(f"Wrote {args.out}; largest |ONNX Runtime - torch| difference on the check inputs: {diff:.2e}")
+    if args.refiner != "none":
+        from agent.ped_refiner import export_refiner
+
+        diff = export_refiner(args.refiner, args.refiner_out)
+        print(f"Wrote {args.refiner_out}; largest |ONNX Runtime - torch| difference: {diff:.2e}")
     return 0
 
 
@@ -146,7 +178,9 @@ def _sheet(args: argparse.Namespace) -> int:
     from agent.overlays import draw_detections
 
     samples = load_split(args.data, args.split)
-    detector = OnnxDetector(args.model, score_threshold=0.3)
+    from agent.detector_eval import resolve_refiner
+
+    detector = OnnxDetector(args.model, score_threshold=0.3, refiner=resolve_refiner(args.refiner, args.model))
     tiles = []
     for weather in ("dusk", "night"):
         cand = [(k, s) for k, s in enumerate(samples) if s.weather == weather]

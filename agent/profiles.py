@@ -29,7 +29,7 @@ PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
 BACKENDS = ("torch", "onnxruntime", "tensorrt")
 PRECISIONS = ("fp32", "fp16", "int8")
 MODELS = ("pilotnet", "detector")
-MODULES = ("detector", "lanes", "stop_line", "stereo")
+MODULES = ("detector", "refiner", "lanes", "stop_line", "stereo")
 # The agent driver's stages (agent.agent_driver: distance includes stereo matching, which agent.deploy times
 # apart as "stereo"), plus reading the camera and sending alerts.
 STAGES = ("camera", "pilotnet", "detector", "tracking", "lanes", "stop_line", "stereo", "distance", "control", "adas",
@@ -103,8 +103,9 @@ def _default_models() -> dict[str, ModelProfile]:
 
 
 def _default_modules() -> dict[str, ModuleProfile]:
-    return {"detector": ModuleProfile(), "lanes": ModuleProfile(), "stop_line": ModuleProfile(),
-            "stereo": ModuleProfile(enabled=False)}
+    # refiner: the pedestrian refiner after the detector (data/models/ped_refiner.onnx, ONNX Runtime on the CPU)
+    return {"detector": ModuleProfile(), "refiner": ModuleProfile(), "lanes": ModuleProfile(),
+            "stop_line": ModuleProfile(), "stereo": ModuleProfile(enabled=False)}
 
 
 @dataclass(frozen=True)

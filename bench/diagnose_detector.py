@@ -9,8 +9,8 @@ another of their class means confusion in groups.
 
 Then, per class, AP@0.5 within 40 m by box-height bin (the other bins' objects made ignore regions), by
 weather, and with the smallest bin (< 8 px) made ignore regions: diagnostics only, not figures to report
-against a target (the labelling rules say what counts). An ``.onnx`` model runs through ONNX Runtime (one
-thread), a ``.pt`` checkpoint through torch.
+against a target (the labelling rules say what counts). An ``.onnx`` model runs through ONNX Runtime, a
+``.pt`` checkpoint through torch; both with the shipped pedestrian refiner unless ``--refiner none``.
 """
 
 from __future__ import annotations
@@ -35,23 +35,29 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--model", default="data/models/detector.pt")
     parser.add_argument("--data", default="data/datasets/detector")
     parser.add_argument("--split", default="val")
+    parser.add_argument("--refiner", default="auto", help="pedestrian refiner: auto (the shipped one, in the "
+                        "model's format), a path, or none (the one-stage detector alone)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     samples = load_split(args.data, args.split)
     images = load_images(samples, args.split)
     dets = []
-    if args.model.endswith(".onnx"):
-        from agent.detector import OnnxDetector
+    from agent.detector_eval import resolve_refiner
 
-        onnx = OnnxDetector(args.model, score_threshold=0.01, threads=1)
-        dets = [onnx(img) for img in images]
+    refiner = resolve_refiner(args.refiner, args.model)
+    if args.model.endswith(".onnx") or refiner:
+        from agent.detector import OnnxDetector, TorchDetector
+
+        make = OnnxDetector if args.model.endswith(".onnx") else TorchDetector
+        model = make(args.model, score_threshold=0.01, refiner=refiner)
+        dets = [model(img) for img in images]
     else:
         dec = DecodedDetector(load_detector(args.model)).eval()
         with torch.no_grad():
             for i in range(0, len(samples), 32):
                 x = torch.from_numpy(np.ascontiguousarray(images[i:i + 32].transpose(0, 3, 1, 2))).float().div_(255.0)
                 dets += [postprocess(row, 0.01) for row in dec(x).numpy()]
-    print(f"{args.model} on {args.split} ({len(samples)} frames), objects within 40 m")
+    print(f"{args.model} + {refiner or 'no refiner'} on {args.split} ({len(samples)} frames), objects within 40 m")
     for c in (CLASSES.index("car"), CLASSES.index("pedestrian")):
         aps = {t: class_ap(samples, dets, c, np.array([t]), 40.0)["ap50"] for t in (0.1, 0.3, 0.5, 0.7)}
         rows = []  # height, width, grouped, best IoU (score >= 0.3), width ratio, x offset

@@ -229,10 +229,13 @@ def _picture(seq, dets: list[np.ndarray], config: SortConfig, path: Path) -> Non
 
 
 def _with_detector(path: Path, sequences, config: SortConfig, mh) -> None:
-    """MOTA with the trained detector's car, truck and pedestrian boxes (agent/detector.py's TorchDetector)."""
+    """MOTA with the trained detector's car, truck and pedestrian boxes (agent/detector.py's TorchDetector),
+    followed by the pedestrian refiner as the agent runs it when the shipped one is there."""
     try:
         from agent.detector import TorchDetector
-        model = TorchDetector(path)
+        from agent.detector_eval import resolve_refiner
+        refiner = resolve_refiner("auto", str(path))
+        model = TorchDetector(path, refiner=refiner)
     except Exception as exc:  # the detector is someone else's work; say why it could not be used
         print(f"trained detector: cannot load {path} ({exc}); skipped")
         return
@@ -240,7 +243,8 @@ def _with_detector(path: Path, sequences, config: SortConfig, mh) -> None:
 
     # The checkpoint's own record: a log file beside it may belong to an earlier run of the same name.
     meta = torch.load(path, map_location="cpu", weights_only=False)
-    print(f"trained detector {path}: epoch {meta.get('epoch')}, val mAP@0.5 {meta.get('val_map50', float('nan')):.3f}")
+    print(f"trained detector {path}: epoch {meta.get('epoch')}, val mAP@0.5 {meta.get('val_map50', float('nan')):.3f}"
+          f"; pedestrian refiner: {refiner or 'none'}")
     movers = {"car", "truck", "pedestrian"}
 
     def boxes_of(image: np.ndarray) -> np.ndarray:

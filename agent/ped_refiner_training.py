@@ -1,0 +1,198 @@
+"""Training of the pedestrian refiner (``train.py detector refiner``) on a trained detector's own candidates.
+
+Samples: every pedestrian box the detector reports (score >= ``candidate_score``) on the training splits,
+plus ``--jitter`` randomly shifted and resized copies of each labelled pedestrian (so the refiner also learns
+from boxes the detector happens to place well). A candidate overlapping a labelled pedestrian (IoU >= 0.1)
+is a positive with that pedestrian's box as its target; one lying on an ignore region is dropped; the rest
+are negatives. The checkpoint kept is the epoch with the best val pedestrian AP@0.5 within 40 m of detector
+plus refiner; the score blend (``score_weight``) and the second NMS's IoU are then chosen on val as well.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+from tqdm import tqdm
+
+from agent.detector import DecodedDetector, Detection, load_detector, postprocess
+from agent.detector_eval import Sample, class_ap, load_split, read_rgb
+from agent.ped_refiner import PEDESTRIAN, PedRefiner, Refine, RefinerConfig, crop_windows, refiner_inputs, to_window, windows
+from agent.tracking import iou_matrix
+
+SCORE_WEIGHTS = (0.3, 0.4, 0.5, 0.6, 0.7)
+NMS_IOUS = (0.5, 0.7, 1.0)  # 1.0: no second NMS
+
+
+def detector_candidates(detector_path: str, samples: list[Sample], images: list[np.ndarray],
+                        score: float) -> list[list[Detection]]:
+    """The detector's detections of every frame at a low threshold (torch, batches of 32)."""
+    model = DecodedDetector(load_detector(detector_path)).eval()
+    out: list[list[Detection]] = []
+    with torch.no_grad():
+        for i in tqdm(range(0, len(samples), 32), desc="detect", unit="batch", leave=False):
+            x = torch.from_numpy(np.stack(images[i:i + 32]).transpose(0, 3, 1, 2).copy()).float() / 255.0
+            out.extend(postprocess(r, score) for r in model(x).numpy())
+    return out
+
+
+def _on_ignore(cand: np.ndarray, ign: np.ndarray) -> np.ndarray:
+    """Candidates with at least half their area on an ignore region (as the evaluation treats them)."""
+    if not len(ign):
+        return np.zeros(len(cand), bool)
+    ix = np.clip(np.minimum(cand[:, None, 2], ign[None, :, 2]) - np.maximum(cand[:, None, 0], ign[None, :, 0]), 0, None)
+    iy = np.clip(np.minimum(cand[:, None, 3], ign[None, :, 3]) - np.maximum(cand[:, None, 1], ign[None, :, 1]), 0, None)
+    area = np.maximum((cand[:, 2] - cand[:, 0]) * (cand[:, 3] - cand[:, 1]), 1e-6)
+    return (ix * iy / area[:, None] >= 0.5).any(1)
+
+
+def build_samples(samples: list[Sample], images: list[np.ndarray], dets: list[list[Detection]],
+                  config: RefinerConfig, jitter: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Crops, candidate and target boxes (window units) and labels (1 pedestrian, 0 not) of every candidate."""
+    crops, cands, targets, labels = [], [], [], []
+    for s, rgb, ds in zip(samples, images, dets, strict=True):
+        is_gt = (s.cls == PEDESTRIAN) & ~s.ignore
+        gt = s.boxes[is_gt].astype(np.float32)
+        cand = np.array([d.box for d in ds if d.cls == PEDESTRIAN], np.float32).reshape(-1, 4)
+        for _ in range(jitter if len(gt) else 0):
+            wh = np.tile(np.stack([gt[:, 2] - gt[:, 0], gt[:, 3] - gt[:, 1]], 1), 2)
+            j = gt + rng.normal(0.0, 0.15, gt.shape).astype(np.float32) * wh
+            j[:, 2] = np.maximum(j[:, 2], j[:, 0] + 1.0)
+            j[:, 3] = np.maximum(j[:, 3], j[:, 1] + 2.0)
+            cand = np.concatenate([cand, j])
+        if not len(cand):
+            continue
+        iou = iou_matrix(cand, gt) if len(gt) else np.zeros((len(cand), 1), np.float32)
+        best = iou.argmax(1)
+        label = np.where(iou.max(1) >= 0.1, 1, 0)
+        label[(label == 0) & _on_ignore(cand, s.boxes[(s.cls == PEDESTRIAN) & s.ignore].astype(np.float32))] = -1
+        keep = label >= 0
+        if not keep.any():
+            continue
+        cand, best, label = cand[keep], best[keep], label[keep]
+        win = windows(cand, config)
+        target = gt[best] if len(gt) else cand
+        crops.append(crop_windows(rgb, win))
+        cands.append(to_window(cand, win))
+        targets.append(to_window(target, win))
+        labels.append(label)
+    return {"crops": np.concatenate(crops), "cand": np.concatenate(cands).astype(np.float32),
+            "target": np.concatenate(targets).astype(np.float32), "label": np.concatenate(labels).astype(np.float32)}
+
+
+def _flip(crops: np.ndarray, cand: np.ndarray, target: np.ndarray, flip: np.ndarray) -> tuple[np.ndarray, ...]:
+    crops = np.where(flip[:, None, None, None], crops[:, :, ::-1], crops)
+    cand, target = cand.copy(), target.copy()
+    for b in (cand, target):
+        x0 = b[flip, 0].copy()
+        b[flip, 0] = 1.0 - b[flip, 2]
+        b[flip, 2] = 1.0 - x0
+    return np.ascontiguousarray(crops), cand, target
+
+
+def refiner_loss(out: torch.Tensor, cand: np.ndarray, target: np.ndarray, label: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """BCE of the pedestrian logit, and for positives L1 of the edges in units of the candidate's own size."""
+    lab = torch.from_numpy(label)
+    cls = nn.functional.binary_cross_entropy_with_logits(out[:, 4], lab)
+    pos = lab > 0
+    size = np.stack([cand[:, 2] - cand[:, 0], cand[:, 3] - cand[:, 1]] * 2, 1)
+    err = (out[:, :4] - torch.from_numpy(target - cand)).abs() / torch.from_numpy(size).clamp(min=0.02)
+    box = err[pos].mean() if bool(pos.any()) else out.sum() * 0.0
+    return cls, box
+
+
+def val_ped_ap(samples: list[Sample], images: list[np.ndarray], dets: list[list[Detection]], model: PedRefiner,
+               config: RefinerConfig) -> dict[str, float]:
+    """Pedestrian AP within 40 m of detector + refiner on val."""
+    model.eval()
+
+    def run(x: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return model(torch.from_numpy(x)).numpy()
+
+    refine = Refine(run, config)
+    refined = [refine(rgb, ds, 0.0) for rgb, ds in zip(images, dets, strict=True)]
+    ap = class_ap(samples, refined, PEDESTRIAN, max_distance_m=40.0)
+    return {"ap50": float(ap["ap50"]), "ap50_95": float(ap["ap50_95"])}
+
+
+def train_refiner(args: argparse.Namespace) -> int:
+    torch.manual_seed(args.seed)
+    torch.set_num_threads(args.threads)
+    rng = np.random.default_rng(args.seed)
+    config = RefinerConfig()
+    t0 = time.perf_counter()
+    train_samples = [s for split in args.train_splits.split(",") for s in load_split(args.data, split)]
+    val_samples = load_split(args.data, "val")
+    if not train_samples or not val_samples:
+        raise ValueError(f"No training or val frames under {args.data}; run `python train.py detector dataset` first.")
+    data: dict[str, list[np.ndarray]] = {}
+    for k in range(0, len(train_samples), 2000):  # in chunks: the frames are decoded once and then let go
+        chunk = train_samples[k:k + 2000]
+        images = [read_rgb(s.image) for s in chunk]
+        part = build_samples(chunk, images, detector_candidates(args.detector, chunk, images, config.candidate_score),
+                             config, args.jitter, rng)
+        for key, v in part.items():
+            data.setdefault(key, []).append(v)
+    tr = {key: np.concatenate(v) for key, v in data.items()}
+    val_images = [read_rgb(s.image) for s in val_samples]
+    val_dets = detector_candidates(args.detector, val_samples, val_images, config.candidate_score)
+    n = len(tr["label"])
+    print(f"{n} candidates ({int(tr['label'].sum())} pedestrians) from {len(train_samples)} frames, "
+          f"{time.perf_counter() - t0:.0f} s", flush=True)
+    model = PedRefiner(config)
+    opt = torch.optim.AdamW(model.parameters(), args.lr, weight_decay=1e-4)
+    steps = n // args.batch
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, args.lr, total_steps=args.epochs * steps)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    log = out.with_suffix(".log.jsonl").open("w")
+    best = -1.0
+    for epoch in range(args.epochs):
+        model.train()
+        perm = rng.permutation(n)
+        sums = np.zeros(2)
+        t_ep = time.perf_counter()
+        for i in tqdm(range(steps), desc=f"refiner epoch {epoch}", unit="batch", leave=False):
+            idx = np.sort(perm[i * args.batch:(i + 1) * args.batch])
+            crops, cand, target = _flip(tr["crops"][idx], tr["cand"][idx], tr["target"][idx],
+                                        rng.random(len(idx)) < 0.5)
+            cls, box = refiner_loss(model(torch.from_numpy(refiner_inputs(crops, cand))), cand, target, tr["label"][idx])
+            opt.zero_grad()
+            (cls + box).backward()
+            opt.step()
+            sched.step()
+            sums += (cls.item(), box.item())
+        val = val_ped_ap(val_samples, val_images, val_dets, model, config)
+        row = {"epoch": epoch, "cls_loss": sums[0] / steps, "box_loss": sums[1] / steps, "val_ped40_ap50": val["ap50"],
+               "val_ped40_ap50_95": val["ap50_95"], "seconds": round(time.perf_counter() - t_ep, 1)}
+        print(json.dumps(row), flush=True)
+        log.write(json.dumps(row) + "\n")
+        log.flush()
+        if val["ap50"] > best:
+            best = val["ap50"]
+            torch.save({"kind": "ped_refiner", "config": asdict(config), "state_dict": model.state_dict(),
+                        "epoch": epoch, "detector": str(args.detector), "seed": args.seed}, out)
+    # The score blend and the second NMS: chosen on val with the best epoch's weights.
+    ckpt = torch.load(out, map_location="cpu", weights_only=False)
+    model.load_state_dict(ckpt["state_dict"])
+    grid = {(w, iou): val_ped_ap(val_samples, val_images, val_dets, model,
+                                 replace(config, score_weight=w, nms_iou=iou))["ap50"]
+            for w in SCORE_WEIGHTS for iou in NMS_IOUS}
+    weight, nms_iou = max(grid, key=lambda k: grid[k])
+    ckpt["config"] = asdict(replace(config, score_weight=weight, nms_iou=nms_iou))
+    torch.save(ckpt, out)
+    row = {"val_ap50_by_score_weight_and_nms_iou": {f"{w} {iou}": round(v, 4) for (w, iou), v in grid.items()},
+           "chosen": {"score_weight": weight, "nms_iou": nms_iou}}
+    print(json.dumps(row))
+    log.write(json.dumps(row) + "\n")
+    log.close()
+    print(f"Wrote {out} (epoch {ckpt['epoch']}, val pedestrian AP@0.5 within 40 m {grid[weight, nms_iou]:.3f}), "
+          f"{(time.perf_counter() - t0) / 60:.1f} min")
+    return 0
