@@ -160,3 +160,13 @@ def test_shipped_detector_and_refiner_box_a_pedestrian_at_the_kerb(town, backend
     # The refiner is sure of a person standing in the open: it raises the detector's score.
     alone = [d for d in OnnxDetector(MODELS / "detector.onnx", score_threshold=0.01)(frame.rgb) if d.cls == PEDESTRIAN]
     assert max(d.score for d in peds) > max(d.score for d in alone)
+
+
+@pytest.mark.skipif(not (MODELS / "ped_refiner.onnx").is_file(), reason="no shipped refiner")
+def test_deployment_profiles_run_the_refiner_unless_it_is_disabled():
+    from agent.backends import open_detector
+    from agent.profiles import load_profile, profile_from_dict
+
+    assert open_detector(load_profile("cpu")).refine is not None
+    off = profile_from_dict({"modules": {"refiner": {"enabled": False}}})
+    assert open_detector(off).refine is None
