@@ -80,6 +80,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--jitter", type=int, default=2, help="jittered copies of each labelled pedestrian per frame")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    p.add_argument("--channels", default="24,48,96", help="the refiner's conv widths at its three scales")
+    p.add_argument("--hidden", type=int, default=256, help="units of its hidden linear layer")
+    p.add_argument("--tune-only", action="store_true", help="no training: choose the score blend, the second NMS "
+                   "and the candidate depth on val for the refiner at --out again, and write them into it")
 
     p = sub.add_parser("evaluate", help="AP per class, light state vs HSV baseline, on the held-out split")
     p.add_argument("--data", default=DEFAULT_DATA)

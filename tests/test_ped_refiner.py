@@ -80,6 +80,19 @@ def test_refine_moves_rescored_pedestrians_snaps_them_and_leaves_other_classes()
     assert cfg.lowest_candidate(0.3) == pytest.approx(0.09)
 
 
+def test_candidate_depth_reaches_low_scored_pedestrians_only_when_every_detection_is_asked_for():
+    faint = [Detection((100.0, 50.0, 103.0, 60.0), PEDESTRIAN, 5e-4)]  # a person at night the detector barely saw
+    rgb = np.zeros((160, 320, 3), np.uint8)
+    sure = _fixed((0.0, 0.0, 0.0, 0.0), 6.0)
+    deep, shallow = RefinerConfig(score_weight=0.6, candidate_score=1e-4), RefinerConfig(score_weight=0.6)
+    assert not Refine(sure, shallow)(rgb, faint, 0.01)  # below the default depth (0.01): never looked at
+    lifted = Refine(sure, deep)(rgb, faint, 0.01)
+    assert len(lifted) == 1 and lifted[0].score == pytest.approx(5e-4 ** 0.4 * (1 / (1 + np.exp(-6.0))) ** 0.6)
+    # At the driver's threshold the blend alone sets the depth: a candidate needs 0.3^2.5 = 0.049 either way.
+    assert deep.lowest_candidate(0.3) == shallow.lowest_candidate(0.3) == pytest.approx(0.3 ** 2.5)
+    assert not Refine(sure, deep)(rgb, faint, 0.3)
+
+
 def test_refined_boxes_that_meet_are_merged():
     two = [Detection((100.0, 50.0, 104.0, 62.0), PEDESTRIAN, 0.8), Detection((102.6, 50.0, 106.6, 62.0), PEDESTRIAN, 0.7)]
     out = Refine(_fixed((0.0, 0.0, 0.0, 0.0), 2.0), RefinerConfig())(np.zeros((160, 320, 3), np.uint8), two, 0.01)
