@@ -302,6 +302,8 @@ class AgentDriver:
         self._history: dict[int, deque[tuple[float, float, float]]] = {}
         self._lost: dict[int, PerceivedObject] = {}  # objects lost in our path, remembered for a while
         self._in_path: dict[int, PerceivedObject] = {}  # last frame's seen objects in our path
+        self._at_side: dict[int, PerceivedObject] = {}  # last frame's near people at the image's side edge
+        self._ghost_yaw = 0.0  # the heading at the last update of remembered objects
         self._yaw = 0.0  # dead-reckoned heading (rad, positive to the right) from our own speed and steering
         self._road_yaw: float | None = None  # the approach lane's heading in the same frame, from the lane fit
         self._road_offset = 0.0  # metres right of the approach lane's centre (measured, then dead-reckoned)
@@ -360,11 +362,18 @@ class AgentDriver:
 
         Close in, the detector misses what fills much of the frame (a pedestrian a few metres ahead), and a
         car must not drive on because its detector blinked: such an object stays where it was last seen
-        (relative to the ground: the car's own travel brings it nearer) for ``lost_memory_s``."""
+        (relative to the ground: the car's own travel brings it nearer and its turning moves it across) for
+        ``lost_memory_s``. A person near the car who leaves the view at its side edge is remembered too, in or
+        out of our path: a turn towards that side sweeps the car's body over where they went."""
         cfg, dt = self.config, self.dt
+        turn, self._ghost_yaw = self._yaw - self._ghost_yaw, self._yaw  # our heading change since last frame
+        cos_t, sin_t = math.cos(turn), math.sin(turn)
         seen = {o.track_id for o in objects}
         for tid, o in self._in_path.items():
             if tid not in seen and o.distance_m < cfg.lost_memory_m:
+                self._lost[tid] = o
+        for tid, o in self._at_side.items():  # walked out of view beside the car: where a turn's sweep goes
+            if tid not in seen and tid not in self._lost:
                 self._lost[tid] = o
         out = list(objects)
         for tid in list(self._lost):
@@ -376,12 +385,19 @@ class AgentDriver:
             along = speed * dt if o.kind == "pedestrian" else o.closing_speed_mps * dt
             # Near, a person's box is cut or wrong and its sideways "speed" is perspective, not walking.
             shift = o.lateral_speed_mps * dt if o.kind == "pedestrian" and not near else 0.0
-            ghost = PerceivedObject(tid, o.kind, o.distance_m - along, o.lateral_left_m + shift,
-                                    o.lateral_right_m + shift, o.closing_speed_mps, o.lateral_speed_mps, o.box,
-                                    o.unseen_s + dt)
+            # Our own turn moves it across the view: a point ahead drifts left as we turn right.
+            z = o.distance_m - along
+            xc = 0.5 * (o.lateral_left_m + o.lateral_right_m) + shift
+            shift += xc * cos_t - z * sin_t - xc
+            z = xc * sin_t + z * cos_t
+            ghost = PerceivedObject(tid, o.kind, z, o.lateral_left_m + shift, o.lateral_right_m + shift,
+                                    o.closing_speed_mps, o.lateral_speed_mps, o.box, o.unseen_s + dt)
             self._lost[tid] = ghost
             out.append(ghost)
         return out
+
+    def _at_side_edge(self, box: tuple[float, float, float, float]) -> bool:
+        return box[0] <= 0.5 or box[2] >= self.camera.width - 1.5
 
     def _at_border(self, box: tuple[float, float, float, float]) -> bool:
         """Whether a box touches the image's bottom or side edge (the object goes on beyond the frame)."""
@@ -622,6 +638,8 @@ class AgentDriver:
         lap("control")
         in_path = [o for o in objects if o.track_id in decision.in_path]
         self._in_path = {o.track_id: o for o in in_path if o.unseen_s == 0.0}
+        self._at_side = {o.track_id: o for o in objects if o.kind == "pedestrian" and o.unseen_s == 0.0
+                         and o.distance_m < self.config.near_memory_m and self._at_side_edge(o.box)}
         offset = lanes.offset_m if lanes.confidence >= self.config.ldw_min_lane_confidence else math.nan
         warnings = self.adas.update(t, speed, offset, lanes.lane_width_m, in_path, turning=command in (1, 2))
         lap("adas")

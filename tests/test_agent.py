@@ -149,6 +149,30 @@ def test_a_car_wholly_beside_the_axis_is_placed_by_its_far_corner_not_nearer() -
 
 
 @needs_models
+def test_a_person_who_leaves_the_view_at_its_side_edge_is_remembered_and_turns_with_us() -> None:
+    import math
+
+    from agent.controller import PerceivedObject
+    from agent.drivers import make_driver
+    from envs.drive_env import DriveConfig
+
+    driver = make_driver("agent")
+    driver.reset(SimpleNamespace(config=DriveConfig()))
+    w = float(driver.camera.width)
+    # Last seen 3.5 m ahead, 3.0-3.6 m right, its box cut by the image's right edge; not in our path.
+    side = PerceivedObject(5, "pedestrian", 3.5, 3.0, 3.6, 0.0, 0.0, (w - 20.0, 60.0, w - 1.0, 110.0))
+    driver._at_side = {5: side}
+    first = driver._remember([], 0.0)
+    assert [o.track_id for o in first] == [5] and first[0].distance_m == 3.5
+    driver._at_side = {}
+    driver._yaw += 0.1  # we turned 0.1 rad to the right since: it is now more to our left, and farther ahead
+    ghost = driver._remember([], 0.0)[0]
+    assert ghost.distance_m == pytest.approx(3.3 * math.sin(0.1) + 3.5 * math.cos(0.1))
+    assert 0.5 * (ghost.lateral_left_m + ghost.lateral_right_m) == pytest.approx(3.3 * math.cos(0.1) - 3.5 * math.sin(0.1))
+    assert ghost.lateral_right_m - ghost.lateral_left_m == pytest.approx(0.6)
+
+
+@needs_models
 def test_a_person_lost_near_the_car_stays_where_last_seen_for_a_while() -> None:
     from agent.controller import PerceivedObject
     from agent.drivers import make_driver

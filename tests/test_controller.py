@@ -258,6 +258,27 @@ def test_pedestrian_entering_versus_walking_away() -> None:
     assert "entering our path" in d.reason
 
 
+def test_a_person_on_the_kerb_side_of_a_tight_turn_is_in_the_body_s_sweep() -> None:
+    """Turning right at full lock the body turns about a point level with the rear bumper, 6.75 m to the right,
+    and its inner side passes 5.8 m from it: a person 3.2 m ahead and 3.0-3.6 m right is outside the camera's
+    corridor yet in that ring, and so is one beside the front wheel (behind the camera)."""
+    ctrl = Controller(CFG)
+    ahead = PerceivedObject(1, "pedestrian", 3.2, 3.0, 3.6, 0.0, 0.0)
+    beside = PerceivedObject(2, "pedestrian", -0.5, 1.1, 1.6, 0.0, 0.0)
+    kerb = PerceivedObject(3, "pedestrian", 0.5, 3.6, 4.2, 0.0, 0.0)  # inside the inner side's ring: clear
+    scene = Scene(2.5, objects=[ahead, beside, kerb], turning=True)
+    assert not ctrl.overlaps(scene, ahead, 1.0)
+    assert ctrl.in_sweep(scene, ahead, 1.0) and ctrl.in_sweep(scene, beside, 1.0)
+    assert not ctrl.in_sweep(scene, kerb, 1.0)
+    assert not ctrl.in_sweep(scene, ahead, 0.0) and not ctrl.in_sweep(scene, ahead, -1.0)  # straight; turning away
+    ctrl.last_steer = 1.0
+    d = ctrl.step(scene, 1.0, DT)
+    assert sorted(d.in_path) == [1, 2]
+    assert "in the turn's sweep" in d.reason and d.accel_mps2 < 0
+    # a lane being followed decides by its corridor alone
+    assert not ctrl.in_sweep(Scene(2.5, lane_centre=np.zeros(3)), ahead, 1.0)
+
+
 def test_gentle_limits_acceleration_jerk_and_steering_rate() -> None:
     ctrl = Controller(CFG)
     decisions = [ctrl.step(Scene(0.0), 1.0, DT) for _ in range(40)]
