@@ -149,6 +149,30 @@ def test_a_car_wholly_beside_the_axis_is_placed_by_its_far_corner_not_nearer() -
 
 
 @needs_models
+def test_a_pedestrian_box_too_small_for_where_it_stands_is_no_person() -> None:
+    from agent.autolabel import CLASSES
+    from agent.drivers import make_driver
+    from agent.tracking import Track
+    from envs.drive_env import DriveConfig
+
+    driver = make_driver("agent")
+    driver.reset(SimpleNamespace(config=DriveConfig()))
+    g = driver.geometry
+    rows = np.arange(0.0, 160.0, 0.25)
+    y1 = float(rows[np.nanargmin(np.abs(g.birdseye.ground_z_of_row(rows) - 5.0))])  # the road's row 5 m ahead
+    whole = g.f * 1.75 / 5.0  # a 1.75 m person there is this many pixels tall
+    assert driver._plausible_person(np.array([100.0, y1 - whole, 112.0, y1]))
+    assert not driver._plausible_person(np.array([100.0, y1 - 0.6 * whole, 112.0, y1]))  # too short to stand there
+    assert not driver._plausible_person(np.array([100.0, y1 - 1.5 * whole, 112.0, y1]))  # too tall
+    assert driver._plausible_person(np.array([100.0, 0.0, 130.0, y1]))  # cut at the top: not judged
+    # Route 517's night junction: the kerb's yellow line at the left border, scored a pedestrian 2.5 m away
+    kerb = np.array([2.0, 79.0, 16.0, 149.0])
+    assert not driver._plausible_person(kerb)
+    track = Track(9, kerb, hits=10, age=10, time_since_update=0, label=CLASSES.index("pedestrian"))
+    assert driver._objects([track], 0.0, None) == []
+
+
+@needs_models
 def test_a_person_who_leaves_the_view_at_its_side_edge_is_remembered_and_turns_with_us() -> None:
     import math
 
