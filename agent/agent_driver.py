@@ -418,6 +418,7 @@ class AgentDriver:
         return out
 
     def _at_side_edge(self, box: tuple[float, float, float, float]) -> bool:
+        """Whether a box touches the image's left or right edge (the object is leaving the view sideways)."""
         return box[0] <= 0.5 or box[2] >= self.camera.width - 1.5
 
     def _at_border(self, box: tuple[float, float, float, float]) -> bool:
