@@ -185,16 +185,21 @@ class BoxGeometry:
         self.row_sigma = row_sigma_px
         self.prior_sigma = prior_sigma
 
+    def cut(self, box: np.ndarray | tuple[float, ...]) -> tuple[bool, bool]:
+        """Whether the box is cut off by the image's top edge (its height says nothing) and by its bottom edge
+        (its bottom row is not where the object meets the road)."""
+        return float(box[1]) <= 0.5, float(box[3]) >= self.camera.height - 1.5
+
     def distance(self, box: np.ndarray | tuple[float, ...], kind: str) -> float:
         """Forward ground distance (m) from the camera to the object's near face."""
         x0, y0, x1, y1 = (float(v) for v in box)
-        h_img = self.camera.height
         z_ground = float(self.birdseye.ground_z_of_row(np.array([y1]))[0])
         height_px = y1 - y0
         z_size = self.f * HEIGHT_PRIOR_M.get(kind, 1.5) / height_px if height_px >= 2 else math.nan
-        if y0 <= 0.5:  # cut off at the top: the height says nothing
+        cut_top, cut_bottom = self.cut(box)
+        if cut_top:
             z_size = math.nan
-        if y1 >= h_img - 1.5 and math.isfinite(z_ground):  # cut off at the bottom: nearer than the last row
+        if cut_bottom and math.isfinite(z_ground):  # nearer than the last row
             return min(z_size, z_ground) if math.isfinite(z_size) else z_ground
         if not math.isfinite(z_ground) or z_ground <= 0:
             return z_size
@@ -203,6 +208,18 @@ class BoxGeometry:
         var_g = (z_ground ** 2 / (self.f * self.camera.mount_height_m) * self.row_sigma) ** 2
         var_s = (z_size * self.row_sigma / height_px) ** 2 + (self.prior_sigma * z_size) ** 2
         return (z_ground / var_g + z_size / var_s) / (1.0 / var_g + 1.0 / var_s)
+
+    def height_ratio(self, box: np.ndarray | tuple[float, ...], kind: str) -> float:
+        """The box's height over the height the kind's prior height would have where its bottom row meets the
+        road: about 1 for a whole object standing there; nan when the box is cut at the top or bottom, or its
+        bottom row is not on the road."""
+        if any(self.cut(box)):
+            return math.nan
+        y0, y1 = float(box[1]), float(box[3])
+        z = float(self.birdseye.ground_z_of_row(np.array([y1]))[0])
+        if not math.isfinite(z) or z <= 0:
+            return math.nan
+        return z * (y1 - y0) / (self.f * HEIGHT_PRIOR_M.get(kind, 1.5))
 
     def lateral(self, u_px: float, z_m: float) -> float:
         """Metres right of the camera axis of image column ``u_px`` at forward distance ``z_m``."""
@@ -309,7 +326,7 @@ class AgentDriver:
         self._lost: dict[int, PerceivedObject] = {}  # objects lost in our path, remembered for a while
         self._in_path: dict[int, PerceivedObject] = {}  # last frame's seen objects in our path
         self._at_side: dict[int, PerceivedObject] = {}  # last frame's near people at the image's side edge
-        self._ghost_yaw = 0.0  # the heading at the last update of remembered objects
+        self._turn = 0.0  # the heading change of the last frame (rad, positive to the right)
         self._yaw = 0.0  # dead-reckoned heading (rad, positive to the right) from our own speed and steering
         self._road_yaw: float | None = None  # the approach lane's heading in the same frame, from the lane fit
         self._road_offset = 0.0  # metres right of the approach lane's centre (measured, then dead-reckoned)
@@ -368,15 +385,9 @@ class AgentDriver:
     def _plausible_person(self, box: np.ndarray) -> bool:
         """Whether a pedestrian box's size agrees with where its bottom row meets the road (see
         ``AgentConfig.person_height_ratio``); a box cut by the image's top or bottom edge is not judged."""
-        x0, y0, x1, y1 = (float(v) for v in box)
-        if y0 <= 0.5 or y1 >= self.camera.height - 1.5:
-            return True
-        z = float(self.geometry.birdseye.ground_z_of_row(np.array([y1]))[0])
-        if not math.isfinite(z) or z <= 0:
-            return True
-        ratio = z * (y1 - y0) / (self.geometry.f * HEIGHT_PRIOR_M["pedestrian"])
+        ratio = self.geometry.height_ratio(box, "pedestrian")
         lo, hi = self.config.person_height_ratio
-        return lo <= ratio <= hi
+        return not math.isfinite(ratio) or lo <= ratio <= hi
 
     def _remember(self, objects: list[PerceivedObject], speed: float) -> list[PerceivedObject]:
         """Add the objects that were in our path and near last frame but are no longer detected.
@@ -387,8 +398,7 @@ class AgentDriver:
         ``lost_memory_s``. A person near the car who leaves the view at its side edge is remembered too, in or
         out of our path: a turn towards that side sweeps the car's body over where they went."""
         cfg, dt = self.config, self.dt
-        turn, self._ghost_yaw = self._yaw - self._ghost_yaw, self._yaw  # our heading change since last frame
-        cos_t, sin_t = math.cos(turn), math.sin(turn)
+        cos_t, sin_t = math.cos(self._turn), math.sin(self._turn)  # our heading change since last frame
         seen = {o.track_id for o in objects}
         for tid, o in self._in_path.items():
             if tid not in seen and o.distance_m < cfg.lost_memory_m:
@@ -423,8 +433,7 @@ class AgentDriver:
 
     def _at_border(self, box: tuple[float, float, float, float]) -> bool:
         """Whether a box touches the image's bottom or side edge (the object goes on beyond the frame)."""
-        w, h = self.camera.width, self.camera.height
-        return box[3] >= h - 1.5 or box[0] <= 0.5 or box[2] >= w - 1.5
+        return self.geometry.cut(box)[1] or self._at_side_edge(box)
 
     def light_distance(self, box: tuple[float, float, float, float]) -> float:
         """Ground distance (m) to a signal head from how far above the horizon its box's centre is (the head
@@ -443,7 +452,8 @@ class AgentDriver:
         turn, the approach heading stays: lights are then judged in the frame of the lane it came along."""
         beta = math.atan(0.5 * math.tan(steer * EgoVehicle.MAX_STEER_RAD))
         self._pos += speed * self.dt * np.array([math.cos(self._yaw + beta), math.sin(self._yaw + beta)])
-        self._yaw += speed * math.sin(beta) / (EgoVehicle.LENGTH / 2) * self.dt
+        self._turn = speed * math.sin(beta) / (EgoVehicle.LENGTH / 2) * self.dt
+        self._yaw += self._turn
         if self._road_yaw is not None:
             self._road_offset += speed * math.sin(self._yaw + beta - self._road_yaw) * self.dt
         if command not in (1, 2) or abs(steer) < self.config.straight_steer:

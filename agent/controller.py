@@ -87,7 +87,6 @@ class ControllerConfig:
     junction_turn_steer: float = 0.25  # |steer| above which a commanded turn counts as under way
     junction_ignore_m: float = 30.0  # after crossing the stop line, the junction's light no longer applies
     wheelbase_m: float = 4.6  # highway-env's bicycle model: curvature = tan(delta) / length
-    camera_to_rear_axle_m: float = 3.3  # that model turns about a point level with the rear bumper (its "axle")
     half_width_m: float = 0.95
     sweep_margin_m: float = 0.3  # kept clear of the body's swept ring, beyond a person's box
     sweep_min_steer: float = 0.25  # the body's sweep is checked only in a turn steered at least this hard
@@ -240,17 +239,18 @@ class Controller:
         """Whether a person stands where the car's body will pass if it keeps this steering.
 
         In a tight turn the body does not follow the camera's arc: it turns about a point level with the rear
-        axle, and its inner side cuts the corner (a person on the kerb side of a right turn, beside or just
-        ahead of the front wheel, is outside the corridor yet gets hit). The body sweeps a ring about that
-        point, from the inner side's radius to the outer front corner's; a person within it (and the margin)
-        in the first quarter turn counts as in our path, even beside the car (remembered after leaving
-        the camera's view)."""
+        bumper (the "axle" of highway-env's bicycle model, ``wheelbase_m`` behind the front), and its inner side
+        cuts the corner (a person on the kerb side of a right turn, beside or just ahead of the front wheel, is
+        outside the corridor yet gets hit). The body sweeps a ring about that point, from the inner side's
+        radius to the outer front corner's; a person within it (and the margin) in the first quarter turn
+        counts as in our path, even beside the car (remembered after leaving the camera's view)."""
         cfg = self.config
         if obj.kind != "pedestrian" or scene.lane_centre is not None or abs(steer) < cfg.sweep_min_steer:
             return False
         side = 1.0 if steer > 0 else -1.0
         radius = cfg.wheelbase_m / math.tan(abs(steer) * cfg.max_steer_rad)
-        dz = obj.distance_m + cfg.camera_to_rear_axle_m  # ahead of the turning point's level
+        front = cfg.wheelbase_m  # the front bumper, ahead of the turning point's level
+        dz = obj.distance_m + front - cfg.camera_to_front_m  # the object, ahead of that level
         if dz < 0:
             return False
         # Lateral extent measured towards the turn's side (a left turn mirrored into a right one).
@@ -259,20 +259,14 @@ class Controller:
             return False
         far = math.hypot(radius - lo, dz)  # the object's farthest and nearest points from the turning point
         near = math.hypot(max(radius - hi, 0.0), dz)
-        front = cfg.camera_to_rear_axle_m + cfg.camera_to_front_m
         ring_in = radius - cfg.half_width_m - cfg.sweep_margin_m
         ring_out = math.hypot(radius + cfg.half_width_m, front) + cfg.sweep_margin_m
         return near <= ring_out and far >= ring_in
 
     def in_path(self, scene: Scene, obj: PerceivedObject, steer: float) -> bool:
-        """Whether the object overlaps (or, a pedestrian, walks into) the corridor at its distance, or stands
-        in the body's sweep in a turn."""
+        """Whether the object overlaps (or, a pedestrian, walks into) the corridor at its distance."""
         cfg = self.config
-        if obj.distance_m > cfg.lookahead_m:
-            return False
-        if self.in_sweep(scene, obj, steer):
-            return True
-        if obj.distance_m <= 0:
+        if obj.distance_m <= 0 or obj.distance_m > cfg.lookahead_m:
             return False
         centre = self.path_centre(scene, obj.distance_m, steer)
         half = cfg.path_half_width_m + (cfg.pedestrian_margin_m if obj.kind == "pedestrian" else 0.0)
@@ -414,13 +408,14 @@ class Controller:
                 light.accel_mps2 = self._idm(speed, min(target, light.speed_mps), None, 0.0, 0.0, 0.0)
             constraints.append(light)
         for obj in scene.objects:
-            if not self.in_path(scene, obj, steer):
+            swept = self.in_sweep(scene, obj, steer)  # a person where the body will pass, corridor or not
+            if not swept and not self.in_path(scene, obj, steer):
                 continue
             in_path.append(obj.track_id)
             gap = max(obj.distance_m - cfg.camera_to_front_m, 0.0)
             if obj.kind == "pedestrian":
                 what = ("in our path" if self.overlaps(scene, obj, steer) and obj.distance_m > 0
-                        else "in the turn's sweep" if self.in_sweep(scene, obj, steer) else "entering our path")
+                        else "in the turn's sweep" if swept else "entering our path")
                 c = Constraint(f"pedestrian #{obj.track_id} {what} at {gap:.1f} m: stop", gap, 0.0,
                                cfg.pedestrian_min_gap_m, 0.5)
             else:

@@ -189,7 +189,7 @@ def test_a_person_who_leaves_the_view_at_its_side_edge_is_remembered_and_turns_w
     first = driver._remember([], 0.0)
     assert [o.track_id for o in first] == [5] and first[0].distance_m == 3.5
     driver._at_side = {}
-    driver._yaw += 0.1  # we turned 0.1 rad to the right since: it is now more to our left, and farther ahead
+    driver._turn = 0.1  # we turned 0.1 rad to the right since: it is now more to our left, and farther ahead
     ghost = driver._remember([], 0.0)[0]
     assert ghost.distance_m == pytest.approx(3.3 * math.sin(0.1) + 3.5 * math.cos(0.1))
     assert 0.5 * (ghost.lateral_left_m + ghost.lateral_right_m) == pytest.approx(3.3 * math.cos(0.1) - 3.5 * math.sin(0.1))
