@@ -19,6 +19,7 @@ from tqdm import tqdm
 
 from envs.drive_env import DriveConfig, DriveEnv
 from envs.metrics import EpisodeTrace, aggregate, episode_metrics, markdown_table, needs_intervention
+from envs.standing import STANDING_SPEED_MPS, standing_reason
 
 if TYPE_CHECKING:
     from agent.drivers import Driver
@@ -80,7 +81,8 @@ def run_episode(env: DriveEnv, driver: Driver, seed: int, video: Any = None, pro
     while not done:
         action = np.asarray(driver.act(obs), np.float32)
         obs, _, terminated, truncated, info = env.step(action)
-        trace.add_step(info, action)
+        stands = info["ego"]["speed_mps"] < STANDING_SPEED_MPS
+        trace.add_step(info, action, standing_clear=stands and standing_reason(world) is None)
         if needs_intervention(info) and not world.route_done:
             trace.interventions.append(info["time_s"])
             world.put_back_on_route()

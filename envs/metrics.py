@@ -9,6 +9,8 @@ Per episode:
   infractions_per_km   every infraction kind, per kilometre driven
   autonomy             (1 - interventions x 6 s / elapsed s) x 100, at least 0
   mean_abs_lane_offset_m, mean_speed_mps
+  standing_clear_s     seconds stood still with nothing in the path by ground truth (``envs.standing``)
+  longest_clear_hold_s the longest such standstill without a break
 
 The intervention rule: a safety driver takes over when the car is more than 1 m off its lane centre
 (measured outside the band between the centres of its direction's lanes, so that a lane change is not
@@ -49,12 +51,15 @@ class EpisodeTrace:
     lane_offset: list[float] = field(default_factory=list)
     infractions: list[dict[str, Any]] = field(default_factory=list)
     interventions: list[float] = field(default_factory=list)  # times, seconds
+    standing_clear: list[bool] = field(default_factory=list)  # per step: standing with nothing in the path
     route_progress_m: float = 0.0
     distance_m: float = 0.0
     town_seed: int = 0
     weather: str = "noon"
 
-    def add_step(self, info: dict[str, Any], action: np.ndarray) -> None:
+    def add_step(self, info: dict[str, Any], action: np.ndarray, standing_clear: bool = False) -> None:
+        """Keep one step's figures; ``standing_clear``: the car stood with nothing in its path (``envs.standing``)."""
+        self.standing_clear.append(standing_clear)
         self.x.append(info["ego"]["x"])
         self.y.append(info["ego"]["y"])
         self.speed.append(info["ego"]["speed_mps"])
@@ -103,7 +108,18 @@ def episode_metrics(trace: EpisodeTrace) -> dict[str, Any]:
         "mean_speed_mps": round(float(np.mean(trace.speed)) if trace.speed else 0.0, 4),
         "distance_km": round(km, 4),
         "elapsed_s": round(elapsed, 2),
+        "standing_clear_s": round(sum(trace.standing_clear) * trace.dt_s, 2),
+        "longest_clear_hold_s": round(_longest_run(trace.standing_clear) * trace.dt_s, 2),
     }
+
+
+def _longest_run(flags: list[bool]) -> int:
+    """The longest run of consecutive True values."""
+    best = run = 0
+    for flag in flags:
+        run = run + 1 if flag else 0
+        best = max(best, run)
+    return best
 
 
 def aggregate(per_episode: list[dict[str, Any]]) -> dict[str, Any]:
@@ -119,6 +135,8 @@ def aggregate(per_episode: list[dict[str, Any]]) -> dict[str, Any]:
     mean["infractions"] = totals
     mean["infractions_per_km"] = {k: round(v / total_km, 4) for k, v in totals.items()} if total_km > 0 else {}
     mean["interventions"] = sum(e["interventions"] for e in per_episode)
+    mean["standing_clear_s"] = round(sum(e.get("standing_clear_s", 0.0) for e in per_episode), 2)
+    mean["longest_clear_hold_s"] = max((e.get("longest_clear_hold_s", 0.0) for e in per_episode), default=0.0)
     mean["distance_km"] = round(total_km, 4)
     mean["episodes"] = len(per_episode)
     return mean
