@@ -683,6 +683,12 @@ class AgentDriver:
         return decision.action()
 
     # ------------------------------------------------------------------ reports
+    @property
+    def reason(self) -> str:
+        """Why the last action was taken (the controller's reason), "" before the first frame; evaluation
+        reports keep it with every infraction and take-over."""
+        return self.view.decision.reason if self.view is not None else ""
+
     def adas_summary(self) -> dict[str, Any]:
         """The episode's ADAS events (closes the open ones); the evaluation report stores this per episode."""
         self.adas.close(self._frame * self.dt)

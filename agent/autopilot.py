@@ -68,8 +68,10 @@ class Autopilot:
 
     def __init__(self, target_speed_mps: float = 8.0, noise: bool = False, noise_seed: int = 0,
                  noise_every_s: tuple[float, float] = (4.0, 9.0), noise_steer: float = 0.35,
-                 noise_duration_s: float = 0.6, comfortable_brake_mps2: float = 3.5) -> None:
+                 noise_duration_s: float = 0.6, comfortable_brake_mps2: float = 3.5, ignore_lights: bool = False) -> None:
         self.target_speed = target_speed_mps
+        self.ignore_lights = ignore_lights  # drive through red lights (to test the red-light checks), like CARLA's
+        #                                     BasicAgent(ignore_traffic_lights=True)
         self.noise = noise
         self.noise_seed = noise_seed
         self.noise_every_s = noise_every_s
@@ -170,7 +172,7 @@ class Autopilot:
     def stop_gap(self, world: World, agents: Agents) -> float | None:
         """Distance to where the car must stop for a light or an unprotected left turn, if it must."""
         light = world.next_light()
-        if light is None:
+        if light is None or self.ignore_lights:
             return None
         speed = world.ego.speed
         gap = max(light.distance_m - 0.8, 0.0)

@@ -1,15 +1,20 @@
 """Closed-loop evaluation of a driver on a suite of seeded routes, with a safety driver.
 
-Writes ``metrics.json`` (per episode and ``mean``), ``table.md``, plots (each route's trajectory on the
-map; speed and steering over time) and ``video.mp4`` of the first episode (camera beside the top-down
-map, with a HUD). The metrics and the intervention rule are documented in ``envs.metrics``.
+Writes ``metrics.json`` (per episode and ``mean``, with every infraction and take-over as an event),
+``table.md`` (the events listed under each episode), a few seconds of video around each event in
+``clips/``, plots (each route's trajectory on the map; speed and steering over time) and ``video.mp4`` of
+the first episode (camera beside the top-down map, with a HUD). The metrics, the intervention rule and
+the Leaderboard rules one can switch on are documented in ``envs.metrics``; every episode's infractions
+are also recomputed by ``envs.audit`` and the comparison is reported.
 """
 
 from __future__ import annotations
 
 import json
+import math
+from collections import deque
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -17,12 +22,24 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from envs.audit import AuditTrace, audit_episode
 from envs.drive_env import DriveConfig, DriveEnv
-from envs.metrics import EpisodeTrace, aggregate, episode_metrics, markdown_table, needs_intervention
+from envs.metrics import (
+    BLOCKED_SPEED_MPS,
+    INTERVENTION_INFRACTIONS,
+    MIN_SPEED_RADIUS_M,
+    EpisodeTrace,
+    EvaluationRules,
+    aggregate,
+    episode_metrics,
+    markdown_table,
+    needs_intervention,
+)
 from envs.standing import STANDING_SPEED_MPS, standing_reason
 
 if TYPE_CHECKING:
     from agent.drivers import Driver
+    from sim.world import World
 
 LIGHT_BGR = {"green": (60, 200, 60), "yellow": (40, 210, 240), "red": (50, 50, 230)}
 
@@ -69,32 +86,180 @@ def video_frame(env: DriveEnv, driver: Driver, info: dict[str, Any], extra: str 
     return np.concatenate([picture, below], axis=0)
 
 
+class ClipWriter:
+    """Short clips around events: the last ``before_s`` of video frames are kept, and an event's clip is
+    written once ``after_s`` more have been seen (or when the episode ends)."""
+
+    def __init__(self, folder: Path, fps: int, before_s: float = 3.0, after_s: float = 2.0) -> None:
+        self.folder, self.fps = folder, fps
+        self.before = deque(maxlen=max(1, int(round(before_s * fps))))
+        self.after_steps = int(round(after_s * fps))
+        self.pending: list[tuple[str, list[np.ndarray], int]] = []
+
+    def add(self, frame: np.ndarray) -> None:
+        self.before.append(frame)
+        still = []
+        for name, frames, left in self.pending:
+            frames.append(frame)
+            if left <= 1:
+                self._write(name, frames)
+            else:
+                still.append((name, frames, left - 1))
+        self.pending = still
+
+    def event(self, name: str) -> str:
+        """Start a clip for an event seen in the frame just added; returns its file name."""
+        self.pending.append((name, list(self.before), self.after_steps))
+        return name
+
+    def flush(self) -> None:
+        for name, frames, _ in self.pending:
+            self._write(name, frames)
+        self.pending = []
+
+    def _write(self, name: str, frames: list[np.ndarray]) -> None:
+        self.folder.mkdir(parents=True, exist_ok=True)
+        writer = video_writer(self.folder / name, self.fps)
+        try:
+            for frame in frames:
+                writer.append_data(frame)
+        finally:
+            writer.close()
+
+
+@dataclass
+class _RuleState:
+    """What the Leaderboard rules of ``EvaluationRules`` count as the episode goes on."""
+
+    still_s: float = 0.0  # seconds without moving (agent blocked)
+    hold_s: float = 0.0  # seconds standing with nothing in the path (hold timeout)
+    section_end_m: float = 0.0  # where the current minimum-speed section ends, in route metres
+    ego_speed_sum: float = 0.0
+    traffic_speed_sum: float = 0.0
+    traffic_steps: int = 0
+
+
+def _min_speed_event(state: _RuleState, info: dict[str, Any]) -> dict[str, Any] | None:
+    """Close a minimum-speed section: an event when the car was slower than the traffic around it."""
+    event = None
+    if state.traffic_steps and state.traffic_speed_sum > 0:
+        ratio = (state.ego_speed_sum / state.traffic_steps) / (state.traffic_speed_sum / state.traffic_steps)
+        if ratio < 1.0:
+            event = {"kind": "min_speed", "time_s": info["time_s"], "x": info["ego"]["x"], "y": info["ego"]["y"],
+                     "other_id": 0, "penalty": round(0.7 + 0.3 * ratio, 6),
+                     "why": f"mean speed {100 * ratio:.1f}% of the surrounding traffic's"}
+    state.ego_speed_sum = state.traffic_speed_sum = 0.0
+    state.traffic_steps = 0
+    return event
+
+
+def _traffic_speed(world: World) -> float | None:
+    """The mean speed of the vehicles within ``MIN_SPEED_RADIUS_M`` of the ego (None when there are none)."""
+    speeds = [v.speed for v in world.npcs if math.hypot(*(v.position - world.ego.position)) < MIN_SPEED_RADIUS_M]
+    return float(np.mean(speeds)) if speeds else None
+
+
 def run_episode(env: DriveEnv, driver: Driver, seed: int, video: Any = None, progress: Any = None,
-                options: dict[str, Any] | None = None) -> EpisodeTrace:
-    """One evaluation episode; the safety driver intervenes by ``envs.metrics.needs_intervention``."""
+                options: dict[str, Any] | None = None, rules: EvaluationRules | None = None,
+                clips: ClipWriter | None = None, audit: bool = False, until_s: float | None = None) -> EpisodeTrace:
+    """One evaluation episode; the safety driver intervenes by ``envs.metrics.needs_intervention``.
+
+    ``rules``: the take-over cost and Leaderboard rules; ``clips``: write a clip around every event;
+    ``audit``: recompute the infractions independently (``envs.audit``); ``until_s``: stop at this time
+    (a replay of the episode up to a moment)."""
+    rules = rules or EvaluationRules()
     obs, info = env.reset(seed=seed, options=options)
     driver.reset(env)
     world = env.world
     assert world is not None
-    trace = EpisodeTrace(seed, world.route_total_m, world.config.dt_s, town_seed=world.town.seed, weather=env.weather)
+    trace = EpisodeTrace(seed, world.route_total_m, world.config.dt_s, town_seed=world.town.seed, weather=env.weather,
+                         takeover_penalty=rules.takeover_penalty)
+    truth = AuditTrace() if audit else None
+    state = _RuleState(section_end_m=world.route_progress_m + rules.min_speed_section_m)
+    dt = world.config.dt_s
+    carried = False
     done = False
     while not done:
         action = np.asarray(driver.act(obs), np.float32)
         obs, _, terminated, truncated, info = env.step(action)
-        stands = info["ego"]["speed_mps"] < STANDING_SPEED_MPS
-        trace.add_step(info, action, standing_clear=stands and standing_reason(world) is None)
+        speed = info["ego"]["speed_mps"]
+        clear = speed < STANDING_SPEED_MPS and standing_reason(world) is None
+        extra = _rule_events(rules, state, world, info, clear, dt)
+        info["infractions"] = info["infractions"] + extra
+        trace.add_step(info, action, standing_clear=clear)
+        if truth is not None:
+            truth.record(world, carried)
+            carried = False
+        reason = str(getattr(driver, "reason", "") or "")
+        new_events = [{**inf, **({"reason": reason} if reason else {})} for inf in info["infractions"]]
         if needs_intervention(info) and not world.route_done:
             trace.interventions.append(info["time_s"])
+            new_events.append(_takeover_event(info, reason))
             world.put_back_on_route()
+            carried = True
             restart = getattr(driver, "on_intervention", None)  # a driver with state re-engages afresh
             if restart is not None:
                 restart()
+        frame = video_frame(env, driver, info) if (video is not None or clips is not None) else None
         if video is not None:
-            video.append_data(video_frame(env, driver, info))
+            video.append_data(frame)
+        if clips is not None and frame is not None:
+            clips.add(frame)
+            for ev in new_events:
+                ev["clip"] = clips.event(f"seed{seed}_{ev['time_s']:07.2f}s_{ev['kind']}.mp4")
+        trace.events += new_events
         if progress is not None:
             progress.update(1)
-        done = terminated or truncated
+        blocked = any(ev["kind"] == "agent_blocked" for ev in extra)
+        done = terminated or truncated or blocked or (until_s is not None and info["time_s"] >= until_s - 1e-9)
+    if rules.min_speed:
+        last = _min_speed_event(state, info)
+        if last is not None:
+            trace.infractions.append(last)
+            trace.events.append(last)
+    if clips is not None:
+        clips.flush()
+    if truth is not None:
+        trace.audit = audit_episode(world.town, truth, trace.infractions)
     return trace
+
+
+def _takeover_event(info: dict[str, Any], reason: str) -> dict[str, Any]:
+    offset = info["lane_band_offset_m"]
+    kinds = [inf["kind"] for inf in info["infractions"] if inf["kind"] in INTERVENTION_INFRACTIONS]
+    why = ", ".join(kinds) if kinds else (f"{offset:.2f} m outside its lanes" if math.isfinite(offset) else "off road")
+    return {"kind": "takeover", "time_s": info["time_s"], "x": info["ego"]["x"], "y": info["ego"]["y"],
+            "speed_mps": info["ego"]["speed_mps"], "why": why, **({"reason": reason} if reason else {})}
+
+
+def _rule_events(rules: EvaluationRules, state: _RuleState, world: World, info: dict[str, Any], clear: bool,
+                 dt: float) -> list[dict[str, Any]]:
+    """This step's events from the Leaderboard rules that are switched on."""
+    out: list[dict[str, Any]] = []
+    here = {"time_s": info["time_s"], "x": info["ego"]["x"], "y": info["ego"]["y"], "other_id": 0,
+            "speed_mps": info["ego"]["speed_mps"]}
+    speed = info["ego"]["speed_mps"]
+    if rules.blocked_limit_s is not None:
+        state.still_s = state.still_s + dt if speed < BLOCKED_SPEED_MPS else 0.0
+        if state.still_s >= rules.blocked_limit_s - 1e-9:
+            out.append({**here, "kind": "agent_blocked", "why": f"not moving for {state.still_s:.0f} s: the route ends"})
+    if rules.hold_timeout_s is not None:
+        state.hold_s = state.hold_s + dt if clear else 0.0
+        if state.hold_s >= rules.hold_timeout_s - 1e-9:
+            out.append({**here, "kind": "hold_timeout", "why": f"stood {state.hold_s:.0f} s with nothing in the path"})
+            state.hold_s = 0.0
+    if rules.min_speed:
+        traffic = _traffic_speed(world)
+        if traffic is not None:
+            state.ego_speed_sum += speed
+            state.traffic_speed_sum += traffic
+            state.traffic_steps += 1
+        if info["route"]["progress_m"] >= state.section_end_m:
+            state.section_end_m += rules.min_speed_section_m
+            event = _min_speed_event(state, info)
+            if event is not None:
+                out.append(event)
+    return out
 
 
 def plot_traces(env: DriveEnv, traces: list[EpisodeTrace], out: Path) -> list[str]:
@@ -145,22 +310,30 @@ def plot_traces(env: DriveEnv, traces: list[EpisodeTrace], out: Path) -> list[st
 
 
 def evaluate(driver: Driver, config: DriveConfig, episodes: int, seed: int, out: Path, video: bool = True,
-             options: Callable[[int], dict[str, Any]] | None = None) -> dict:
+             options: Callable[[int], dict[str, Any]] | None = None, rules: EvaluationRules | None = None,
+             clips: bool = True, audit: bool = True, plots: bool = True, until_s: float | None = None) -> dict:
     """Run the suite, write every report file into ``out``, and return the metrics dict.
 
-    ``options(k)`` gives the k-th episode's reset options (e.g. its town and weather)."""
+    ``options(k)`` gives the k-th episode's reset options (e.g. its town and weather); ``rules`` the take-over
+    cost and the Leaderboard rules in force; ``clips`` writes a clip around every infraction and take-over
+    into ``out/clips``; ``audit`` recomputes every infraction independently (``envs.audit``) and reports the
+    comparison; ``plots`` writes the trajectory and speed plots; ``until_s`` stops each episode at that time."""
     config = replace(config, terminate_on_infraction=False, terminate_on_route_deviation=False)
+    rules = rules or EvaluationRules()
     env = DriveEnv(config, render_mode="rgb_array")
     out.mkdir(parents=True, exist_ok=True)
     traces, per_episode = [], []
     steps_hint = int(config.max_time_s / config.world.dt_s) * episodes
     writer = None
+    fps = env.metadata["render_fps"]
+    clip_writer = ClipWriter(out / "clips", fps) if clips else None
     try:
         with tqdm(total=steps_hint, desc=f"evaluating {driver.name}", unit="step", mininterval=2.0) as bar:
             for k in range(episodes):
                 if video and k == 0:
-                    writer = video_writer(out / "video.mp4", env.metadata["render_fps"])
-                trace = run_episode(env, driver, seed + k, writer, bar, options(k) if options else None)
+                    writer = video_writer(out / "video.mp4", fps)
+                trace = run_episode(env, driver, seed + k, writer, bar, options(k) if options else None, rules,
+                                    clip_writer, audit, until_s)
                 if writer is not None:
                     writer.close()
                     writer = None
@@ -169,7 +342,7 @@ def evaluate(driver: Driver, config: DriveConfig, episodes: int, seed: int, out:
                 adas = getattr(driver, "adas_summary", None)  # ADAS warnings (the agent): counts and events
                 if callable(adas):
                     per_episode[-1]["adas"] = adas()
-        plots = plot_traces(env, traces, out / "plots")
+        written = plot_traces(env, traces, out / "plots") if plots else []
     finally:
         if writer is not None:
             writer.close()
@@ -179,8 +352,8 @@ def evaluate(driver: Driver, config: DriveConfig, episodes: int, seed: int, out:
         mean["adas_warnings"] = {k: sum(e["adas"]["counts"][k] for e in per_episode if "adas" in e)
                                  for k in per_episode[0]["adas"]["counts"]}
     metrics = {"driver": driver.name, "privileged": driver.privileged, "town_seed": config.town_seed,
-               "weather": config.weather, "seeds": [seed, seed + episodes - 1], "episodes": per_episode,
-               "mean": mean, "plots": plots, "video": "video.mp4" if video else None}
+               "weather": config.weather, "seeds": [seed, seed + episodes - 1], "rules": asdict(rules),
+               "episodes": per_episode, "mean": mean, "plots": written, "video": "video.mp4" if video else None}
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     (out / "table.md").write_text(markdown_table(driver.name, per_episode, mean))
     return metrics

@@ -4,13 +4,16 @@ Per episode:
   route_completion     % of the route's length driven along the route (0-100)
   infraction_penalty   product of the Leaderboard multipliers, once per infraction:
                        pedestrian collision 0.50, vehicle 0.60, static object 0.65, red light 0.70,
-                       stop-line violation 0.80 (kinds without a multiplier, e.g. wrong way, count 1.0)
+                       stop-line violation 0.80 (kinds without a multiplier, e.g. wrong way, count 1.0);
+                       and once per safety-driver take-over, ``EvaluationRules.takeover_penalty`` (0.70)
   driving_score        route_completion x infraction_penalty (0-100)
   infractions_per_km   every infraction kind, per kilometre driven
   autonomy             (1 - interventions x 6 s / elapsed s) x 100, at least 0
   mean_abs_lane_offset_m, mean_speed_mps
   standing_clear_s     seconds stood still with nothing in the path by ground truth (``envs.standing``)
   longest_clear_hold_s the longest such standstill without a break
+  events               every infraction and take-over: kind, time, place, the other party (id and kind), the
+                       light it concerns, the ego's speed, and the driver's reason when the driver gives one
 
 The intervention rule: a safety driver takes over when the car is more than 1 m off its lane centre
 (measured outside the band between the centres of its direction's lanes, so that a lane change is not
@@ -19,6 +22,21 @@ route. Each take-over counts once and puts the car back on its route lane at a s
 other cars, and the episode goes on; a driver with an ``on_intervention()`` method is told, so that what
 it tracked or dead-reckoned about the place the car left starts afresh (as a car's system does when it
 is engaged again).
+
+Why a take-over costs score: CARLA has no safety driver; there a car that leaves its lanes or is stuck
+after a collision ends its route, losing the rest of it. A take-over here lets the route go on, so
+without a cost a route that needed a human would score like a clean one. 0.70 is the Leaderboard 2.0
+multiplier for the other "the agent could not go on by itself" events (scenario timeout, minimum speed).
+
+CARLA Leaderboard 2.0 rules, each off by default and chosen with ``EvaluationRules``:
+  blocked_limit_s      "agent blocked": a car that has not moved (speed under 0.5 m/s) for this long ends
+                       its route there (the Leaderboard uses 180 s); an ``agent_blocked`` event, no multiplier
+  min_speed            "minimum speed": over each ``min_speed_section_m`` of route, the car's mean speed
+                       against the mean speed of the vehicles within 50 m (steps with any); slower by a
+                       ratio r < 1 multiplies by 0.7 + 0.3 r (the Leaderboard's formula)
+  hold_timeout_s       the analogue of the Leaderboard's scenario timeout: standing this long with nothing
+                       in the path (``envs.standing``) is a ``hold_timeout`` event, multiplier 0.70, and the
+                       count starts again
 """
 
 from __future__ import annotations
@@ -30,11 +48,34 @@ from typing import Any
 import numpy as np
 
 PENALTY = {"collision_pedestrian": 0.50, "collision_vehicle": 0.60, "collision_static": 0.65, "red_light": 0.70,
-           "stop_line": 0.80}
+           "stop_line": 0.80, "hold_timeout": 0.70}
 INTERVENTION_INFRACTIONS = {"collision_pedestrian", "collision_vehicle", "collision_static", "off_road",
                             "route_deviation"}
 INTERVENTION_OFFSET_M = 1.0
 INTERVENTION_COST_S = 6.0
+MIN_SPEED_RADIUS_M = 50.0  # the "surrounding traffic" of the minimum-speed rule
+BLOCKED_SPEED_MPS = 0.5  # below this the car counts as not moving, for the agent-blocked rule
+
+
+@dataclass(frozen=True)
+class EvaluationRules:
+    """What a take-over costs and which CARLA Leaderboard 2.0 rules apply (see the module docstring)."""
+
+    takeover_penalty: float = 0.70
+    blocked_limit_s: float | None = None  # the Leaderboard: 180.0
+    min_speed: bool = False
+    min_speed_section_m: float = 50.0
+    hold_timeout_s: float | None = None
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.takeover_penalty <= 1.0:
+            raise ValueError(f"takeover_penalty must be in [0, 1]; got {self.takeover_penalty}.")
+        for name in ("blocked_limit_s", "hold_timeout_s"):
+            value = getattr(self, name)
+            if value is not None and not value > 0:
+                raise ValueError(f"{name} must be a positive number of seconds or None; got {value}.")
+        if not self.min_speed_section_m > 0:
+            raise ValueError(f"min_speed_section_m must be positive; got {self.min_speed_section_m}.")
 
 
 @dataclass
@@ -52,6 +93,9 @@ class EpisodeTrace:
     infractions: list[dict[str, Any]] = field(default_factory=list)
     interventions: list[float] = field(default_factory=list)  # times, seconds
     standing_clear: list[bool] = field(default_factory=list)  # per step: standing with nothing in the path
+    events: list[dict[str, Any]] = field(default_factory=list)  # infractions and take-overs, in time order
+    takeover_penalty: float = 0.70
+    audit: dict[str, Any] | None = None  # envs.audit's comparison, when the evaluation ran it
     route_progress_m: float = 0.0
     distance_m: float = 0.0
     town_seed: int = 0
@@ -82,13 +126,18 @@ def needs_intervention(info: dict[str, Any]) -> bool:
     return any(inf["kind"] in INTERVENTION_INFRACTIONS for inf in info["infractions"])
 
 
+def infraction_multiplier(infraction: dict[str, Any]) -> float:
+    """The score multiplier of one infraction: its own (minimum speed) or its kind's."""
+    return float(infraction.get("penalty", PENALTY.get(infraction["kind"], 1.0)))
+
+
 def episode_metrics(trace: EpisodeTrace) -> dict[str, Any]:
     counts: dict[str, int] = {}
+    penalty = 1.0
     for inf in trace.infractions:
         counts[inf["kind"]] = counts.get(inf["kind"], 0) + 1
-    penalty = 1.0
-    for kind, n in counts.items():
-        penalty *= PENALTY.get(kind, 1.0) ** n
+        penalty *= infraction_multiplier(inf)
+    penalty *= trace.takeover_penalty ** len(trace.interventions)
     completion = 100.0 * min(1.0, trace.route_progress_m / max(trace.route_total_m, 1e-6))
     km = trace.distance_m / 1000.0
     offsets = np.abs(np.array([o for o in trace.lane_offset if math.isfinite(o)]))
@@ -110,6 +159,8 @@ def episode_metrics(trace: EpisodeTrace) -> dict[str, Any]:
         "elapsed_s": round(elapsed, 2),
         "standing_clear_s": round(sum(trace.standing_clear) * trace.dt_s, 2),
         "longest_clear_hold_s": round(_longest_run(trace.standing_clear) * trace.dt_s, 2),
+        "events": trace.events,
+        **({"audit": trace.audit} if trace.audit is not None else {}),
     }
 
 
@@ -137,6 +188,11 @@ def aggregate(per_episode: list[dict[str, Any]]) -> dict[str, Any]:
     mean["interventions"] = sum(e["interventions"] for e in per_episode)
     mean["standing_clear_s"] = round(sum(e.get("standing_clear_s", 0.0) for e in per_episode), 2)
     mean["longest_clear_hold_s"] = max((e.get("longest_clear_hold_s", 0.0) for e in per_episode), default=0.0)
+    audits = [e["audit"] for e in per_episode if "audit" in e]
+    if audits:
+        from envs.audit import merge
+
+        mean["audit"] = merge(audits)
     mean["distance_km"] = round(total_km, 4)
     mean["episodes"] = len(per_episode)
     return mean
@@ -144,16 +200,49 @@ def aggregate(per_episode: list[dict[str, Any]]) -> dict[str, Any]:
 
 def markdown_table(driver: str, per_episode: list[dict[str, Any]], mean: dict[str, Any]) -> str:
     head = ("| episode (seed, town, weather) | route completion % | penalty | driving score | autonomy % | interventions "
-            "| mean abs offset m | mean speed m/s | infractions |")
-    lines = [f"# Closed-loop evaluation: {driver}", "", head, "|" + "---|" * 9]
+            "| mean abs offset m | mean speed m/s | standing clear s | infractions |")
+    lines = [f"# Closed-loop evaluation: {driver}", "", head, "|" + "---|" * 10]
     for e in per_episode:
         inf = ", ".join(f"{k} {v}" for k, v in sorted(e["infractions"].items())) or "none"
         where = f"{e['seed']}, {e.get('town_seed', '')}, {e.get('weather', '')}"
         lines.append(f"| {where} | {e['route_completion']:.1f} | {e['infraction_penalty']:.3f} | "
                      f"{e['driving_score']:.1f} | {e['autonomy']:.1f} | {e['interventions']} | "
-                     f"{e['mean_abs_lane_offset_m']:.3f} | {e['mean_speed_mps']:.2f} | {inf} |")
+                     f"{e['mean_abs_lane_offset_m']:.3f} | {e['mean_speed_mps']:.2f} | "
+                     f"{e.get('standing_clear_s', 0.0):.1f} | {inf} |")
     inf = ", ".join(f"{k} {v}" for k, v in sorted(mean["infractions"].items())) or "none"
     lines.append(f"| **mean** | {mean['route_completion']:.1f} | {mean['infraction_penalty']:.3f} | "
                  f"**{mean['driving_score']:.1f}** | {mean['autonomy']:.1f} | {mean['interventions']} | "
-                 f"{mean['mean_abs_lane_offset_m']:.3f} | {mean['mean_speed_mps']:.2f} | {inf} |")
+                 f"{mean['mean_abs_lane_offset_m']:.3f} | {mean['mean_speed_mps']:.2f} | "
+                 f"{mean.get('standing_clear_s', 0.0):.1f} | {inf} |")
+    if any(e.get("events") for e in per_episode):
+        lines += ["", "## Events", ""]
+        for e in per_episode:
+            if not e.get("events"):
+                continue
+            lines.append(f"Episode {e['seed']} (town {e.get('town_seed', '')}, {e.get('weather', '')}):")
+            lines.append("")
+            lines += [f"- {describe_event(ev)}" for ev in e["events"]]
+            lines.append("")
+    if "audit" in mean:
+        lines += ["", "## Audit of the infraction detectors (envs.audit)", "",
+                  "| kind | confirmed | reported, not confirmed | missed |", "|---|---|---|---|"]
+        lines += [f"| {kind} | {c['confirmed']} | {c['unconfirmed']} | {c['missed']} |" for kind, c in mean["audit"].items()]
     return "\n".join(lines) + "\n"
+
+
+def describe_event(event: dict[str, Any]) -> str:
+    """One line for an event: when, what, where, with whom, how fast, the driver's reason, its clip."""
+    parts = [f"{event['time_s']:.2f} s **{event['kind']}** at ({event['x']:.1f}, {event['y']:.1f})"]
+    if event.get("other_kind"):
+        parts.append(f"{event['other_kind']} #{event['other_id']}")
+    if event.get("approach", -1) >= 0:
+        parts.append(f"light and stop bar of approach {event['approach']}")
+    if "speed_mps" in event:
+        parts.append(f"{event['speed_mps'] * 3.6:.1f} km/h")
+    if event.get("why"):
+        parts.append(event["why"])
+    if event.get("reason"):
+        parts.append(f"driver: \"{event['reason']}\"")
+    if event.get("clip"):
+        parts.append(f"clip `{event['clip']}`")
+    return ", ".join(parts)

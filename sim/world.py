@@ -21,7 +21,7 @@ from sim.objects import LightState, ObjectSnapshot, SemanticClass
 from sim.path_filter import points_within
 from sim.pedestrians import PedestrianCrowd
 from sim.routes import command_at, edge_length, random_route, route_length, shortest_route
-from sim.town import Command, Edge, LaneLocation, Town, TownConfig, generate_town
+from sim.town import Approach, Command, Edge, LaneLocation, Town, TownConfig, generate_town
 from sim.traffic import CAR_COLORS, Agents, TownVehicle, step_vehicles
 
 PEDESTRIAN_ID_BASE = 1000
@@ -59,7 +59,11 @@ class Infraction:
     time_s: float
     x: float
     y: float
-    other_id: int = 0
+    other_id: int = 0  # the vehicle's or pedestrian's id; the approach index for a red light
+    other_kind: str = ""  # car | truck | pedestrian | static | traffic_light | "" (none)
+    approach: int = -1  # the signalled approach (its light and stop bar) the infraction concerns, if any
+    heading: float = 0.0  # the ego's heading, radians
+    speed_mps: float = 0.0  # the ego's speed
 
 
 TERMINAL_INFRACTIONS = {"collision_vehicle", "collision_pedestrian", "collision_static", "off_road"}
@@ -184,7 +188,9 @@ class World:
         self.new_infractions: list[Infraction] = []
         self._wrong_way = False
         self._contacts: set[tuple[str, int]] = set()  # ongoing collisions / off-road, counted once each
-        self._watched_approach: tuple[int, float] | None = None  # approach, front s on its lane
+        self._previous_front: np.ndarray | None = None  # the front bumper a step ago (red-light runs)
+        self._last_approach: int | None = None  # the approach the car came by, while in its junction
+        self._charged_approach: int | None = None  # a red-light run charged at this approach on this visit
         self.ego_lane: tuple[tuple[str, str, int], float, float] | None = town.locate(self.ego.position, self.ego.heading)
         self.distance_m = 0.0
         self._snapshots: list[ObjectSnapshot] = []
@@ -316,8 +322,11 @@ class World:
         return self.new_infractions
 
     # ---------------------------------------------------------------- ground truth
-    def _record(self, kind: str, other: int = 0) -> Infraction:
-        return Infraction(kind, self.time_s, float(self.ego.position[0]), float(self.ego.position[1]), other)
+    def _record(self, kind: str, other: int = 0, other_kind: str = "", approach: int = -1) -> Infraction:
+        ego = self.ego
+        return Infraction(kind, self.time_s, float(ego.position[0]), float(ego.position[1]),
+                          other if other or approach < 0 else approach, other_kind, approach, float(ego.heading),
+                          float(ego.speed))
 
     def _check_ego(self, npc_positions: np.ndarray | None = None) -> list[Infraction]:
         """This step's new infractions. A contact (collision, off road) counts once when it starts,
@@ -325,6 +334,7 @@ class World:
         ego = self.ego
         out: list[Infraction] = []
         contacts: set[tuple[str, int]] = set()
+        kinds: dict[int, str] = {}  # the other party's kind, by id
         poly = rect_corners(ego.position, ego.heading, ego.LENGTH, ego.WIDTH)
         longest = max((v.LENGTH for v in self.npcs), default=0.0)
         for npc in _maybe_within(self.npcs, npc_positions, ego.position, (longest + ego.LENGTH) / 2 + 1.0):
@@ -332,18 +342,20 @@ class World:
             if near and polygons_intersect(poly, rect_corners(npc.position, npc.heading, npc.LENGTH, npc.WIDTH)):
                 npc.crashed = True
                 contacts.add(("collision_vehicle", npc.object_id))
+                kinds[npc.object_id] = SemanticClass(npc.kind).name.lower()
         peds = self.crowd.peds
         for ped in _maybe_within(peds, None, ego.position, ego.LENGTH):
             if math.hypot(*(ped.position - ego.position)) < ego.LENGTH and circle_polygon_intersect(
                     ped.position, ped.RADIUS, poly):
                 contacts.add(("collision_pedestrian", ped.object_id))
+                kinds[ped.object_id] = "pedestrian"
         if self.static.hits(poly):
             contacts.add(("collision_static", 0))
         self.ego_lane, nearest = self.town.locate_both(ego.position, ego.heading)
         if self.ego_lane is None:
             contacts.add(("off_road", 0))
         for kind, other in sorted(contacts - self._contacts):
-            out.append(self._record(kind, other))
+            out.append(self._record(kind, other, kinds.get(other, "static" if kind == "collision_static" else "")))
         self._contacts = contacts
         if self.ego_lane is not None:
             out += self._check_direction_and_route(nearest)
@@ -387,7 +399,7 @@ class World:
         self._off_route_s = 0.0
         self.deviated = False
         self._wrong_way = False
-        self._watched_approach = None
+        self._previous_front = None  # the car was carried: it crossed no bar on the way
         self.ego_lane = self.town.locate(self.ego.position, self.ego.heading)
         self._contacts = set()
 
@@ -414,6 +426,7 @@ class World:
             self.route_index += window.index(edge)
             self.route_s = max(s, self.route_s) if window.index(edge) == 0 else s
             self._off_route_s = 0.0
+            self.deviated = False  # back on the route: a later departure is a new deviation
         else:
             self._off_route_s += self.config.dt_s
             if self._off_route_s >= self.config.route_deviation_s and not self.deviated:
@@ -433,26 +446,53 @@ class World:
         return None
 
     def _check_red_light(self) -> list[Infraction]:
-        """Red-light run: the ego's front bumper passes the end of an approach lane on red."""
+        """Red-light run: the front bumper, moving from where it was a step ago to where it is now, crosses
+        the junction-side edge of the stop bar of the approach the car is on, within the bar's width,
+        while that approach's light is red.
+
+        The approach is found afresh every step from the lane the car's centre is on (its incoming road,
+        or a connector of its junction just after the bumper crossed): nothing is carried from one
+        junction to the next, so a far junction's light can never be charged, and the approach the car
+        is on is always the one looked at. One run is charged once per visit to an approach."""
         ego = self.ego
         front = ego.position + ego.LENGTH / 2 * np.array([math.cos(ego.heading), math.sin(ego.heading)])
-        out: list[Infraction] = []
-        if self._watched_approach is not None:
-            idx, prev_s = self._watched_approach
-            ap = self.town.approaches[idx]
-            lane = self.town.network.graph[ap.edge[0]][ap.edge[1]][0]
-            s = float(lane.local_coordinates(front)[0])
-            if prev_s < lane.length <= s and self.lights.state(idx) == LightState.RED:
-                out.append(self._record("red_light", idx))
-            self._watched_approach = (idx, s) if s < lane.length + 10 else None
-        if self._watched_approach is None and self.ego_lane is not None:
-            ap = self.town.approach_for_edge(self.ego_lane[0][:2])
-            if ap is not None:
-                lane = self.town.network.graph[ap.edge[0]][ap.edge[1]][0]
-                s = float(lane.local_coordinates(front)[0])
-                if s < lane.length:
-                    self._watched_approach = (ap.index, s)
-        return out
+        previous, self._previous_front = self._previous_front, front
+        approach = self._approach_here()
+        if approach is None or self._charged_approach != approach.index:
+            self._charged_approach = None
+        if approach is None or previous is None:
+            return []
+        lane = self.town.network.graph[approach.edge[0]][approach.edge[1]][0]
+        s0, lat0 = (float(v) for v in lane.local_coordinates(previous))
+        s1, lat1 = (float(v) for v in lane.local_coordinates(front))
+        if not s0 < lane.length <= s1:
+            return []
+        lateral = lat0 + (lat1 - lat0) * (lane.length - s0) / max(s1 - s0, 1e-9)
+        half = self.town.lane_width / 2
+        if not -half <= lateral <= 3 * half:  # the bar spans both incoming lanes (lane 0's centre at 0)
+            return []
+        if self.lights.state(approach.index) != LightState.RED or self._charged_approach == approach.index:
+            return []
+        self._charged_approach = approach.index
+        return [self._record("red_light", other_kind="traffic_light", approach=approach.index)]
+
+    def _approach_here(self) -> Approach | None:
+        """The signalled approach whose stop bar the car is at: its incoming road when the car's centre is
+        on it, else the approach it came by when the centre is on a connector of that approach's junction."""
+        if self.ego_lane is None:
+            return None
+        index = self.ego_lane[0]
+        approach = self.town.approach_for_edge(index[:2])
+        if approach is not None:
+            self._last_approach = approach.index
+            return approach
+        info = self.town.lane_info.get(index)
+        if self._last_approach is not None and info is not None and info.kind == "connector":
+            came_by = self.town.approaches[self._last_approach]
+            if came_by.node == info.node:
+                return came_by
+        self._last_approach = None
+        return None
 
     # ---------------------------------------------------------------- views for env, renderer, drivers
     @property

@@ -99,8 +99,8 @@ def test_metrics_follow_the_leaderboard_rules():
     trace.interventions = [10.0]
     m = episode_metrics(trace)
     assert m["route_completion"] == pytest.approx(75.0)
-    assert m["infraction_penalty"] == pytest.approx(0.6 * 0.7)
-    assert m["driving_score"] == pytest.approx(75.0 * 0.42)
+    assert m["infraction_penalty"] == pytest.approx(0.6 * 0.7 * 0.7)  # the take-over costs 0.7 too
+    assert m["driving_score"] == pytest.approx(75.0 * 0.294)
     assert m["autonomy"] == pytest.approx((1 - 6.0 / 60.0) * 100)
     assert m["infractions_per_km"]["red_light"] == pytest.approx(2.0)
     assert aggregate([m, m])["driving_score"] == pytest.approx(m["driving_score"])
