@@ -64,6 +64,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     mode.add_argument("--evaluate", action="store_true", help="closed-loop evaluation with CARLA-style metrics")
     mode.add_argument("--scenario", metavar="NAME", help="run a scenario of the suite, or 'all'")
     p.add_argument("--episodes", type=int, default=1, help="record/evaluate: how many episodes")
+    p.add_argument("--until", type=float, default=None, metavar="SECONDS",
+                   help="evaluate: stop each episode at this time and save its last frame (replay an event: the "
+                        "report gives seed, town and weather)")
+    p.add_argument("--takeover-penalty", type=float, default=None,
+                   help="evaluate: score multiplier per safety-driver take-over (default 0.7, envs.metrics)")
+    p.add_argument("--blocked-s", type=float, default=None,
+                   help="evaluate: Leaderboard 2.0 agent-blocked rule, end a route after this long without moving")
+    p.add_argument("--min-speed", action="store_true", help="evaluate: Leaderboard 2.0 minimum-speed rule")
+    p.add_argument("--hold-timeout-s", type=float, default=None,
+                   help="evaluate: penalise standing this long with nothing in the path (the LB's scenario timeout)")
     p.add_argument("--noise", action="store_true", help="autopilot: inject steering perturbations (recoveries)")
     p.add_argument("--depth", action="store_true", help="record: also store depth")
     p.add_argument("--segmentation", action="store_true", help="record: also store segmentation")
@@ -274,12 +284,28 @@ def record(args: argparse.Namespace) -> int:
 
 
 def evaluate(args: argparse.Namespace) -> int:
+    from collections import deque
+
+    import cv2
+    import imageio.v2 as imageio
+
     from envs.evaluation import evaluate as run
+    from envs.metrics import EvaluationRules
 
     out = args.out or Path("out/eval")
     config = make_config(args)
-    metrics = run(make_named_driver(args), config, args.episodes, args.seed, out, video=not args.no_video,
-                  options=lambda k: episode_options(args, k))
+    penalty = EvaluationRules.takeover_penalty if args.takeover_penalty is None else args.takeover_penalty
+    rules = EvaluationRules(penalty, args.blocked_s, args.min_speed, hold_timeout_s=args.hold_timeout_s)
+    replay = args.until is not None
+    metrics = run(make_named_driver(args), config, args.episodes, args.seed, out, video=not args.no_video or replay,
+                  options=lambda k: episode_options(args, k), rules=rules, until_s=args.until, plots=not replay)
+    if replay:  # the moment itself, as a picture
+        with imageio.get_reader(out / "video.mp4") as reader:
+            tail = deque(reader, maxlen=1)
+        if tail:
+            last = tail[0]
+            cv2.imwrite(str(out / f"until_{args.until:.2f}s.png"), cv2.cvtColor(last, cv2.COLOR_RGB2BGR))
+            print(f"the last frame, at {args.until:.2f} s: {out / f'until_{args.until:.2f}s.png'}")
     print((out / "table.md").read_text())
     m = metrics["mean"]
     print(f"driving score {m['driving_score']:.2f}, route completion {m['route_completion']:.2f}%, "
@@ -319,6 +345,9 @@ def real_frames(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
+        if args.until is not None and (not args.evaluate or not args.until > 0):
+            raise ValueError(f"--until {args.until} replays an evaluation episode up to a time in seconds: "
+                             "it needs --evaluate and a positive time.")
         if args.camera and not args.profile:
             raise ValueError("--camera needs --profile (e.g. --profile cpu --camera drive.mp4).")
         if args.profile:

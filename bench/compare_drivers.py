@@ -25,6 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from agent.drivers import make_driver  # noqa: E402
 from envs.drive_env import DriveConfig  # noqa: E402
 from envs.evaluation import evaluate  # noqa: E402
+from envs.metrics import EvaluationRules  # noqa: E402
 from sim.render import LIGHTING_PRESETS  # noqa: E402
 from sim.world import WorldConfig  # noqa: E402
 
@@ -42,6 +43,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=120.0, help="time limit per episode")
     ap.add_argument("--video", action="store_true", help="also write each driver's first-episode video")
     ap.add_argument("--out", type=Path, default=Path("out/compare"))
+    ap.add_argument("--takeover-penalty", type=float, default=EvaluationRules.takeover_penalty,
+                    help="score multiplier per safety-driver take-over (envs.metrics)")
+    ap.add_argument("--blocked-s", type=float, default=None,
+                    help="Leaderboard 2.0 agent-blocked rule: end a route after this long without moving (LB: 180)")
+    ap.add_argument("--min-speed", action="store_true", help="Leaderboard 2.0 minimum-speed rule")
+    ap.add_argument("--hold-timeout-s", type=float, default=None,
+                    help="penalise standing this long with nothing in the path (the LB's scenario timeout)")
     ap.add_argument("--reuse", action="store_true",
                     help="take a driver's row from an earlier run in --out with the same settings instead of re-running")
     args = ap.parse_args(argv)
@@ -50,6 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     world = replace(base, npc_count=round(base.npc_count * args.traffic),
                     pedestrian_count=round(base.pedestrian_count * args.traffic))
     config = DriveConfig(world=world, max_time_s=args.seconds)
+    rules = EvaluationRules(args.takeover_penalty, args.blocked_s, args.min_speed, hold_timeout_s=args.hold_timeout_s)
 
     def options(k: int) -> dict:
         return {"town_seed": args.town_seed + k % args.towns, "weather": weathers[k % len(weathers)]}
@@ -71,23 +80,34 @@ def main(argv: list[str] | None = None) -> int:
             # world, and so every figure, is the same; it runs about 50 times faster).
             blind = driver.privileged and not args.video
             metrics = evaluate(driver, replace(config, render_camera=False) if blind else config, args.episodes,
-                               args.seed, folder, video=args.video, options=options)
+                               args.seed, folder, video=args.video, options=options, rules=rules)
             earlier.write_text(json.dumps(settings, indent=2))
             (folder / "wall_s.txt").write_text(f"{time.perf_counter() - t0:.1f}\n")
         m = metrics["mean"]
         inf = ", ".join(f"{k} {v}" for k, v in sorted(m["infractions"].items())) or "none"
         rows.append(f"| {label} | {m['route_completion']:.1f} | {m['driving_score']:.1f} | {m['autonomy']:.2f} | "
                     f"{m['interventions']} | {m['mean_abs_lane_offset_m']:.3f} | {m['mean_speed_mps']:.2f} | "
-                    f"{m['distance_km']:.2f} | {inf} | {float((folder / 'wall_s.txt').read_text()):.0f} |")
+                    f"{m['distance_km']:.2f} | {inf} | {m.get('standing_clear_s', 0.0):.0f} / "
+                    f"{m.get('longest_clear_hold_s', 0.0):.0f} | {_audit_cell(m)} | "
+                    f"{float((folder / 'wall_s.txt').read_text()):.0f} |")
     head = [f"Towns {args.town_seed}-{args.town_seed + args.towns - 1}, seeds {args.seed}-{args.seed + args.episodes - 1}, "
             f"weathers {', '.join(weathers)}, traffic x{args.traffic:g}, {args.seconds:g} s per episode", "",
             "| driver | route completion % | driving score | autonomy % | interventions | mean abs lane offset m "
-            "| mean speed m/s | km | infractions | wall s |", "|" + "---|" * 10]
+            "| mean speed m/s | km | infractions | standing clear s: total / longest | audit: confirmed / "
+            "unconfirmed / missed | wall s |", "|" + "---|" * 12]
     table = "\n".join(head + rows) + "\n"
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "table.md").write_text(table)
     print(table)
     return 0
+
+
+def _audit_cell(mean: dict) -> str:
+    """The audit of the infraction detectors over the driver's episodes, summed over kinds."""
+    audit = mean.get("audit")
+    if not audit:
+        return "-"
+    return " / ".join(str(sum(c[k] for c in audit.values())) for k in ("confirmed", "unconfirmed", "missed"))
 
 
 if __name__ == "__main__":

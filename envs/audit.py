@@ -222,7 +222,7 @@ def compare(reported: list[dict[str, Any]], recomputed: list[dict[str, Any]]) ->
         kind = inf["kind"]
         if kind not in result:
             continue
-        other = inf.get("approach", -1) if kind == "red_light" else inf.get("other_id", 0)
+        other = inf.get("approach", inf.get("other_id", 0)) if kind == "red_light" else inf.get("other_id", 0)
         match = next((r for r in left if r["kind"] == kind and r["other_id"] == other
                       and abs(r["time_s"] - inf["time_s"]) <= MATCH_S), None)
         if match is None:

@@ -215,7 +215,9 @@ def markdown_table(driver: str, per_episode: list[dict[str, Any]], mean: dict[st
                  f"{mean['mean_abs_lane_offset_m']:.3f} | {mean['mean_speed_mps']:.2f} | "
                  f"{mean.get('standing_clear_s', 0.0):.1f} | {inf} |")
     if any(e.get("events") for e in per_episode):
-        lines += ["", "## Events", ""]
+        lines += ["", "## Events", "", "Replay one up to its moment with `python drive.py --driver NAME --evaluate --seed SEED "
+                  "--town-seed TOWN --weather WEATHER --until TIME` (and the evaluation's other options, e.g. --traffic).",
+                  ""]
         for e in per_episode:
             if not e.get("events"):
                 continue
