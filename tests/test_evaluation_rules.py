@@ -90,3 +90,21 @@ def test_a_takeover_costs_its_penalty_and_is_an_event():
     assert episode_metrics(trace)["driving_score"] == pytest.approx(100.0 * 0.49)
     with pytest.raises(ValueError, match="takeover_penalty"):
         EvaluationRules(takeover_penalty=1.5)
+
+
+def test_drive_until_replays_an_episode_up_to_a_time(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    cmd = [sys.executable, "drive.py", "--driver", "autopilot", "--evaluate", "--seed", "500", "--town-seed", "100",
+           "--traffic", "0.3", "--width", "160", "--height", "80", "--until", "2.5", "--out", str(tmp_path)]
+    done = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["episodes"][0]["elapsed_s"] == pytest.approx(2.5, abs=0.06)
+    assert (tmp_path / "until_2.50s.png").is_file()
+    refused = subprocess.run([sys.executable, "drive.py", "--driver", "autopilot", "--until", "2"], cwd=root,
+                             capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 2 and "--evaluate" in refused.stderr and "Traceback" not in refused.stderr
