@@ -324,9 +324,8 @@ class World:
     # ---------------------------------------------------------------- ground truth
     def _record(self, kind: str, other: int = 0, other_kind: str = "", approach: int = -1) -> Infraction:
         ego = self.ego
-        return Infraction(kind, self.time_s, float(ego.position[0]), float(ego.position[1]),
-                          other if other or approach < 0 else approach, other_kind, approach, float(ego.heading),
-                          float(ego.speed))
+        return Infraction(kind, self.time_s, float(ego.position[0]), float(ego.position[1]), other, other_kind,
+                          approach, float(ego.heading), float(ego.speed))
 
     def _check_ego(self, npc_positions: np.ndarray | None = None) -> list[Infraction]:
         """This step's new infractions. A contact (collision, off road) counts once when it starts,
@@ -474,7 +473,7 @@ class World:
         if self.lights.state(approach.index) != LightState.RED or self._charged_approach == approach.index:
             return []
         self._charged_approach = approach.index
-        return [self._record("red_light", other_kind="traffic_light", approach=approach.index)]
+        return [self._record("red_light", approach.index, "traffic_light", approach.index)]
 
     def _approach_here(self) -> Approach | None:
         """The signalled approach whose stop bar the car is at: its incoming road when the car's centre is
