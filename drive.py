@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from envs.rules_cli import add_rule_arguments, rules_from_arguments
 from sim.render import LIGHTING_PRESETS
 
 
@@ -67,13 +68,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--until", type=float, default=None, metavar="SECONDS",
                    help="evaluate: stop each episode at this time and save its last frame (replay an event: the "
                         "report gives seed, town and weather)")
-    p.add_argument("--takeover-penalty", type=float, default=None,
-                   help="evaluate: score multiplier per safety-driver take-over (default 0.7, envs.metrics)")
-    p.add_argument("--blocked-s", type=float, default=None,
-                   help="evaluate: Leaderboard 2.0 agent-blocked rule, end a route after this long without moving")
-    p.add_argument("--min-speed", action="store_true", help="evaluate: Leaderboard 2.0 minimum-speed rule")
-    p.add_argument("--hold-timeout-s", type=float, default=None,
-                   help="evaluate: penalise standing this long with nothing in the path (the LB's scenario timeout)")
+    add_rule_arguments(p, prefix="evaluate: ")
     p.add_argument("--noise", action="store_true", help="autopilot: inject steering perturbations (recoveries)")
     p.add_argument("--depth", action="store_true", help="record: also store depth")
     p.add_argument("--segmentation", action="store_true", help="record: also store segmentation")
@@ -290,12 +285,10 @@ def evaluate(args: argparse.Namespace) -> int:
     import imageio.v2 as imageio
 
     from envs.evaluation import evaluate as run
-    from envs.metrics import EvaluationRules
 
     out = args.out or Path("out/eval")
     config = make_config(args)
-    penalty = EvaluationRules.takeover_penalty if args.takeover_penalty is None else args.takeover_penalty
-    rules = EvaluationRules(penalty, args.blocked_s, args.min_speed, hold_timeout_s=args.hold_timeout_s)
+    rules = rules_from_arguments(args)
     replay = args.until is not None
     metrics = run(make_named_driver(args), config, args.episodes, args.seed, out, video=not args.no_video or replay,
                   options=lambda k: episode_options(args, k), rules=rules, until_s=args.until, plots=not replay)

@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from agent.drivers import make_driver  # noqa: E402
 from envs.drive_env import DriveConfig  # noqa: E402
 from envs.evaluation import evaluate  # noqa: E402
-from envs.metrics import EvaluationRules  # noqa: E402
+from envs.rules_cli import add_rule_arguments, rules_from_arguments  # noqa: E402
 from sim.render import LIGHTING_PRESETS  # noqa: E402
 from sim.world import WorldConfig  # noqa: E402
 
@@ -43,13 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=120.0, help="time limit per episode")
     ap.add_argument("--video", action="store_true", help="also write each driver's first-episode video")
     ap.add_argument("--out", type=Path, default=Path("out/compare"))
-    ap.add_argument("--takeover-penalty", type=float, default=EvaluationRules.takeover_penalty,
-                    help="score multiplier per safety-driver take-over (envs.metrics)")
-    ap.add_argument("--blocked-s", type=float, default=None,
-                    help="Leaderboard 2.0 agent-blocked rule: end a route after this long without moving (LB: 180)")
-    ap.add_argument("--min-speed", action="store_true", help="Leaderboard 2.0 minimum-speed rule")
-    ap.add_argument("--hold-timeout-s", type=float, default=None,
-                    help="penalise standing this long with nothing in the path (the LB's scenario timeout)")
+    add_rule_arguments(ap)
     ap.add_argument("--reuse", action="store_true",
                     help="take a driver's row from an earlier run in --out with the same settings instead of re-running")
     args = ap.parse_args(argv)
@@ -58,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     world = replace(base, npc_count=round(base.npc_count * args.traffic),
                     pedestrian_count=round(base.pedestrian_count * args.traffic))
     config = DriveConfig(world=world, max_time_s=args.seconds)
-    rules = EvaluationRules(args.takeover_penalty, args.blocked_s, args.min_speed, hold_timeout_s=args.hold_timeout_s)
+    rules = rules_from_arguments(args)
 
     def options(k: int) -> dict:
         return {"town_seed": args.town_seed + k % args.towns, "weather": weathers[k % len(weathers)]}
