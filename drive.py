@@ -32,7 +32,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="who drives: agent (default; shipped models, camera only), autopilot, keyboard, gamepad, pilotnet, rl")
     p.add_argument("--model", type=Path, default=None,
                    help="pilotnet/agent/rl: model file (default data/models/pilotnet.pt, data/models/rl_ppo.zip)")
-    p.add_argument("--backend", default="onnx", choices=["onnx", "torch"], help="pilotnet/agent: PilotNet's inference backend")
+    p.add_argument("--backend", default=None, choices=["onnx", "torch"],
+                   help="pilotnet/agent: PilotNet's inference backend (default: torch for a --model .pt, else onnx)")
     p.add_argument("--target-speed", type=float, default=None, help="pilotnet: cruise speed in m/s (default 7)")
     p.add_argument("--profile", default=None, metavar="NAME",
                    help="run the agent with a deployment profile (agent/profiles/NAME.yaml, or a .yaml path): its "
