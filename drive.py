@@ -74,6 +74,30 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
+def check_args(args: argparse.Namespace) -> None:
+    """Every number flag against the range its consumer accepts (the same helpers the env and the camera use),
+    so a bad value is one sentence naming the flag before anything runs."""
+    from envs import options
+    from sim.checks import check_number
+    from sim.render import check_image_size
+
+    check_image_size("--width", args.width)
+    check_image_size("--height", args.height)
+    options.traffic_density(args.traffic, "--traffic")
+    if args.seconds is not None:
+        options.episode_seconds(args.seconds, "--seconds")
+    check_number("--episodes", args.episodes, 1, None, integer=True)
+    check_number("--towns", args.towns, 1, None, integer=True)
+    check_number("--frames", args.frames, 0, None, integer=True)
+    options.town_seed(args.town_seed, "--town-seed")
+    options.town_seed(args.town_seed + args.towns - 1, "--town-seed plus --towns - 1")
+    options.town_seed(args.seed, "--seed")
+    options.town_seed(args.seed + args.episodes - 1, "--seed plus --episodes - 1")
+    if args.target_speed is not None:
+        check_number("--target-speed", args.target_speed, 0.0, 30.0, lo_open=True)
+    check_number("--speed", args.speed, 0.0, 60.0)
+
+
 def _weather_list(text: str) -> list[str]:
     names = sorted(LIGHTING_PRESETS) if text == "all" else [w.strip() for w in text.split(",") if w.strip()]
     unknown = [w for w in names if w not in LIGHTING_PRESETS]
@@ -320,13 +344,21 @@ def real_frames(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
+        check_args(args)
         if args.camera and not args.profile:
             raise ValueError("--camera needs --profile (e.g. --profile cpu --camera drive.mp4).")
         if args.profile:
             from agent.profiles import load_profile
 
-            if args.camera or load_profile(args.profile).camera.source != "simulator":
+            profile = load_profile(args.profile)
+            if args.camera or profile.camera.source != "simulator":
                 return real_frames(args)
+            if profile.alerts.serial_port or profile.alerts.jsonl:
+                raise ValueError(f"{profile.source_file}: the profile's alerts (serial_port, jsonl) are sent for real "
+                                 "frames only; simulator runs write no alerts, so set them to null or add --camera.")
+        if args.alerts or args.serial:
+            raise ValueError("--alerts and --serial send the decisions of a real camera run (--profile NAME --camera "
+                             "SOURCE); simulator runs write no alerts.")
         if args.record:
             return record(args)
         if args.evaluate:

@@ -20,6 +20,7 @@ import numpy as np
 import pybullet as p
 
 from sim import render_kernels as kernels
+from sim.checks import check_number
 from sim.objects import LIGHT_ID_BASE, LightState, ObjectSnapshot, SemanticClass
 from sim.scene_meshes import (
     HOUSING_HALF,
@@ -44,6 +45,12 @@ MAX_LINKS = 8  # links per body the segmentation lookup tables can tell apart
 BOX_CAPACITY = 64  # object ids a frame's boxes are gathered for while shading (more: object_boxes afterwards)
 HIDDEN_Z = -500.0  # where pooled, unused object bodies wait (below the ground, beyond the far plane)
 CALIBRATION_Z = -3000.0  # a grass patch far below the town, rendered once per preset to learn the grass colour
+IMAGE_PX = (8, 4096)  # smallest and largest camera width or height, in pixels
+
+
+def check_image_size(name: str, value: object) -> int:
+    """A camera width or height: an integer in ``IMAGE_PX`` (0 pixels would divide by zero in the projection)."""
+    return check_number(name, value, *IMAGE_PX, integer=True)
 
 
 # --------------------------------------------------------------------------- camera
@@ -61,6 +68,13 @@ class CameraConfig:
     far_m: float = 250.0
     stereo: bool = False
     stereo_baseline_m: float = 0.12  # ZED-like
+
+    def __post_init__(self) -> None:
+        check_image_size("camera width", self.width)
+        check_image_size("camera height", self.height)
+        check_number("camera hfov_deg", self.hfov_deg, 0.0, 179.0, lo_open=True)
+        check_number("camera near_m", self.near_m, 0.0, None, lo_open=True)
+        check_number("camera far_m", self.far_m, self.near_m, 1e5, lo_open=True)
 
     @property
     def focal_px(self) -> float:
