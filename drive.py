@@ -209,34 +209,13 @@ def demo(args: argparse.Namespace) -> int:
     return 0
 
 
-class _StopOnSigint:
-    """Ctrl-C during recording sets a flag that the step loop turns into KeyboardInterrupt.
-
-    Why: Python raises a SIGINT's KeyboardInterrupt wherever the main thread happens to be, and when that
-    is a garbage-collection or weakref callback the exception is printed and swallowed, so the recording
-    would go on. A second Ctrl-C raises at once, as usual."""
-
-    def __init__(self) -> None:
-        import signal
-
-        self.requested = False
-        self._previous = signal.signal(signal.SIGINT, self._handle)
-
-    def _handle(self, signum: int, frame: Any) -> None:
-        self.requested = True
-        self.restore()
-
-    def restore(self) -> None:
-        import signal
-
-        signal.signal(signal.SIGINT, self._previous)
-
-
 def record(args: argparse.Namespace) -> int:
-    """Record episodes; each finished one is renamed into place, so Ctrl-C loses only the current one."""
+    """Record episodes; each finished one is renamed into place, so Ctrl-C, SIGTERM, SIGHUP or a full disk loses
+    only the current one, and the run ends with one sentence saying what happened and what was kept."""
     from tqdm import tqdm
 
     from data.episodes import EpisodeWriter, next_episode_path
+    from data.stopping import Stopped, StopSignals, describe_os_error
     from envs.drive_env import DriveEnv
 
     config = make_config(args)
@@ -247,7 +226,8 @@ def record(args: argparse.Namespace) -> int:
     writer: EpisodeWriter | None = None
     t0 = time.perf_counter()
     frames = 0
-    stop = _StopOnSigint()
+    failure: tuple[str, int] | None = None  # what stopped the recording, and the exit code
+    stop = StopSignals().__enter__()
     try:
         for k in tqdm(range(args.episodes), desc="recording", unit="episode", disable=human, mininterval=2.0):
             seed = args.seed + k
@@ -265,7 +245,8 @@ def record(args: argparse.Namespace) -> int:
             done = False
             while not done:
                 action = np.asarray(driver.act(obs), np.float32)
-                if getattr(driver, "quit_requested", False) or stop.requested:
+                stop.check()
+                if getattr(driver, "quit_requested", False):
                     raise KeyboardInterrupt
                 if getattr(driver, "paused", False):
                     continue
@@ -280,22 +261,29 @@ def record(args: argparse.Namespace) -> int:
                                       "infractions": info["infraction_counts"], "steps_done": writer.steps}))
             writer = None
     except KeyboardInterrupt:
-        stop.restore()
-        print(f"\nInterrupted: kept {len(kept)} finished episode(s) in {args.record}; dropped the one in progress.",
-              file=sys.stderr)
+        failure = ("Interrupted", 130)
+    except Stopped as exc:
+        failure = (f"Stopped by {exc.name}", exc.exit_code)
+    except OSError as exc:
+        where = writer.tmp if writer is not None else args.record
+        failure = (f"Stopped because {describe_os_error(exc)} writing {where}", 1)
     finally:
         stop.restore()
-        if writer is not None:
+        if writer is not None:  # first the file, then the renderer: nothing half-closed is left for exit
             writer.discard()
         env.close()
         if hasattr(driver, "close"):
             driver.close()
+    if failure is not None:
+        print(f"\n{failure[0]}: kept {len(kept)} finished episode(s) in {args.record}; dropped the one in progress.",
+              file=sys.stderr)
+        return failure[1]
     wall = time.perf_counter() - t0
     print(f"recorded {len(kept)} episode(s), {frames} frames in {wall:.1f} s ({frames / max(wall, 1e-9):.1f} frames/s) "
           f"into {args.record}")
     for path in kept:
         print(f"  {path}")
-    return 0 if len(kept) == args.episodes else 130
+    return 0
 
 
 def evaluate(args: argparse.Namespace) -> int:
