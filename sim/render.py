@@ -9,8 +9,8 @@ since TinyRenderer has no sky, no emissive materials and only one directional li
 
 from __future__ import annotations
 
-import contextlib
 import math
+import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -218,6 +218,10 @@ class SceneRenderer:
         self.town = town
         self.client = p.connect(p.DIRECT)
         self._cid = {"physicsClientId": self.client}
+        # Disconnects when close() is called, when the renderer is collected, or at interpreter exit (atexit,
+        # before modules are torn down): a __del__ running during teardown found pybullet half-unloaded and
+        # printed an "Exception ignored" traceback when an env was not closed.
+        self._finalizer = weakref.finalize(self, _disconnect, self.client)
         n = 4096
         # Per (uid, link) lookup tables, index = uid * (MAX_LINKS + 1) + (link + 1); the last row is the sky.
         self._class_lut = np.zeros(n * (MAX_LINKS + 1) + 1, np.int32)
@@ -703,14 +707,14 @@ class SceneRenderer:
         return hit
 
     def close(self) -> None:
-        """Disconnect this renderer's pybullet client."""
-        if self.client >= 0:
-            p.disconnect(**self._cid)
-            self.client = -1
+        """Disconnect this renderer's pybullet client (once; later calls do nothing)."""
+        self._finalizer()
+        self.client = -1
 
-    def __del__(self) -> None:
-        with contextlib.suppress(Exception):  # interpreter shutdown may have unloaded pybullet already
-            self.close()
+
+def _disconnect(client: int) -> None:
+    if p.isConnected(physicsClientId=client):
+        p.disconnect(physicsClientId=client)
 
 
 _GROUND_MAPS: dict[tuple[int, int], tuple[Town, GroundMap]] = {}
