@@ -45,6 +45,7 @@ MAX_LINKS = 8  # links per body the segmentation lookup tables can tell apart
 BOX_CAPACITY = 64  # object ids a frame's boxes are gathered for while shading (more: object_boxes afterwards)
 HIDDEN_Z = -500.0  # where pooled, unused object bodies wait (below the ground, beyond the far plane)
 CALIBRATION_Z = -3000.0  # a grass patch far below the town, rendered once per preset to learn the grass colour
+MESH_FROM_LISTS = False  # True: the old way (pybullet keeps the vertex lists for ever); for comparisons only
 IMAGE_PX = (8, 4096)  # smallest and largest camera width or height, in pixels
 
 
@@ -293,9 +294,7 @@ class SceneRenderer:
             for key in np.unique(keys, axis=0):
                 sel = np.all(keys == key, axis=1)
                 tv, tn = verts[sel].reshape(-1, 3), norms[sel].reshape(-1, 3)
-                vs = p.createVisualShape(p.GEOM_MESH, vertices=tv.tolist(), indices=list(range(len(tv))),
-                                         normals=tn.tolist(), rgbaColor=list(g.rgba), specularColor=[0.0, 0.0, 0.0],
-                                         **self._cid)
+                vs = self._mesh_shape(tv, tn, g.rgba)
                 uid = p.createMultiBody(baseMass=0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=vs, **self._cid)
                 self._no_collisions(uid)
                 self._label(uid, [-1], g.semantic, 0)
@@ -308,6 +307,35 @@ class SceneRenderer:
         self._tile_lo = np.array([t.lo for t in self._tiles])
         self._tile_hi = np.array([t.hi for t in self._tiles])
         self._tile_shown = np.ones(len(self._tiles), bool)
+
+    def _mesh_shape(self, vertices: np.ndarray, normals: np.ndarray, rgba: Sequence[float]) -> int:
+        """A visual shape for a triangle soup (3 vertices per triangle), loaded from a Wavefront OBJ file.
+
+        Why a file: pybullet never frees the vertex data of a mesh passed as ``vertices=`` lists, not at
+        ``removeBody``, ``resetSimulation`` or ``disconnect`` (about 12 MB per town, which a long run over many
+        towns kept); a mesh it loads from a file is freed with the client. The numbers are written as the
+        shortest text that reads back to the same float64 (``repr``), so the values (and the pixels) are those the
+        lists gave."""
+        if MESH_FROM_LISTS:
+            return p.createVisualShape(p.GEOM_MESH, vertices=vertices.tolist(), indices=list(range(len(vertices))),
+                                       normals=normals.tolist(), rgbaColor=list(rgba), specularColor=[0.0, 0.0, 0.0],
+                                       **self._cid)
+        import os
+        import tempfile
+
+        n = len(vertices)
+        k = np.arange(1, n + 1).reshape(-1, 3)
+        text = "".join(("".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in vertices.tolist()),
+                        "".join(f"vn {x!r} {y!r} {z!r}\n" for x, y, z in normals.tolist()),
+                        "".join(f"f {a}//{a} {b}//{b} {c}//{c}\n" for a, b, c in k.tolist())))
+        fd, name = tempfile.mkstemp(suffix=".obj", prefix="towndrive_mesh_")  # a new name: pybullet caches by name
+        try:
+            with os.fdopen(fd, "w") as f:
+                f.write(text)
+            return p.createVisualShape(p.GEOM_MESH, fileName=name, rgbaColor=list(rgba), specularColor=[0.0, 0.0, 0.0],
+                                       **self._cid)
+        finally:
+            os.unlink(name)
 
     def _cull(self, eye_xy: np.ndarray, heading: float, camera: CameraConfig) -> None:
         """Hide static tiles outside the camera's horizontal view wedge (alpha 0: TinyRenderer skips them).
@@ -717,7 +745,7 @@ def _disconnect(client: int) -> None:
         p.disconnect(physicsClientId=client)
 
 
-_GROUND_MAPS: dict[tuple[int, int], tuple[Town, GroundMap]] = {}
+_GROUND_MAPS: weakref.WeakValueDictionary[tuple[int, int, object], GroundMap] = weakref.WeakValueDictionary()
 _NO_CONE = np.zeros((1, 1), np.float32)  # the kernel's headlight cone when the preset has no headlights
 _NO_CONE.setflags(write=False)  # read-only like the cached cones: one compiled kernel signature, not two
 _NO_GLOW = np.zeros(1, np.float32)  # bloom gain 0: no blurred glow to add
@@ -768,15 +796,15 @@ def _in_view(objects: Sequence[ObjectSnapshot], view: tuple[float, float, float,
 
 
 def _ground_map(town: Town) -> GroundMap:
-    """One ground map per town object, shared by all renderers of it (it is ~16 MB)."""
-    key = (id(town), town.seed)
+    """One ground map per town object, shared by all renderers of it (it is ~16 MB). The cache holds it weakly:
+    it lives as long as a renderer uses it, and goes with the last one (a strong cache kept up to nine maps of
+    towns no renderer used any more). The key has the town's seed and config besides its id, so a new town that
+    reuses a freed one's id finds the map only if it is the same town."""
+    key = (id(town), town.seed, town.config)
     hit = _GROUND_MAPS.get(key)
-    if hit is None or hit[0] is not town:
-        if len(_GROUND_MAPS) > 8:
-            _GROUND_MAPS.clear()
-        hit = (town, build_ground_map(town))
-        _GROUND_MAPS[key] = hit
-    return hit[1]
+    if hit is None:
+        hit = _GROUND_MAPS[key] = build_ground_map(town)
+    return hit
 
 
 @lru_cache(maxsize=32)
