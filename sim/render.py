@@ -9,7 +9,9 @@ since TinyRenderer has no sky, no emissive materials and only one directional li
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
 import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -313,24 +315,25 @@ class SceneRenderer:
 
         Why a file: pybullet never frees the vertex data of a mesh passed as ``vertices=`` lists, not at
         ``removeBody``, ``resetSimulation`` or ``disconnect`` (about 12 MB per town, which a long run over many
-        towns kept); a mesh it loads from a file is freed with the client. The numbers are written as the
-        shortest text that reads back to the same float64 (``repr``), so the values (and the pixels) are those the
-        lists gave."""
+        towns kept); a mesh it loads from a file is freed with the client, except for a copy in a process-wide
+        cache keyed by the file's name (about 23 bytes a vertex, 0.7 MB a town). Because of that cache every file
+        gets a name never used before in this process (a reused name would draw the old mesh). The numbers are
+        written as the shortest text that reads back to the same float64 (``repr``), so the values (and the
+        pixels) are those the lists gave."""
         if MESH_FROM_LISTS:
             return p.createVisualShape(p.GEOM_MESH, vertices=vertices.tolist(), indices=list(range(len(vertices))),
                                        normals=normals.tolist(), rgbaColor=list(rgba), specularColor=[0.0, 0.0, 0.0],
                                        **self._cid)
-        import os
-        import tempfile
-
+        global _MESH_FILES
+        _MESH_FILES += 1
+        name = os.path.join(_mesh_dir(), f"mesh_{_MESH_FILES}.obj")
         n = len(vertices)
         k = np.arange(1, n + 1).reshape(-1, 3)
         text = "".join(("".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in vertices.tolist()),
                         "".join(f"vn {x!r} {y!r} {z!r}\n" for x, y, z in normals.tolist()),
                         "".join(f"f {a}//{a} {b}//{b} {c}//{c}\n" for a, b, c in k.tolist())))
-        fd, name = tempfile.mkstemp(suffix=".obj", prefix="towndrive_mesh_")  # a new name: pybullet caches by name
         try:
-            with os.fdopen(fd, "w") as f:
+            with open(name, "x") as f:
                 f.write(text)
             return p.createVisualShape(p.GEOM_MESH, fileName=name, rgbaColor=list(rgba), specularColor=[0.0, 0.0, 0.0],
                                        **self._cid)
@@ -740,9 +743,50 @@ class SceneRenderer:
         self.client = -1
 
 
+_MESH_FILES = 0  # mesh files written by this process: each gets the next number (see _mesh_shape)
+_MESH_DIR: str | None = None
+
+
+def _mesh_dir() -> str:
+    """A private temporary folder for mesh files, removed at exit."""
+    global _MESH_DIR
+    if _MESH_DIR is None or not os.path.isdir(_MESH_DIR):
+        import atexit
+        import shutil
+        import tempfile
+
+        _MESH_DIR = tempfile.mkdtemp(prefix="towndrive_meshes_")
+        atexit.register(shutil.rmtree, _MESH_DIR, True)
+    return _MESH_DIR
+
+
 def _disconnect(client: int) -> None:
     if p.isConnected(physicsClientId=client):
         p.disconnect(physicsClientId=client)
+        _return_freed_memory()
+
+
+def _return_freed_memory() -> None:
+    """Hand the heap a town's scene freed back to the OS (glibc's ``malloc_trim``; elsewhere nothing).
+
+    Why: pybullet frees a client's tens of thousands of small mesh allocations at ``disconnect``, but glibc
+    keeps freed small blocks in its heap, so a process that renders town after town kept a rising floor of
+    freed memory (the soak in bench/bench_memory_soak.py). Trimming costs about a millisecond per town."""
+    global _MALLOC_TRIM
+    if _MALLOC_TRIM is None:
+        import ctypes
+        import ctypes.util
+        import sys
+
+        _MALLOC_TRIM = False
+        if sys.platform.startswith("linux"):
+            with contextlib.suppress(OSError, AttributeError):  # not glibc (musl has no malloc_trim)
+                _MALLOC_TRIM = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    if _MALLOC_TRIM:
+        _MALLOC_TRIM(0)
+
+
+_MALLOC_TRIM: object = None
 
 
 _GROUND_MAPS: weakref.WeakValueDictionary[tuple[int, int, object], GroundMap] = weakref.WeakValueDictionary()
