@@ -36,10 +36,11 @@ class PilotNetModel:
 
     def __init__(self, path: str | Path = DEFAULT_MODEL, backend: str | None = "onnx", threads: int = 1) -> None:
         path = Path(path)
-        backend = backend or ("torch" if path.suffix == ".pt" else "onnx")
+        shipped = path.resolve() == DEFAULT_MODEL
+        backend = backend or ("torch" if path.suffix == ".pt" and not shipped else "onnx")  # None: as the file says
         if backend not in ("onnx", "torch"):
             raise ValueError(f"Unknown PilotNet backend {backend!r}; use 'onnx' or 'torch'.")
-        if path.resolve() == DEFAULT_MODEL:  # the shipped pair, not a file the user named
+        if shipped:  # the shipped pair, not a file the user named
             path = DEFAULT_MODEL.with_suffix(".onnx" if backend == "onnx" else ".pt")
         wanted = ".onnx" if backend == "onnx" else ".pt"
         if path.suffix != wanted:
