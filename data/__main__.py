@@ -30,7 +30,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from data.stopping import Stopped, StopSignals, describe_os_error
 
-    signals = StopSignals().__enter__()
+    signals = StopSignals()
+    if args.command != "summary":  # writers stop between frames; summary writes nothing, so Ctrl-C stops it at once
+        signals.__enter__()
     try:
         if args.command == "summary":
             from data.summary import format_summary, summarize, write_histogram_png
