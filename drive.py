@@ -33,7 +33,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="who drives: agent (default; shipped models, camera only), autopilot, keyboard, gamepad, pilotnet, rl")
     p.add_argument("--model", type=Path, default=None,
                    help="pilotnet/agent/rl: model file (default data/models/pilotnet.pt, data/models/rl_ppo.zip)")
-    p.add_argument("--backend", default="onnx", choices=["onnx", "torch"], help="pilotnet/agent: PilotNet's inference backend")
+    p.add_argument("--backend", default=None, choices=["onnx", "torch"],
+                   help="pilotnet/agent: PilotNet's inference backend (default: torch for a --model .pt, else onnx)")
     p.add_argument("--target-speed", type=float, default=None, help="pilotnet: cruise speed in m/s (default 7)")
     p.add_argument("--profile", default=None, metavar="NAME",
                    help="run the agent with a deployment profile (agent/profiles/NAME.yaml, or a .yaml path): its "
@@ -76,6 +77,34 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--side-cameras", action="store_true",
                    help="record: also store left and right side cameras (0.6 m off centre) for PilotNet training")
     return p.parse_args(argv)
+
+
+def check_args(args: argparse.Namespace) -> None:
+    """Every number flag against the range its consumer accepts (the same helpers the env and the camera use),
+    so a bad value is one sentence naming the flag before anything runs."""
+    from envs import options
+    from sim.checks import check_number
+    from sim.render import check_image_size
+
+    check_image_size("--width", args.width)
+    check_image_size("--height", args.height)
+    options.traffic_density(args.traffic, "--traffic")
+    if args.seconds is not None:
+        options.episode_seconds(args.seconds, "--seconds")
+    check_number("--episodes", args.episodes, 1, None, integer=True)
+    check_number("--towns", args.towns, 1, None, integer=True)
+    check_number("--frames", args.frames, 0, None, integer=True)
+    options.town_seed(args.town_seed, "--town-seed")
+    options.town_seed(args.town_seed + args.towns - 1, "--town-seed plus --towns - 1")
+    options.town_seed(args.seed, "--seed")
+    options.town_seed(args.seed + args.episodes - 1, "--seed plus --episodes - 1")
+    if args.target_speed is not None:
+        check_number("--target-speed", args.target_speed, 0.0, 30.0, lo_open=True)
+    check_number("--speed", args.speed, 0.0, 60.0)
+    if args.until is not None:
+        if not args.evaluate:
+            raise ValueError(f"--until {args.until} replays an evaluation episode up to a time: it needs --evaluate.")
+        check_number("--until", args.until, 0.0, None, lo_open=True)
 
 
 def _weather_list(text: str) -> list[str]:
@@ -189,34 +218,13 @@ def demo(args: argparse.Namespace) -> int:
     return 0
 
 
-class _StopOnSigint:
-    """Ctrl-C during recording sets a flag that the step loop turns into KeyboardInterrupt.
-
-    Why: Python raises a SIGINT's KeyboardInterrupt wherever the main thread happens to be, and when that
-    is a garbage-collection or weakref callback the exception is printed and swallowed, so the recording
-    would go on. A second Ctrl-C raises at once, as usual."""
-
-    def __init__(self) -> None:
-        import signal
-
-        self.requested = False
-        self._previous = signal.signal(signal.SIGINT, self._handle)
-
-    def _handle(self, signum: int, frame: Any) -> None:
-        self.requested = True
-        self.restore()
-
-    def restore(self) -> None:
-        import signal
-
-        signal.signal(signal.SIGINT, self._previous)
-
-
 def record(args: argparse.Namespace) -> int:
-    """Record episodes; each finished one is renamed into place, so Ctrl-C loses only the current one."""
+    """Record episodes; each finished one is renamed into place, so Ctrl-C, SIGTERM, SIGHUP or a full disk loses
+    only the current one, and the run ends with one sentence saying what happened and what was kept."""
     from tqdm import tqdm
 
     from data.episodes import EpisodeWriter, next_episode_path
+    from data.stopping import Stopped, StopSignals, describe_os_error
     from envs.drive_env import DriveEnv
 
     config = make_config(args)
@@ -227,7 +235,8 @@ def record(args: argparse.Namespace) -> int:
     writer: EpisodeWriter | None = None
     t0 = time.perf_counter()
     frames = 0
-    stop = _StopOnSigint()
+    failure: tuple[str, int] | None = None  # what stopped the recording, and the exit code
+    stop = StopSignals().__enter__()
     try:
         for k in tqdm(range(args.episodes), desc="recording", unit="episode", disable=human, mininterval=2.0):
             seed = args.seed + k
@@ -245,7 +254,8 @@ def record(args: argparse.Namespace) -> int:
             done = False
             while not done:
                 action = np.asarray(driver.act(obs), np.float32)
-                if getattr(driver, "quit_requested", False) or stop.requested:
+                stop.check()
+                if getattr(driver, "quit_requested", False):
                     raise KeyboardInterrupt
                 if getattr(driver, "paused", False):
                     continue
@@ -260,22 +270,29 @@ def record(args: argparse.Namespace) -> int:
                                       "infractions": info["infraction_counts"], "steps_done": writer.steps}))
             writer = None
     except KeyboardInterrupt:
-        stop.restore()
-        print(f"\nInterrupted: kept {len(kept)} finished episode(s) in {args.record}; dropped the one in progress.",
-              file=sys.stderr)
+        failure = ("Interrupted", 130)
+    except Stopped as exc:
+        failure = (f"Stopped by {exc.name}", exc.exit_code)
+    except OSError as exc:
+        where = writer.tmp if writer is not None else args.record
+        failure = (f"Stopped because {describe_os_error(exc)} writing {where}", 1)
     finally:
         stop.restore()
-        if writer is not None:
+        if writer is not None:  # first the file, then the renderer: nothing half-closed is left for exit
             writer.discard()
         env.close()
         if hasattr(driver, "close"):
             driver.close()
+    if failure is not None:
+        print(f"\n{failure[0]}: kept {len(kept)} finished episode(s) in {args.record}; dropped the one in progress.",
+              file=sys.stderr)
+        return failure[1]
     wall = time.perf_counter() - t0
     print(f"recorded {len(kept)} episode(s), {frames} frames in {wall:.1f} s ({frames / max(wall, 1e-9):.1f} frames/s) "
           f"into {args.record}")
     for path in kept:
         print(f"  {path}")
-    return 0 if len(kept) == args.episodes else 130
+    return 0
 
 
 def evaluate(args: argparse.Namespace) -> int:
@@ -338,16 +355,21 @@ def real_frames(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
-        if args.until is not None and (not args.evaluate or not args.until > 0):
-            raise ValueError(f"--until {args.until} replays an evaluation episode up to a time in seconds: "
-                             "it needs --evaluate and a positive time.")
+        check_args(args)
         if args.camera and not args.profile:
             raise ValueError("--camera needs --profile (e.g. --profile cpu --camera drive.mp4).")
         if args.profile:
             from agent.profiles import load_profile
 
-            if args.camera or load_profile(args.profile).camera.source != "simulator":
+            profile = load_profile(args.profile)
+            if args.camera or profile.camera.source != "simulator":
                 return real_frames(args)
+            if profile.alerts.serial_port or profile.alerts.jsonl:
+                raise ValueError(f"{profile.source_file}: the profile's alerts (serial_port, jsonl) are sent for real "
+                                 "frames only; simulator runs write no alerts, so set them to null or add --camera.")
+        if args.alerts or args.serial:
+            raise ValueError("--alerts and --serial send the decisions of a real camera run (--profile NAME --camera "
+                             "SOURCE); simulator runs write no alerts.")
         if args.record:
             return record(args)
         if args.evaluate:

@@ -89,12 +89,25 @@ def encode_line(a: AlertFrame) -> bytes:
     return line
 
 
+# Each numeric field's range in the protocol (module docstring); a line outside it is refused, checksum or not.
+FIELD_RANGES = {"seq": (0, 65535), "brake_pct": (0, 100), "steer_pct": (-100, 100), "speed_kmh": (0, 999)}
+
+
 def parse_line(line: bytes | str) -> dict[str, Any]:
     """The board's side, in Python (the reference for a C port): a line back into its fields.
 
-    Raises ``ValueError`` for a malformed line or a wrong checksum.
+    Raises ``ValueError`` (one sentence quoting the line) for anything but a line of the protocol: not text, not
+    ASCII, too long, a wrong checksum, a field out of its spec (lane not G/R/N, warning letters not from LFOB in
+    that order, a number with other characters than digits or out of ``FIELD_RANGES``, light not R/Y/G/-).
     """
-    text = (line.decode("ascii", "replace") if isinstance(line, bytes) else line).strip()
+    if not isinstance(line, bytes | bytearray | str):
+        raise ValueError(f"an alert line is bytes or str, not {type(line).__name__}.")
+    raw = bytes(line) if isinstance(line, bytes | bytearray) else line.encode("utf-8", "replace")
+    if not raw.isascii():
+        raise ValueError(f"not a TDA line (not ASCII): {raw[:MAX_LINE + 8]!r}")
+    text = raw.decode("ascii").strip()
+    if len(text) > MAX_LINE - 2:
+        raise ValueError(f"not a TDA line (longer than {MAX_LINE} bytes): {text[:MAX_LINE + 8]!r}")
     if not text.startswith("$") or "*" not in text:
         raise ValueError(f"not a TDA line: {text!r}")
     body, ck = text[1:].rsplit("*", 1)
@@ -104,8 +117,21 @@ def parse_line(line: bytes | str) -> dict[str, Any]:
     if len(parts) != 8 or parts[0] != "TDA":
         raise ValueError(f"expected 8 fields starting with TDA: {text!r}")
     _, seq, lane, warn, brake, steer, speed, light = parts
-    return {"seq": int(seq), "lane": lane, "warn": "" if warn == "-" else warn, "brake_pct": int(brake),
-            "steer_pct": int(steer), "speed_kmh": int(speed), "light": "" if light == "-" else light}
+    if lane not in LANE_LETTERS.values():
+        raise ValueError(f"lane must be one of {'/'.join(LANE_LETTERS.values())}, got {lane!r} in {text!r}")
+    order = "".join(WARNING_LETTERS.values())
+    if warn != "-" and (not warn or "".join(c for c in order if c in warn) != warn):
+        raise ValueError(f"warn must be '-' or letters of {order} in that order, got {warn!r} in {text!r}")
+    if light != "-" and light not in LIGHT_LETTERS.values():
+        raise ValueError(f"light must be one of {'/'.join(LIGHT_LETTERS.values())}/-, got {light!r} in {text!r}")
+    out: dict[str, Any] = {"lane": lane, "warn": "" if warn == "-" else warn, "light": "" if light == "-" else light}
+    for name, value in zip(FIELD_RANGES, (seq, brake, steer, speed), strict=True):
+        lo, hi = FIELD_RANGES[name]
+        digits = value[1:] if value.startswith("-") else value
+        if not (digits.isdigit() and digits.isascii()) or not lo <= int(value) <= hi:
+            raise ValueError(f"{name} must be an integer from {lo} to {hi}, got {value!r} in {text!r}")
+        out[name] = int(value)
+    return {k: out[k] for k in ("seq", "lane", "warn", "brake_pct", "steer_pct", "speed_kmh", "light")}
 
 
 class AlertSink(Protocol):

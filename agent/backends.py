@@ -72,10 +72,10 @@ class OnnxRuntimeBackend:
 
     name = "onnxruntime"
 
-    def __init__(self, path: str | Path, precision: str = "fp32", threads: int = 1) -> None:
+    def __init__(self, path: str | Path, precision: str = "fp32", threads: int = 1, role: str | None = None) -> None:
         from agent.onnx_export import onnx_session
 
-        self.session = onnx_session(path, threads)
+        self.session = onnx_session(path, threads, role)
         self.precision = precision
         self.input_names = [i.name for i in self.session.get_inputs()]
 
@@ -194,7 +194,7 @@ def open_backend(profile: Profile, model: str) -> Backend:
     if spec.backend == "onnxruntime":
         if not path.is_file():
             raise FileNotFoundError(f"{path} not found; write it with: python train.py export --profile {profile.name}")
-        return OnnxRuntimeBackend(path, spec.precision, spec.threads)
+        return OnnxRuntimeBackend(path, spec.precision, spec.threads, role="PilotNet" if model == "pilotnet" else "detector")
     if model == "pilotnet":
         from agent.pilotnet_training import load_model
 

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from agent.agent_driver import AgentConfig, AgentDriver
-from agent.profiles import Profile, ProfileError, resolve
+from agent.profiles import Profile, ProfileError
 
 
 class EveryK:
@@ -53,12 +53,9 @@ class ProfiledAgent(AgentDriver):
         self.profile = profile
         config = AgentConfig(detect_every=profile.every("detector"),
                              distance="stereo" if profile.every("stereo") else "geometry", **config_overrides)
-        pilot_ckpt = resolve(profile.models["pilotnet"].checkpoint)
-        shipped_detector = resolve(profile.models["detector"].checkpoint).with_suffix(".onnx")
-        # The base class opens the shipped ONNX files; the profile's backends then take their place.
-        base_backend = "torch" if profile.models["pilotnet"].backend == "torch" else "onnx"
-        super().__init__(model=pilot_ckpt, detector=shipped_detector, backend=base_backend, config=config,
-                         threads=profile.models["pilotnet"].threads)
+        # The base class opens the shipped models (never a sibling of a file the profile names); the profile's
+        # own files, on its backends, then take their place.
+        super().__init__(config=config, threads=profile.models["pilotnet"].threads)
         self.net = open_pilotnet(profile)
         self.detector = open_detector(profile, config.score_threshold)
         self.name = f"agent[{profile.name}]"

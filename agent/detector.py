@@ -233,12 +233,12 @@ def to_input(rgb: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- checkpoints and inference
 def load_detector(path: str | Path) -> Detector:
     """A trained detector from a checkpoint written by ``train.py detector train``."""
+    from agent.checkpoints import load_checkpoint
+
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"Detector checkpoint {path} not found; train one with `python train.py detector train`.")
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
-        raise ValueError(f"{path} is not a detector checkpoint (no state_dict); retrain with train.py detector train.")
+    ckpt = load_checkpoint(path, "detector")
     if tuple(ckpt.get("classes", ())) != CLASSES:
         raise ValueError(f"{path} was trained for classes {ckpt.get('classes')}, not {CLASSES}; retrain it.")
     model = Detector(DetectorConfig(**ckpt.get("config", {})))  # no "strides" in the config: (8, 16)
@@ -284,7 +284,7 @@ class OnnxDetector:
         from agent.onnx_export import onnx_session
         from agent.ped_refiner import onnx_refine
 
-        self.session = onnx_session(path, threads)
+        self.session = onnx_session(path, threads, role="detector")
         self.input_name = self.session.get_inputs()[0].name
         self.score_threshold = score_threshold
         self.refine = onnx_refine(refiner, threads) if refiner else None

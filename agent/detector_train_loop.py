@@ -24,6 +24,8 @@ import torch
 from tqdm import tqdm
 
 from agent.autolabel import CLASSES
+from agent.checkpoints import load_checkpoint
+from agent.checkpoints import save_checkpoint as save
 from agent.detector import INPUT_HW, STRIDES, DecodedDetector, Detector, DetectorConfig, postprocess
 from agent.detector_eval import Sample, detection_report, load_split, read_rgb
 
@@ -244,17 +246,13 @@ def evaluate_model(model: Detector, images: np.ndarray, samples: list[Sample]) -
 
 
 def save_checkpoint(path: Path, model: Detector, meta: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.clone() for k, v in model.state_dict().items()}
-    tmp = path.with_suffix(".tmp")
     config = {"width": model.config.width, "num_classes": model.config.num_classes, "strides": list(model.config.strides)}
     if model.config.s4_blocks:  # only when used, so older readers still load the models without them
         config["s4_blocks"] = model.config.s4_blocks
     if model.config.s4_pixels:
         config["s4_pixels"] = True
-    torch.save({"state_dict": state, "config": config,
-                "classes": CLASSES, "input_hw": INPUT_HW, **meta}, tmp)
-    tmp.replace(path)
+    save(path, {"state_dict": state, "config": config, "classes": CLASSES, "input_hw": INPUT_HW, **meta})
 
 
 # --------------------------------------------------------------------------- training
@@ -277,14 +275,14 @@ def train(args: argparse.Namespace) -> int:
             raise ValueError("Pass --resume or --init, not both.")
         # Warm start: every tensor whose name and shape match; new layers keep their initialisation (the
         # stride-4 refinement blocks start as the identity, so the model starts as the one it comes from).
-        src = torch.load(args.init, map_location="cpu", weights_only=False)["state_dict"]
+        src = load_checkpoint(args.init, "detector (--init)")["state_dict"]
         own = model.state_dict()
         taken = {k: v for k, v in src.items() if k in own and own[k].shape == v.shape}
         model.load_state_dict(taken, strict=False)
         print(f"--init {args.init}: {len(taken)} of {len(own)} tensors taken; new: "
               f"{sorted({k.split('.')[0] for k in own if k not in taken})}")
     if args.resume:
-        ckpt = torch.load(args.resume, map_location="cpu", weights_only=False)
+        ckpt = load_checkpoint(args.resume, "detector (--resume)")
         cfg = ckpt.get("config", {})
         if (tuple(cfg.get("strides", STRIDES)) != strides or cfg.get("width", 32) != model.config.width
                 or cfg.get("s4_blocks", 0) != model.config.s4_blocks

@@ -163,8 +163,10 @@ def load_refiner(path: str | Path) -> PedRefiner:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"Pedestrian refiner {path} not found; train one with `python train.py detector refiner`.")
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    if not isinstance(ckpt, dict) or ckpt.get("kind") != "ped_refiner":
+    from agent.checkpoints import load_checkpoint
+
+    ckpt = load_checkpoint(path, "pedestrian refiner")
+    if ckpt.get("kind") != "ped_refiner":
         raise ValueError(f"{path} is not a pedestrian refiner checkpoint; retrain it with train.py detector refiner.")
     model = PedRefiner(RefinerConfig(**ckpt["config"]))
     model.load_state_dict(ckpt["state_dict"])
@@ -187,7 +189,7 @@ def onnx_refine(path: str | Path, threads: int = 0) -> Refine:
 
     from agent.onnx_export import onnx_session
 
-    session = onnx_session(path, threads)
+    session = onnx_session(path, threads, role="pedestrian refiner")
     meta = session.get_modelmeta().custom_metadata_map
     if "refiner_config" not in meta:
         raise ValueError(f"{path} is not an exported pedestrian refiner (no refiner_config metadata); "

@@ -25,6 +25,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from agent.checkpoints import load_checkpoint, save_checkpoint
 from agent.detector import DecodedDetector, Detection, load_detector, postprocess
 from agent.detector_eval import Sample, class_ap, load_split, read_rgb
 from agent.ped_refiner import (
@@ -200,13 +201,13 @@ def train_refiner(args: argparse.Namespace) -> int:
         log.flush()
         if val["ap50"] > best:
             best = val["ap50"]
-            torch.save({"kind": "ped_refiner", "config": asdict(config), "state_dict": model.state_dict(),
-                        "epoch": epoch, "detector": str(args.detector), "seed": args.seed}, out)
+            save_checkpoint(out, {"kind": "ped_refiner", "config": asdict(config), "state_dict": model.state_dict(),
+                                  "epoch": epoch, "detector": str(args.detector), "seed": args.seed})
     log.close()
-    ckpt = torch.load(out, map_location="cpu", weights_only=False)
+    ckpt = load_checkpoint(out, "pedestrian refiner")
     model.load_state_dict(ckpt["state_dict"])
     ckpt["config"], ap = tune(model, config, val_samples, val_images, val_dets, args.detector, out.with_suffix(".log.jsonl"))
-    torch.save(ckpt, out)
+    save_checkpoint(out, ckpt)
     print(f"Wrote {out} (epoch {ckpt['epoch']}, val pedestrian AP@0.5 within 40 m {ap:.3f}), "
           f"{(time.perf_counter() - t0) / 60:.1f} min")
     return 0
@@ -243,9 +244,9 @@ def tune_checkpoint(args: argparse.Namespace) -> int:
     val_samples = load_split(args.data, "val")
     val_images = [read_rgb(s.image) for s in val_samples]
     val_dets = detector_candidates(args.detector, val_samples, val_images, TRAIN_CANDIDATE_SCORE)
-    ckpt = torch.load(out, map_location="cpu", weights_only=False)
+    ckpt = load_checkpoint(out, "pedestrian refiner")
     ckpt["config"], ap = tune(model, model.config, val_samples, val_images, val_dets, args.detector,
                               out.with_suffix(".log.jsonl"))
-    torch.save(ckpt, out)
+    save_checkpoint(out, ckpt)
     print(f"Tuned {out}: {ckpt['config']} (val pedestrian AP@0.5 within 40 m {ap:.3f})")
     return 0

@@ -6,6 +6,11 @@ conditional model picks its branch with it). Its steering changes at most as fas
 the seed's assumption: constant, configurable, with an optional slow-down while the network asks for a
 sharp turn. Inference runs through ONNX Runtime
 (``backend="onnx"``, the default) or torch; both load the same shipped model.
+
+A model file the user names is the only file opened: an ``.onnx`` runs on ONNX Runtime and carries what the
+runtime needs besides the weights itself (the ``command`` input says the model is conditional; the crop is in
+its ``pilotnet_meta`` metadata, or the default crop every ``train.py`` export has used), a ``.pt`` runs on torch.
+Only the shipped default (``DEFAULT_MODEL``) stands for its pair, ``pilotnet.pt`` and ``pilotnet.onnx``.
 """
 
 from __future__ import annotations
@@ -29,25 +34,40 @@ DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "data" / "models" / "pilot
 class PilotNetModel:
     """A trained PilotNet behind one call, ``steer(rgb, command)``, on ONNX Runtime or torch."""
 
-    def __init__(self, path: str | Path = DEFAULT_MODEL, backend: str = "onnx", threads: int = 1) -> None:
-        from agent.pilotnet_training import load_model
-
+    def __init__(self, path: str | Path = DEFAULT_MODEL, backend: str | None = "onnx", threads: int = 1) -> None:
         path = Path(path)
-        model, meta = load_model(path.with_suffix(".pt"))  # metadata (conditional, crop) lives in the .pt
-        self.conditional = bool(meta["conditional"])
-        self.crop = Crop(**meta.get("crop", {}))
+        shipped = path.resolve() == DEFAULT_MODEL
+        backend = backend or ("torch" if path.suffix == ".pt" and not shipped else "onnx")  # None: as the file says
+        if backend not in ("onnx", "torch"):
+            raise ValueError(f"Unknown PilotNet backend {backend!r}; use 'onnx' or 'torch'.")
+        if shipped:  # the shipped pair, not a file the user named
+            path = DEFAULT_MODEL.with_suffix(".onnx" if backend == "onnx" else ".pt")
+        wanted = ".onnx" if backend == "onnx" else ".pt"
+        if path.suffix != wanted:
+            raise ValueError(f"{path}: the {backend} backend runs {wanted} files; give the model's {wanted} file or "
+                             f"the {'torch' if backend == 'onnx' else 'onnx'} backend (--backend).")
         self.backend = backend
         if backend == "onnx":
+            import json
+
             from agent.onnx_export import onnx_session
 
-            self.session = onnx_session(path.with_suffix(".onnx"), threads=threads)
-        elif backend == "torch":
+            self.session = onnx_session(path, threads=threads, role="PilotNet")
+            self.conditional = "command" in {i.name for i in self.session.get_inputs()}
+            meta = self.session.get_modelmeta().custom_metadata_map.get("pilotnet_meta")
+            try:
+                self.crop = Crop(**json.loads(meta).get("crop", {})) if meta else Crop()
+            except (ValueError, TypeError, AttributeError):
+                raise ValueError(f"{path}: its pilotnet_meta metadata is not valid; re-export the model.") from None
+        else:
             import torch
 
+            from agent.pilotnet_training import load_model
+
+            self.model, meta = load_model(path)
+            self.conditional = bool(meta["conditional"])
+            self.crop = Crop(**meta.get("crop", {}))
             torch.set_num_threads(threads)
-            self.model = model
-        else:
-            raise ValueError(f"Unknown PilotNet backend {backend!r}; use 'onnx' or 'torch'.")
 
     def steer(self, rgb: np.ndarray, command: int) -> float:
         x = to_tensor(preprocess(rgb, self.crop))

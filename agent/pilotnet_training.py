@@ -17,7 +17,6 @@ import argparse
 import csv
 import json
 import math
-import pickle
 import shutil
 import sys
 import time
@@ -29,6 +28,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from agent.checkpoints import load_checkpoint
 from agent.pilotnet import DEFAULT_CROP, INPUT_HEIGHT, INPUT_WIDTH, Crop, build, parameter_count, to_tensor
 from agent.pilotnet_data import Augment, Augmenter, FrameSet, balance_weights, load_frames, split_by_episode
 from data.episodes import EpisodeError
@@ -65,21 +65,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 # --------------------------------------------------------------------------- checkpoints
 def save_checkpoint(path: Path, model: torch.nn.Module, extra: dict[str, Any]) -> None:
-    tmp = path.with_name(path.name + ".partial")
-    torch.save({"state_dict": model.state_dict(), **extra}, tmp)
-    tmp.replace(path)
+    from agent.checkpoints import save_checkpoint as save
+
+    save(path, {"state_dict": model.state_dict(), **extra})
 
 
 def load_model(path: str | Path) -> tuple[torch.nn.Module, dict[str, Any]]:
     """A PilotNet checkpoint (ours): the model in eval mode and its metadata. Errors name the file."""
+    from agent.checkpoints import load_checkpoint
+
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"PilotNet model {path} not found; train one with: python train.py pilotnet")
+    ckpt = load_checkpoint(path, "PilotNet")
     try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
         model = build(bool(ckpt["conditional"]))
         model.load_state_dict(ckpt["state_dict"])
-    except (KeyError, RuntimeError, EOFError, OSError, ValueError, TypeError, pickle.UnpicklingError) as exc:
+    except (KeyError, RuntimeError, ValueError, TypeError) as exc:
         # a wrong shape, a truncated file, or not ours at all
         raise ValueError(f"{path} is not a PilotNet checkpoint of this version ({exc}); retrain it with train.py.") from exc
     return model.eval(), {k: v for k, v in ckpt.items() if k not in ("state_dict", "optimizer")}
@@ -93,10 +95,13 @@ def export(model: torch.nn.Module, meta: dict[str, Any], pt_path: Path) -> float
     save_checkpoint(pt_path, model, meta)
     gen = torch.Generator().manual_seed(0)
     image = torch.rand(4, 3, INPUT_HEIGHT, INPUT_WIDTH, generator=gen) * 255.0
+    onnx_meta = {"pilotnet_meta": json.dumps({"conditional": bool(meta.get("conditional", False)),
+                                              "crop": dict(meta.get("crop", {}))})}
     if getattr(model, "conditional", False):
         command = torch.tensor([0, 1, 2, 3], dtype=torch.int64)
-        return export_onnx(model, [image, command], pt_path.with_suffix(".onnx"), ["image", "command"], ["steer"])
-    return export_onnx(model, [image], pt_path.with_suffix(".onnx"), ["image"], ["steer"])
+        return export_onnx(model, [image, command], pt_path.with_suffix(".onnx"), ["image", "command"], ["steer"],
+                           metadata=onnx_meta)
+    return export_onnx(model, [image], pt_path.with_suffix(".onnx"), ["image"], ["steer"], metadata=onnx_meta)
 
 
 # --------------------------------------------------------------------------- training
@@ -242,7 +247,7 @@ def run(args: argparse.Namespace) -> int:
         if not last.is_file():
             print(f"train.py pilotnet: nothing to resume: {last} does not exist.", file=sys.stderr)
             return 2
-        ckpt = torch.load(last, map_location="cpu", weights_only=False)
+        ckpt = load_checkpoint(last, "PilotNet training")
         model.load_state_dict(ckpt["state_dict"])
         first_epoch, opt_state, best = int(ckpt["epoch"]), ckpt.get("optimizer"), float(ckpt.get("best_val", math.inf))
         print(f"resuming after epoch {first_epoch} (best validation loss {best:.4f})", file=sys.stderr)

@@ -247,7 +247,10 @@ def load_profile(name_or_path: str | Path = "cpu") -> Profile:
     import yaml
 
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+    except UnicodeDecodeError as exc:
+        raise ProfileError(f"{path}: not UTF-8 text (byte {exc.object[exc.start]:#x} at offset {exc.start}); "
+                           "save the profile as UTF-8.") from None
     except yaml.YAMLError as exc:
         raise ProfileError(f"{path}: not valid YAML ({exc}).") from exc
     return profile_from_dict(data, str(path), default_name=path.stem)
@@ -258,6 +261,10 @@ def profile_from_dict(data: Any, source: str = "<dict>", default_name: str = "cp
     if not isinstance(data, dict):
         raise ProfileError(f"{source}: a profile is a mapping of keys (name, models, modules, ...), not {type(data).__name__}.")
     data = dict(data)
+    top_keys = [f.name for f in fields(Profile) if f.name != "source_file"]
+    unknown = [k for k in data if k not in top_keys]
+    if unknown:  # checked here, where every top-level key is known (nested sections are popped below)
+        raise ProfileError(f"{source}: unknown key '{unknown[0]}'; known keys here: {', '.join(top_keys)}.")
     models = _default_models()
     for name, spec in _mapping(data.pop("models", {}), source, "models").items():
         if name not in MODELS:

@@ -163,16 +163,16 @@ def run(args: argparse.Namespace) -> int:
     eval_env = DummyVecEnv([make_env(args, 0, evaluation=True)])
     eval_env.seed(args.seed + 10_000)
     policy = "MlpPolicy" if args.observation == "state" else "MultiInputPolicy"
-    if args.init is not None:
-        if not args.init.is_file():
-            raise SystemExit(f"--init: no saved policy at {args.init}")
-        model = (PPO if args.algo == "ppo" else SAC).load(args.init, env=venv, device="cpu", seed=args.seed)
-    elif args.algo == "ppo":
+    if args.init is not None and not args.init.is_file():
+        raise SystemExit(f"--init: no saved policy at {args.init}")
+    if args.algo == "ppo":
         model = PPO(policy, venv, seed=args.seed, n_steps=512, batch_size=256, learning_rate=3e-4, gamma=0.99,
                     ent_coef=0.0, verbose=0, device="cpu")
     else:
         model = SAC(policy, venv, seed=args.seed, buffer_size=200_000, learning_starts=5_000, batch_size=256,
                     verbose=0, device="cpu")
+    if args.init is not None:  # weights and optimiser state only: never the pickled objects of SB3's load()
+        model.set_parameters(str(args.init), exact_match=True, device="cpu")
     model.set_logger(configure(str(out), ["csv"]))
     callbacks = [
         EvalCallback(eval_env, n_eval_episodes=4, eval_freq=max(1, args.eval_every // args.envs), log_path=str(out),

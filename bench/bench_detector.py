@@ -40,7 +40,9 @@ def drive_frames(town_seed: int, weather: str, seed: int, every: int, steps: int
     driver.reset(env)
     frames = []
     for step in range(1, steps + 1):
-        obs, *_ = env.step(driver.act(obs))
+        obs, _, terminated, truncated, _ = env.step(driver.act(obs))
+        if terminated or truncated:  # the episode is over: reset() would come next, so stop here
+            break
         if step % every == 0:
             frames.append(np.ascontiguousarray(obs["image"]))
     env.close()

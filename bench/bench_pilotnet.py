@@ -40,7 +40,9 @@ def sim_frames(n: int) -> list[np.ndarray]:
     driver.reset(env)
     frames = []
     for _ in range(n):
-        obs, *_ = env.step(driver.act(obs))
+        obs, _, terminated, truncated, _ = env.step(driver.act(obs))
+        if terminated or truncated:  # the episode is over: reset() would come next, so stop here
+            break
         frames.append(obs["image"])
     env.close()
     return frames

@@ -239,10 +239,10 @@ def _with_detector(path: Path, sequences, config: SortConfig, mh) -> None:
     except Exception as exc:  # the detector is someone else's work; say why it could not be used
         print(f"trained detector: cannot load {path} ({exc}); skipped")
         return
-    import torch
+    from agent.checkpoints import load_checkpoint
 
     # The checkpoint's own record: a log file beside it may belong to an earlier run of the same name.
-    meta = torch.load(path, map_location="cpu", weights_only=False)
+    meta = load_checkpoint(path, "detector")
     print(f"trained detector {path}: epoch {meta.get('epoch')}, val mAP@0.5 {meta.get('val_map50', float('nan')):.3f}"
           f"; pedestrian refiner: {refiner or 'none'}")
     movers = {"car", "truck", "pedestrian"}

@@ -16,11 +16,20 @@ Layout of an episode file (``T`` steps; ``frames[t]`` is what the driver saw whe
 
 A writer fills ``<name>.partial`` next to the final path and renames it when the episode ends, so a
 half-written episode never carries an episode's name, and an interrupted recording keeps every
-episode that finished.
+episode that finished. A ``.partial`` that is still there was left by a process that was killed (SIGKILL,
+a power cut): ``list_partials`` finds them, ``python -m data summary`` reports them, and recording never
+reuses their numbers.
+
+The writer hands HDF5 a Python file object (``_Sink``) rather than a path. Why: when a write fails (a full
+disk), HDF5 keeps the file open with unwritten data it retries at every later call and at interpreter exit,
+where it crashes the process (exit 139). The sink never reports a failure to HDF5: it keeps the first OSError
+and from then on drops every write, so HDF5 stays consistent and closes cleanly; the writer raises the kept
+error after the step (or the close) that hit it, and the caller discards the file.
 """
 
 from __future__ import annotations
 
+import io
 import json
 import os
 from dataclasses import dataclass, field
@@ -61,28 +70,108 @@ def truth_from_info(info: dict[str, Any]) -> dict[str, float]:
     }
 
 
+class _Sink(io.RawIOBase):
+    """A writable file for HDF5 that keeps its first write error and then drops writes (see the module docstring)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._raw = open(path, "w+b", buffering=0)  # noqa: SIM115 (closed by close())
+        self.error: OSError | None = None
+
+    def readable(self) -> bool:
+        return True
+
+    def writable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def readinto(self, buffer: Any) -> int:
+        return self._raw.readinto(buffer) or 0
+
+    def write(self, data: Any) -> int:
+        if self.error is not None:
+            return len(memoryview(data))
+        try:
+            return self._raw.write(data) or 0
+        except OSError as exc:
+            self.error = exc
+            exc.filename = exc.filename or str(self.path)
+            return len(memoryview(data))
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        return self._raw.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._raw.tell()
+
+    def fileno(self) -> int:
+        return self._raw.fileno()
+
+    def truncate(self, size: int | None = None) -> int:
+        if self.error is not None:
+            return self._raw.tell() if size is None else size
+        try:
+            return self._raw.truncate(size)
+        except OSError as exc:
+            self.error = exc
+            return self._raw.tell() if size is None else size
+
+    def flush(self) -> None:
+        if self.error is None and not self._raw.closed:
+            try:
+                self._raw.flush()
+            except OSError as exc:
+                self.error = exc
+
+    def close(self) -> None:
+        if self.error is None and not self._raw.closed:
+            self.flush()
+        super().close()  # calls flush() while the raw file is still open
+        self._raw.close()
+
+
 class EpisodeWriter:
-    """Streams one episode to ``<path>.partial``; ``close()`` renames it into place, ``discard()`` deletes it."""
+    """Streams one episode to ``<path>.partial``; ``close()`` renames it into place, ``discard()`` deletes it.
+    A failed write (a full disk) raises the ``OSError`` from ``append`` or ``close``; ``discard()`` then still
+    works."""
 
     def __init__(self, path: Path, metadata_attrs: dict[str, Any]) -> None:
         self.path = Path(path)
         self.tmp = self.path.with_name(self.path.name + ".partial")
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = h5py.File(self.tmp, "w")
-        self._file.attrs["format_version"] = FORMAT_VERSION
-        self._file.attrs["project_version"] = project_version()
-        for key, value in metadata_attrs.items():
-            self._file.attrs[key] = json.dumps(value) if isinstance(value, dict | list) else value
+        if self.tmp.exists():  # a leftover of a killed recording: report it, never overwrite it
+            raise FileExistsError(f"{self.tmp} is left over from an interrupted recording; "
+                                  "see python -m data summary --delete-partial.")
+        self._sink = _Sink(self.tmp)
+        self._datasets: dict[str, h5py.Dataset] = {}  # kept open: closing one each step hides write errors
+        try:
+            self._file = h5py.File(self._sink, "w")
+            self._file.attrs["format_version"] = FORMAT_VERSION
+            self._file.attrs["project_version"] = project_version()
+            for key, value in metadata_attrs.items():
+                self._file.attrs[key] = json.dumps(value) if isinstance(value, dict | list) else value
+        except BaseException:
+            self.discard()
+            raise
         self.steps = 0
 
+    def _check(self) -> None:
+        """Raise the sink's write error, which HDF5 may have swallowed (errors while freeing objects are not raised)."""
+        if self._sink.error is not None:
+            raise self._sink.error
+
     def _dataset(self, name: str, sample: np.ndarray, compress: bool) -> h5py.Dataset:
-        if name in self._file:
-            return self._file[name]
+        ds = self._datasets.get(name)
+        if ds is not None:
+            return ds
         shape = (0, *sample.shape)
         kwargs: dict[str, Any] = {"maxshape": (None, *sample.shape), "chunks": (1, *sample.shape) if compress else True}
         if compress:
             kwargs.update(compression="gzip", compression_opts=1, shuffle=True)
-        return self._file.create_dataset(name, shape=shape, dtype=sample.dtype, **kwargs)
+        ds = self._datasets[name] = self._file.create_dataset(name, shape=shape, dtype=sample.dtype, **kwargs)
+        return ds
 
     def append(self, observation: dict[str, Any], action: np.ndarray, info: dict[str, Any]) -> None:
         """Add one step: the observation the driver saw, the action it took, and the step's ground truth."""
@@ -107,21 +196,36 @@ class EpisodeWriter:
             ds = self._dataset(name, value, compress)
             ds.resize(self.steps + 1, axis=0)
             ds[self.steps] = value
+        self._check()
         self.steps += 1
 
     def close(self, extra_attrs: dict[str, Any] | None = None) -> Path:
-        """Finish the episode: write the summary attributes and rename the file into place."""
+        """Finish the episode: write the summary attributes, flush to disk and rename the file into place."""
         for key, value in (extra_attrs or {}).items():
             self._file.attrs[key] = json.dumps(value) if isinstance(value, dict | list) else value
         self._file.attrs["steps"] = self.steps
+        self._datasets.clear()
         self._file.close()
+        self._check()
+        try:
+            os.fsync(self._sink.fileno())
+        except OSError as exc:
+            self._sink.error = exc
+            raise
+        self._sink.close()
         os.replace(self.tmp, self.path)
         return self.path
 
     def discard(self) -> None:
-        """Drop a half-written episode (interrupted, or failed)."""
-        if self._file.id.valid:
-            self._file.close()
+        """Drop a half-written episode (interrupted, or failed); never raises for the file's own state."""
+        self._datasets.clear()
+        file = getattr(self, "_file", None)
+        if self._sink.error is None:
+            self._sink.error = OSError("discarded")  # nothing more needs to reach the disk
+        if file is not None and file.id.valid:
+            file.close()
+        if not self._sink.closed:
+            self._sink.close()
         self.tmp.unlink(missing_ok=True)
 
 
@@ -190,7 +294,16 @@ def list_episodes(folder: Path) -> list[Path]:
     return sorted(folder.glob(EPISODE_GLOB))
 
 
+def list_partials(folder: Path) -> list[Path]:
+    """``.partial`` files in a folder: episodes (or exports) whose writer was killed before it could finish or
+    clean up. A running recording has one too, so delete them only when nothing is writing into the folder."""
+    folder = Path(folder)
+    return sorted(folder.glob("*.partial")) if folder.is_dir() else []
+
+
 def next_episode_path(folder: Path) -> Path:
-    """The first free ``episode_NNNNN.h5`` name in a folder (recording appends to a dataset)."""
-    existing = [int(p.stem.split("_")[1]) for p in Path(folder).glob(EPISODE_GLOB) if p.stem.split("_")[1].isdigit()]
+    """The next ``episode_NNNNN.h5`` name in a folder, after every finished episode and every ``.partial``
+    leftover (recording appends to a dataset and never writes over a leftover)."""
+    names = [p.name.split(".")[0] for p in (*Path(folder).glob(EPISODE_GLOB), *Path(folder).glob(EPISODE_GLOB + ".partial"))]
+    existing = [int(n.split("_")[1]) for n in names if n.split("_")[1].isdigit()]
     return Path(folder) / f"episode_{(max(existing) + 1) if existing else 0:05d}.h5"

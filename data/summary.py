@@ -1,7 +1,10 @@
 """What a folder of recorded episodes holds: counts, hours, speed, commands and the steering distribution.
 
-``summarize(folder)`` reads only the small per-step arrays (never the frames), so it is quick on big datasets.
-A file that cannot be read is listed by name under ``corrupt`` and the rest of the folder is still summarized.
+``summarize(folder)`` reads the small per-step arrays and then decodes every frame chunk (``check_frames``; off:
+quick on big datasets, but a damaged frame then passes), because a file whose index reads fine can still hold
+a chunk that does not decompress. A file that cannot be read is listed by name under ``corrupt`` (with the
+reason under ``problems``), an episode whose actions are not finite or outside [-1, 1] under ``bad_labels``, and
+``.partial`` leftovers of a killed writer under ``partial``; the rest of the folder is still summarized.
 """
 
 from __future__ import annotations
@@ -10,21 +13,23 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
+import h5py
 import numpy as np
 
-from data.episodes import EpisodeError, list_episodes, read_episode
+from data.episodes import EpisodeError, list_episodes, list_partials, read_episode
 
 DEFAULT_DT_S = 0.05
 STEER_BINS = 21
 COMMAND_NAMES = {0: "follow", 1: "left", 2: "right", 3: "straight"}
 
 
-def summarize(folder: Path, progress: bool = False) -> dict[str, Any]:
+def summarize(folder: Path, progress: bool = False, check_frames: bool = True) -> dict[str, Any]:
     """Summary of every ``episode_*.h5`` in ``folder``; raises ``EpisodeError`` only if the folder does not exist.
 
     Keys: folder, episodes, frames, hours, drivers / towns / weathers ({name: {"episodes", "frames"}}),
     mean_speed_mps, command_share ({name: share of frames}), steer_hist ({"edges": 22 floats, "counts": 21 ints}),
-    corrupt (file names that could not be read).
+    corrupt (file names that could not be read), problems ({name: why}), bad_labels (episodes with actions not
+    finite or outside [-1, 1]), partial (``.partial`` leftovers, by name).
     """
     from tqdm import tqdm
 
@@ -39,12 +44,20 @@ def summarize(folder: Path, progress: bool = False) -> dict[str, Any]:
     edges = np.linspace(-1.0, 1.0, STEER_BINS + 1)
     hist = np.zeros(STEER_BINS, np.int64)
     corrupt: list[str] = []
+    problems: dict[str, str] = {}
+    bad_labels: list[str] = []
     for path in tqdm(paths, desc="summary", unit="episode", disable=not progress):
         try:
             ep = read_episode(path, load_frames=False)
-        except EpisodeError:
+            if check_frames:
+                check_frame_data(path, ep.steps)
+        except EpisodeError as exc:
             corrupt.append(path.name)
+            problems[path.name] = str(exc)
             continue
+        actions = ep.actions.astype(np.float64)
+        if actions.size and not (np.all(np.isfinite(actions)) and np.all(np.abs(actions) <= 1.0)):
+            bad_labels.append(path.name)
         n = ep.steps
         episodes += 1
         frames += n
@@ -72,7 +85,31 @@ def summarize(folder: Path, progress: bool = False) -> dict[str, Any]:
         "command_share": {name: commands[name] / frames for name in sorted(commands, key=_command_order)} if frames else {},
         "steer_hist": {"edges": [float(e) for e in edges], "counts": [int(c) for c in hist]},
         "corrupt": corrupt,
+        "problems": problems,
+        "bad_labels": bad_labels,
+        "partial": [p.name for p in list_partials(folder)],
     }
+
+
+def check_frame_data(path: Path, steps: int, block: int = 64) -> None:
+    """Decode every frame of an episode (and its other image arrays), ``block`` frames at a time; a chunk that
+    does not decompress, or an array shorter than the episode, raises ``EpisodeError`` naming the file and step."""
+    try:
+        with h5py.File(path, "r") as f:
+            for name in ("frames", "depth", "segmentation", "stereo_right", "side_left", "side_right"):
+                if name not in f:
+                    continue
+                ds = f[name]
+                if len(ds) != steps:
+                    raise EpisodeError(f"{path}: {name} has {len(ds)} rows for {steps} steps; re-record it.")
+                for t in range(0, steps, block):
+                    try:
+                        ds[t:t + block]
+                    except (OSError, ValueError, RuntimeError) as exc:
+                        raise EpisodeError(f"{path}: {name} near step {t} cannot be decoded "
+                                           f"({' '.join(str(exc).split())[:120]}); re-record or delete it.") from None
+    except OSError as exc:
+        raise EpisodeError(f"{path}: cannot read this episode ({exc}).") from None
 
 
 def _duration(hours: float) -> str:
@@ -103,6 +140,12 @@ def format_summary(summary: dict[str, Any]) -> str:
     for lo, hi, count in zip(edges[:-1], edges[1:], counts, strict=True):
         lines.append(f"  [{lo:+.2f}, {hi:+.2f})  {count:>9}  {'#' * round(40 * count / top)}")
     lines += ["", f"corrupt      {summary['corrupt'] if summary['corrupt'] else 'none'}"]
+    lines += [f"  {name}: {why}" for name, why in summary.get("problems", {}).items()]
+    bad = summary.get("bad_labels", [])
+    lines.append(f"bad labels   {bad if bad else 'none'}" + (" (actions not finite or outside [-1, 1])" if bad else ""))
+    partial = summary.get("partial", [])
+    lines.append(f"partial      {partial if partial else 'none'}"
+                 + (" (left by a killed writer; delete with --delete-partial when nothing is recording)" if partial else ""))
     return "\n".join(lines)
 
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import csv
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path, PureWindowsPath
@@ -33,6 +34,7 @@ import h5py
 import numpy as np
 
 from data.episodes import EPISODE_GLOB, EpisodeError, EpisodeWriter, list_episodes, next_episode_path, read_episode
+from sim.checks import check_number
 
 MPH_TO_MPS = 0.44704
 LOG_NAME = "driving_log.csv"
@@ -41,6 +43,8 @@ STEER_FULL_LOCK_DEG = 25.0
 RUN_GAP_S = 1.0  # a gap longer than this between Udacity image time stamps starts a new episode
 _STAMP = re.compile(r"(\d{4})_(\d{2})_(\d{2})_(\d{2})_(\d{2})_(\d{2})_(\d{3})")
 _EXPORTED = re.compile(r"^center_(.+)_(\d{5,})\.jpg$")
+# Valid range of each number column (speed: the simulator's top speed is about 30 mph; 250 leaves room).
+RANGES = {"steering": (-1.0, 1.0), "throttle": (0.0, 1.0), "brake": (0.0, 1.0), "speed": (0.0, 250.0)}
 
 
 class UdacityError(ValueError):
@@ -68,7 +72,7 @@ def read_log(src_folder: Path) -> list[LogRow]:
     rows: list[LogRow] = []
     with open(log, newline="", encoding="utf-8-sig") as f:
         reader = csv.reader(f)
-        for fields in reader:
+        for fields in _decoded(reader, log):
             line = reader.line_num
             fields = [x.strip() for x in fields]
             if not any(fields):
@@ -83,8 +87,10 @@ def read_log(src_folder: Path) -> list[LogRow]:
                     value = float(text)
                 except ValueError:
                     raise UdacityError(f"{log} line {line}: {name} is {text!r}, not a number.") from None
-                if not np.isfinite(value):
-                    raise UdacityError(f"{log} line {line}: {name} is {text!r}, not a finite number.")
+                try:
+                    check_number(f"{log} line {line}: {name}", value, *RANGES[name])
+                except ValueError as exc:
+                    raise UdacityError(str(exc).replace(f"got {value!r}", f"got {text!r}")) from None
                 numbers.append(value)
             center = _resolve(src, fields[0], log, line, "center")
             left = _resolve(src, fields[1], log, line, "left", required=False)
@@ -93,6 +99,18 @@ def read_log(src_folder: Path) -> list[LogRow]:
     if not rows:
         raise UdacityError(f"{log}: no data rows; record some driving first.")
     return rows
+
+
+def _decoded(reader: Any, log: Path) -> Any:
+    """The CSV rows; text that is not UTF-8 is one error naming the file and the line."""
+    while True:
+        try:
+            yield next(reader)
+        except StopIteration:
+            return
+        except UnicodeDecodeError as exc:
+            raise UdacityError(f"{log} near line {reader.line_num + 1}: not UTF-8 text (byte {exc.object[exc.start]:#x}); "
+                               "save the log as UTF-8.") from None
 
 
 def _resolve(src: Path, text: str, log: Path, line: int, column: str, required: bool = True) -> Path | None:
@@ -150,11 +168,12 @@ def _continues(prev: tuple[str, Any] | None, key: tuple[str, Any]) -> bool:
     return True
 
 
-def import_udacity(src_folder: Path, dst_folder: Path, dt_s: float = 0.05, progress: bool = False) -> list[Path]:
+def import_udacity(src_folder: Path, dst_folder: Path, dt_s: float = 0.05, progress: bool = False,
+                   stop: Callable[[], None] | None = None) -> list[Path]:
     """Write one episode per contiguous run of a Udacity recording into ``dst_folder``; returns the new paths.
 
-    All or nothing: the whole log is checked before anything is written, and if a frame fails to load the
-    episodes written by this call are removed again.
+    All or nothing: the whole log is checked before anything is written, and if a frame fails to load, a write
+    fails (a full disk) or ``stop()`` raises (a stop signal), the episodes written by this call are removed again.
     """
     from tqdm import tqdm
 
@@ -185,6 +204,8 @@ def import_udacity(src_folder: Path, dst_folder: Path, dt_s: float = 0.05, progr
                 action = np.array([row.steering, row.throttle - row.brake], np.float32)
                 writer.append(observation, action, _unknown_truth(t * dt_s))
                 bar.update(1)
+                if stop is not None:
+                    stop()
             path = writer.close({"steps_done": writer.steps})
             writer = None
             written.append(path)
@@ -221,12 +242,13 @@ def _unknown_light(path: Path) -> None:
             f["truth/next_light_state"][...] = np.nan
 
 
-def export_udacity(src: Path, dst_folder: Path, progress: bool = False) -> int:
+def export_udacity(src: Path, dst_folder: Path, progress: bool = False, stop: Callable[[], None] | None = None) -> int:
     """Write episodes (a folder of them, or one ``.h5`` file) as a Udacity recording; returns the frames written.
 
     Images go to ``dst/IMG/center_<episode>_<step>.jpg`` and rows to ``dst/driving_log.csv`` (no header, absolute
     paths like the original simulator; the left and right columns repeat the center path). ``dst`` must not
-    already hold a ``driving_log.csv``. A corrupt episode stops the export with an ``EpisodeError`` naming it.
+    already hold a ``driving_log.csv``. A corrupt episode stops the export with an ``EpisodeError`` naming it;
+    then, or when a write fails or ``stop()`` raises, every image this call wrote is removed again.
     """
     from tqdm import tqdm
 
@@ -247,6 +269,7 @@ def export_udacity(src: Path, dst_folder: Path, progress: bool = False) -> int:
     (dst / "IMG").mkdir(parents=True, exist_ok=True)
     tmp = log.with_name(log.name + ".partial")
     count = 0
+    images: list[Path] = []  # written by this call, removed again if it fails
     bar = tqdm(total=sum(ep.steps for ep in episodes), desc="export", unit="frame", disable=not progress)
     try:
         with open(tmp, "w", newline="") as f:
@@ -264,17 +287,24 @@ def export_udacity(src: Path, dst_folder: Path, progress: bool = False) -> int:
                             frame = frames[t]
                         except (OSError, ValueError) as exc:
                             raise EpisodeError(f"{ep.path}: cannot read frame {t} ({exc}); the file is corrupt.") from exc
-                        if not cv2.imwrite(str(image), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR),
-                                           [cv2.IMWRITE_JPEG_QUALITY, 95]):
-                            raise UdacityError(f"{image}: cannot write this image; check the folder is writable.")
+                        ok, jpeg = cv2.imencode(".jpg", cv2.cvtColor(frame, cv2.COLOR_RGB2BGR),
+                                                [cv2.IMWRITE_JPEG_QUALITY, 95])
+                        if not ok:
+                            raise UdacityError(f"{ep.path}: frame {t} cannot be encoded as JPEG.")
+                        images.append(image)
+                        image.write_bytes(jpeg.tobytes())  # OSError (a full disk) names the errno, unlike imwrite
                         steer, tb = (float(v) for v in ep.actions[t])
                         out.writerow([image, image, image, _num(steer), _num(max(tb, 0.0)), _num(max(-tb, 0.0)),
                                       _num(float(ep.speed[t]) / MPH_TO_MPS)])
                         count += 1
                         bar.update(1)
+                        if stop is not None:
+                            stop()
         tmp.replace(log)
     except BaseException:
         tmp.unlink(missing_ok=True)
+        for image in images:
+            image.unlink(missing_ok=True)
         raise
     finally:
         bar.close()

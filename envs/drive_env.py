@@ -33,6 +33,9 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from envs.options import MAX_TOWN_SEED, check_reset_options, episode_seconds, goal_edge, start_lane
+from envs.options import town_seed as check_town_seed
+from sim.checks import check_number
 from sim.objects import LIGHT_ID_BASE, LightState, SemanticClass
 from sim.render import LIGHTING_PRESETS, CameraConfig, CameraFrame, SceneRenderer
 from sim.render_kernels import object_boxes
@@ -100,6 +103,8 @@ class DriveEnv(gym.Env):
             config = replace(config, **overrides)
         if config.weather not in LIGHTING_PRESETS:
             raise ValueError(f"Unknown weather {config.weather!r}; choose one of {sorted(LIGHTING_PRESETS)}.")
+        episode_seconds(config.max_time_s, "max_time_s")
+        check_town_seed(config.town_seed, "town_seed")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"Unknown render_mode {render_mode!r}; use 'rgb_array' or 'human'.")
         self.config = config
@@ -129,24 +134,24 @@ class DriveEnv(gym.Env):
         self.frame: CameraFrame | None = None
         self._window: Any = None
         self._last_progress = 0.0
+        self._episode_over = False
+        self._closed = False
 
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[dict, dict]:
         """Start an episode. ``options`` may set ``town_seed``, ``weather``, ``traffic_density``
         (multiplies NPCs and pedestrians), ``start`` (lane index), ``goal`` (edge) and ``world``
         (a ready-made World, used by scenarios)."""
+        self._require_open()
+        if seed is not None:
+            check_number("seed", seed, 0, MAX_TOWN_SEED, integer=True)
+        options = check_reset_options(options)  # before anything changes: a bad option leaves the env as it was
         super().reset(seed=seed)
-        options = dict(options or {})
-        unknown = set(options) - {"town_seed", "weather", "traffic_density", "start", "goal", "world"}
-        if unknown:
-            raise ValueError(f"Unknown reset option(s) {sorted(unknown)}; see DriveEnv.reset's docstring.")
         episode_seed = int(self.np_random.integers(2**31 - 1))
-        town_seed = int(options.get("town_seed", self.config.town_seed))
-        self.weather = str(options.get("weather", self.config.weather))
-        if self.weather not in LIGHTING_PRESETS:
-            raise ValueError(f"Unknown weather {self.weather!r}; choose one of {sorted(LIGHTING_PRESETS)}.")
+        town_seed = options.get("town_seed", self.config.town_seed)
+        self.weather = options.get("weather", self.config.weather)
         wcfg = self.config.world
-        density = float(options.get("traffic_density", 1.0))
+        density = options.get("traffic_density", 1.0)
         if density != 1.0:
             wcfg = replace(wcfg, npc_count=int(round(wcfg.npc_count * density)),
                            pedestrian_count=int(round(wcfg.pedestrian_count * density)))
@@ -156,9 +161,9 @@ class DriveEnv(gym.Env):
             town = cached_town(wcfg.town, town_seed)
             kwargs: dict[str, Any] = {}
             if "start" in options:
-                kwargs["start"] = tuple(options["start"])
+                kwargs["start"] = start_lane(town, options["start"])
             if "goal" in options:
-                kwargs["goal"] = tuple(options["goal"])
+                kwargs["goal"] = goal_edge(town, options["goal"])
             self.world = World(town, wcfg, episode_seed, **kwargs)
         world = self.world
         assert world is not None
@@ -169,11 +174,14 @@ class DriveEnv(gym.Env):
             self._renderer_town = id(world.town)
             self._topdown = None
         self._last_progress = world.route_progress_m
+        self._episode_over = False
         obs = self._observe()
         return obs, self._info([])
 
     def step(self, action: np.ndarray) -> tuple[dict, float, bool, bool, dict]:
         world = self._require_world()
+        if self._episode_over:  # Gymnasium's contract: after terminated or truncated, reset() comes next
+            raise RuntimeError("The episode has ended (terminated or truncated); call reset() before step() again.")
         action = np.asarray(action, dtype=np.float32).reshape(-1)
         if action.shape != (2,) or not np.all(np.isfinite(action)):
             raise ValueError(f"Action must be two finite numbers [steer, throttle_brake]; got {action!r}.")
@@ -197,6 +205,7 @@ class DriveEnv(gym.Env):
             terminated = True
         truncated = not terminated and (world.time_s >= self.config.max_time_s
                                         or world.distance_m >= self.config.max_distance_m)
+        self._episode_over = terminated or truncated
         obs = self._observe()
         info = self._info(new)
         if self.render_mode == "human":
@@ -216,6 +225,7 @@ class DriveEnv(gym.Env):
 
     def render(self) -> np.ndarray | None:
         """Camera view beside a top-down map around the ego (``rgb_array``), or shown in a window (``human``)."""
+        self._require_open()
         if self.render_mode is None:
             return None
         image = self.composite()
@@ -225,6 +235,7 @@ class DriveEnv(gym.Env):
         return None
 
     def close(self) -> None:
+        self._closed = True
         if self.renderer is not None:
             self.renderer.close()
             self.renderer = None
@@ -262,7 +273,12 @@ class DriveEnv(gym.Env):
         pygame.display.flip()
 
     # ------------------------------------------------------------------ internals
+    def _require_open(self) -> None:
+        if self._closed:
+            raise RuntimeError("This DriveEnv is closed; make a new one (a closed env has no renderer to draw with).")
+
     def _require_world(self) -> World:
+        self._require_open()
         if self.world is None:
             raise RuntimeError("Call reset() before step() or render().")
         return self.world

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
+import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -20,6 +22,7 @@ import numpy as np
 import pybullet as p
 
 from sim import render_kernels as kernels
+from sim.checks import check_number
 from sim.objects import LIGHT_ID_BASE, LightState, ObjectSnapshot, SemanticClass
 from sim.scene_meshes import (
     HOUSING_HALF,
@@ -44,6 +47,13 @@ MAX_LINKS = 8  # links per body the segmentation lookup tables can tell apart
 BOX_CAPACITY = 64  # object ids a frame's boxes are gathered for while shading (more: object_boxes afterwards)
 HIDDEN_Z = -500.0  # where pooled, unused object bodies wait (below the ground, beyond the far plane)
 CALIBRATION_Z = -3000.0  # a grass patch far below the town, rendered once per preset to learn the grass colour
+MESH_FROM_LISTS = False  # True: the old way (pybullet keeps the vertex lists for ever); for comparisons only
+IMAGE_PX = (8, 4096)  # smallest and largest camera width or height, in pixels
+
+
+def check_image_size(name: str, value: object) -> int:
+    """A camera width or height: an integer in ``IMAGE_PX`` (0 pixels would divide by zero in the projection)."""
+    return check_number(name, value, *IMAGE_PX, integer=True)
 
 
 # --------------------------------------------------------------------------- camera
@@ -61,6 +71,13 @@ class CameraConfig:
     far_m: float = 250.0
     stereo: bool = False
     stereo_baseline_m: float = 0.12  # ZED-like
+
+    def __post_init__(self) -> None:
+        check_image_size("camera width", self.width)
+        check_image_size("camera height", self.height)
+        check_number("camera hfov_deg", self.hfov_deg, 0.0, 179.0, lo_open=True)
+        check_number("camera near_m", self.near_m, 0.0, None, lo_open=True)
+        check_number("camera far_m", self.far_m, self.near_m, 1e5, lo_open=True)
 
     @property
     def focal_px(self) -> float:
@@ -204,6 +221,10 @@ class SceneRenderer:
         self.town = town
         self.client = p.connect(p.DIRECT)
         self._cid = {"physicsClientId": self.client}
+        # Disconnects when close() is called, when the renderer is collected, or at interpreter exit (atexit,
+        # before modules are torn down): a __del__ running during teardown found pybullet half-unloaded and
+        # printed an "Exception ignored" traceback when an env was not closed.
+        self._finalizer = weakref.finalize(self, _disconnect, self.client)
         n = 4096
         # Per (uid, link) lookup tables, index = uid * (MAX_LINKS + 1) + (link + 1); the last row is the sky.
         self._class_lut = np.zeros(n * (MAX_LINKS + 1) + 1, np.int32)
@@ -275,9 +296,7 @@ class SceneRenderer:
             for key in np.unique(keys, axis=0):
                 sel = np.all(keys == key, axis=1)
                 tv, tn = verts[sel].reshape(-1, 3), norms[sel].reshape(-1, 3)
-                vs = p.createVisualShape(p.GEOM_MESH, vertices=tv.tolist(), indices=list(range(len(tv))),
-                                         normals=tn.tolist(), rgbaColor=list(g.rgba), specularColor=[0.0, 0.0, 0.0],
-                                         **self._cid)
+                vs = self._mesh_shape(tv, tn, g.rgba)
                 uid = p.createMultiBody(baseMass=0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=vs, **self._cid)
                 self._no_collisions(uid)
                 self._label(uid, [-1], g.semantic, 0)
@@ -290,6 +309,36 @@ class SceneRenderer:
         self._tile_lo = np.array([t.lo for t in self._tiles])
         self._tile_hi = np.array([t.hi for t in self._tiles])
         self._tile_shown = np.ones(len(self._tiles), bool)
+
+    def _mesh_shape(self, vertices: np.ndarray, normals: np.ndarray, rgba: Sequence[float]) -> int:
+        """A visual shape for a triangle soup (3 vertices per triangle), loaded from a Wavefront OBJ file.
+
+        Why a file: pybullet never frees the vertex data of a mesh passed as ``vertices=`` lists, not at
+        ``removeBody``, ``resetSimulation`` or ``disconnect`` (about 12 MB per town, which a long run over many
+        towns kept); a mesh it loads from a file is freed with the client, except for a copy in a process-wide
+        cache keyed by the file's name (about 23 bytes a vertex, 0.7 MB a town). Because of that cache every file
+        gets a name never used before in this process (a reused name would draw the old mesh). The numbers are
+        written as the shortest text that reads back to the same float64 (``repr``), so the values (and the
+        pixels) are those the lists gave."""
+        if MESH_FROM_LISTS:
+            return p.createVisualShape(p.GEOM_MESH, vertices=vertices.tolist(), indices=list(range(len(vertices))),
+                                       normals=normals.tolist(), rgbaColor=list(rgba), specularColor=[0.0, 0.0, 0.0],
+                                       **self._cid)
+        global _MESH_FILES
+        _MESH_FILES += 1
+        name = os.path.join(_mesh_dir(), f"mesh_{_MESH_FILES}.obj")
+        n = len(vertices)
+        k = np.arange(1, n + 1).reshape(-1, 3)
+        text = "".join(("".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in vertices.tolist()),
+                        "".join(f"vn {x!r} {y!r} {z!r}\n" for x, y, z in normals.tolist()),
+                        "".join(f"f {a}//{a} {b}//{b} {c}//{c}\n" for a, b, c in k.tolist())))
+        try:
+            with open(name, "x") as f:
+                f.write(text)
+            return p.createVisualShape(p.GEOM_MESH, fileName=name, rgbaColor=list(rgba), specularColor=[0.0, 0.0, 0.0],
+                                       **self._cid)
+        finally:
+            os.unlink(name)
 
     def _cull(self, eye_xy: np.ndarray, heading: float, camera: CameraConfig) -> None:
         """Hide static tiles outside the camera's horizontal view wedge (alpha 0: TinyRenderer skips them).
@@ -689,17 +738,58 @@ class SceneRenderer:
         return hit
 
     def close(self) -> None:
-        """Disconnect this renderer's pybullet client."""
-        if self.client >= 0:
-            p.disconnect(**self._cid)
-            self.client = -1
-
-    def __del__(self) -> None:
-        with contextlib.suppress(Exception):  # interpreter shutdown may have unloaded pybullet already
-            self.close()
+        """Disconnect this renderer's pybullet client (once; later calls do nothing)."""
+        self._finalizer()
+        self.client = -1
 
 
-_GROUND_MAPS: dict[tuple[int, int], tuple[Town, GroundMap]] = {}
+_MESH_FILES = 0  # mesh files written by this process: each gets the next number (see _mesh_shape)
+_MESH_DIR: str | None = None
+
+
+def _mesh_dir() -> str:
+    """A private temporary folder for mesh files, removed at exit."""
+    global _MESH_DIR
+    if _MESH_DIR is None or not os.path.isdir(_MESH_DIR):
+        import atexit
+        import shutil
+        import tempfile
+
+        _MESH_DIR = tempfile.mkdtemp(prefix="towndrive_meshes_")
+        atexit.register(shutil.rmtree, _MESH_DIR, True)
+    return _MESH_DIR
+
+
+def _disconnect(client: int) -> None:
+    if p.isConnected(physicsClientId=client):
+        p.disconnect(physicsClientId=client)
+        _return_freed_memory()
+
+
+def _return_freed_memory() -> None:
+    """Hand the heap a town's scene freed back to the OS (glibc's ``malloc_trim``; elsewhere nothing).
+
+    Why: pybullet frees a client's tens of thousands of small mesh allocations at ``disconnect``, but glibc
+    keeps freed small blocks in its heap, so a process that renders town after town kept a rising floor of
+    freed memory (the soak in bench/bench_memory_soak.py). Trimming costs about a millisecond per town."""
+    global _MALLOC_TRIM
+    if _MALLOC_TRIM is None:
+        import ctypes
+        import ctypes.util
+        import sys
+
+        _MALLOC_TRIM = False
+        if sys.platform.startswith("linux"):
+            with contextlib.suppress(OSError, AttributeError):  # not glibc (musl has no malloc_trim)
+                _MALLOC_TRIM = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    if _MALLOC_TRIM:
+        _MALLOC_TRIM(0)
+
+
+_MALLOC_TRIM: object = None
+
+
+_GROUND_MAPS: weakref.WeakValueDictionary[tuple[int, int, object], GroundMap] = weakref.WeakValueDictionary()
 _NO_CONE = np.zeros((1, 1), np.float32)  # the kernel's headlight cone when the preset has no headlights
 _NO_CONE.setflags(write=False)  # read-only like the cached cones: one compiled kernel signature, not two
 _NO_GLOW = np.zeros(1, np.float32)  # bloom gain 0: no blurred glow to add
@@ -750,15 +840,15 @@ def _in_view(objects: Sequence[ObjectSnapshot], view: tuple[float, float, float,
 
 
 def _ground_map(town: Town) -> GroundMap:
-    """One ground map per town object, shared by all renderers of it (it is ~16 MB)."""
-    key = (id(town), town.seed)
+    """One ground map per town object, shared by all renderers of it (it is ~16 MB). The cache holds it weakly:
+    it lives as long as a renderer uses it, and goes with the last one (a strong cache kept up to nine maps of
+    towns no renderer used any more). The key has the town's seed and config besides its id, so a new town that
+    reuses a freed one's id finds the map only if it is the same town."""
+    key = (id(town), town.seed, town.config)
     hit = _GROUND_MAPS.get(key)
-    if hit is None or hit[0] is not town:
-        if len(_GROUND_MAPS) > 8:
-            _GROUND_MAPS.clear()
-        hit = (town, build_ground_map(town))
-        _GROUND_MAPS[key] = hit
-    return hit[1]
+    if hit is None:
+        hit = _GROUND_MAPS[key] = build_ground_map(town)
+    return hit
 
 
 @lru_cache(maxsize=32)
