@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 from highway_env.road.road import Road
@@ -76,17 +77,13 @@ class NextLight:
     distance_m: float  # from the ego's front bumper to the stop bar's near edge
 
 
-_TOWN_CACHE: dict[tuple[TownConfig, int], Town] = {}
+TOWN_CACHE_SIZE = 8  # an evaluation cycles through a handful of towns; more would only hold memory
 
 
+@lru_cache(maxsize=TOWN_CACHE_SIZE)
 def cached_town(config: TownConfig, seed: int) -> Town:
-    """Towns are immutable once built; build each (config, seed) once per process."""
-    key = (config, seed)
-    if key not in _TOWN_CACHE:
-        if len(_TOWN_CACHE) > 16:
-            _TOWN_CACHE.clear()
-        _TOWN_CACHE[key] = generate_town(config, seed)
-    return _TOWN_CACHE[key]
+    """Towns are immutable once built; the last ``TOWN_CACHE_SIZE`` (config, seed) pairs are kept per process."""
+    return generate_town(config, seed)
 
 
 class StaticObstacles:
