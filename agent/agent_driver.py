@@ -121,7 +121,7 @@ class AgentConfig:
     near_memory_s: float = 4.0  # a pedestrian lost this near, or at the image's edge, stays (not drifting) this
     near_memory_m: float = 7.0  # long: the detector misses people who fill the frame, and beside the car's
     #                             front, outside the 90-degree view, is where they go
-    edge_confirm_s: float = 3.0  # a person at the image's side edge is confirmed this long after last seen whole
+    edge_confirm_s: float = 8.0  # a person at the image's side edge is confirmed this long after last seen whole
     whole_margin_px: float = 3.0  # a box this near the image's side edge may be cut: it does not show the whole
     still_lateral_mps: float = 0.3  # a vehicle moving sideways slower than this gets the depth prior
     # A whole person's box (cut neither at the top nor at the bottom) whose bottom row puts them at z is about
