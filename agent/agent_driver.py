@@ -27,8 +27,9 @@ environment renders it), its own speed and the route command. Each frame:
    the image's side edge. At night a lit facade, a pole or the kerb's line where it meets the side edge
    scores as half a person, and with the car standing in a turn it stays there frame after frame; a real
    person at the edge walked there through the picture, so a person at the side edge is confirmed only
-   while the same track was seen whole (clear of the side edges) within ``edge_confirm_s``. Only confirmed
-   people who leave the view at the side edge are remembered.
+   while the same track was seen whole (clear of the side edges) within ``edge_confirm_s``, and a person
+   seen only at the side edge is not remembered when lost (that memory turned a three-frame false box at
+   the left edge into a person standing beside a car turning left, and re-armed with each new false box).
 5. **Controller** (``agent.controller``) and **ADAS** warnings (``agent.adas``).
 
 Per-stage timings (ms) for every frame are kept in ``timings``; the last frame's whole state in ``view``
@@ -336,6 +337,7 @@ class AgentDriver:
         self._in_path: dict[int, PerceivedObject] = {}  # last frame's seen objects in our path
         self._at_side: dict[int, PerceivedObject] = {}  # last frame's near people at the image's side edge
         self._whole_at: dict[int, float] = {}  # track id -> when a person's track was last seen whole
+        self._edge_only: set[int] = set()  # this frame's people seen only at the image's side edge
         self._turn = 0.0  # the heading change of the last frame (rad, positive to the right)
         self._yaw = 0.0  # dead-reckoned heading (rad, positive to the right) from our own speed and steering
         self._road_yaw: float | None = None  # the approach lane's heading in the same frame, from the lane fit
@@ -348,6 +350,7 @@ class AgentDriver:
     # ------------------------------------------------------------------ perception helpers
     def _objects(self, tracks: list[Track], t: float, depth: np.ndarray | None) -> list[PerceivedObject]:
         out = []
+        self._edge_only = set()
         alive = set()
         for tr in tracks:
             kind = CLASSES[tr.label] if 0 <= tr.label < len(CLASSES) else ""
@@ -399,12 +402,17 @@ class AgentDriver:
     def _confirmed(self, track: Track, kind: str, t: float) -> bool:
         """Whether the detector confirms this track this frame: it matched a detection (not SORT coasting on
         its prediction), and a person at the image's side edge was seen whole lately (module docstring)."""
-        if track.time_since_update > 0:
-            return False
-        if kind != "pedestrian":
-            return True
+        whole = kind != "pedestrian" or self._seen_whole(track, t)
+        if not whole:
+            self._edge_only.add(track.track_id)
+        return whole and track.time_since_update == 0
+
+    def _seen_whole(self, track: Track, t: float) -> bool:
+        """Whether a person's box is clear of the image's side edges, or its track was seen so (detected, not
+        predicted) within ``edge_confirm_s``."""
         if not self._at_side_edge(track.box, self.config.whole_margin_px):
-            self._whole_at[track.track_id] = t
+            if track.time_since_update == 0:
+                self._whole_at[track.track_id] = t
             return True
         return t - self._whole_at.get(track.track_id, -math.inf) <= self.config.edge_confirm_s
 
@@ -454,11 +462,15 @@ class AgentDriver:
         return out
 
     def _note_seen(self, objects: list[PerceivedObject], decision: Decision) -> list[PerceivedObject]:
-        """Keep what ``_remember`` recalls next frame if it is lost: the seen objects in our path, and the confirmed
-        people near the car at the image's side edge. Returns the objects in our path (seen or remembered)."""
+        """Keep what ``_remember`` recalls next frame if it is lost: the seen objects in our path, and the people
+        near the car at the image's side edge, but no person seen only there. Returns the objects in our path
+        (seen or remembered)."""
         in_path = [o for o in objects if o.track_id in decision.in_path]
-        self._in_path = {o.track_id: o for o in in_path if o.unseen_s == 0.0}
-        self._at_side = {o.track_id: o for o in objects if o.kind == "pedestrian" and not o.unconfirmed
+        # A person seen only at the side edge is not remembered: nothing confirmed them (a track still coasting
+        # on a real detection is, as the detector misses what fills the frame).
+        seen = [o for o in objects if o.unseen_s == 0.0 and o.track_id not in self._edge_only]
+        self._in_path = {o.track_id: o for o in seen if o.track_id in decision.in_path}
+        self._at_side = {o.track_id: o for o in seen if o.kind == "pedestrian"
                          and o.distance_m < self.config.near_memory_m and self._at_side_edge(o.box)}
         return in_path
 

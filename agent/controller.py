@@ -99,6 +99,7 @@ class ControllerConfig:
     unconfirmed_hold_s: float = 5.0  # longest standstill for objects perception does not confirm (module docstring)
     creep_speed_mps: float = 1.0  # ... after which the car creeps past them at this speed, looking again every frame
     standstill_mps: float = 0.5  # below this the car counts as holding (for unconfirmed_hold_s)
+    unconfirmed_reset_s: float = 1.0  # the bounded hold starts afresh once no unconfirmed object is in our path this long
     max_steer_rad: float = 0.6
     idm_a_mps2: float = 3.0  # IDM a
     idm_b_mps2: float = 2.5  # IDM b (comfortable deceleration in the dynamic term)
@@ -230,6 +231,7 @@ class Controller:
         self._yellow_go: bool | None = None  # the yellow decision, taken once per yellow
         self.note = ""  # why a seen light does not stop the car (shown as the reason when nothing else acts)
         self.unconfirmed_held_s = 0.0  # standstill so far for unconfirmed objects in our path (module docstring)
+        self._no_unconfirmed_s = 0.0  # since an unconfirmed object was last in our path
 
     # ------------------------------------------------------------------ geometry
     def path_centre(self, scene: Scene, z_m: float, steer: float) -> float:
@@ -473,10 +475,15 @@ class Controller:
         hard = governing is not None and constraints[governing].hard
         holding = governing is not None and constraints[governing].hold
         # The clock of the bounded hold: it runs while the car stands for an unconfirmed object, keeps its
-        # count while one is still in our path (creeping goes on), and restarts when none is.
+        # count while one is in our path (creeping goes on, and a false box that comes and goes does not
+        # restart it), and restarts once none has been for unconfirmed_reset_s.
         if not any(c.unconfirmed for c in constraints):
-            self.unconfirmed_held_s = 0.0
-        elif governing is not None and constraints[governing].unconfirmed and speed < cfg.standstill_mps:
+            self._no_unconfirmed_s += dt
+            if self._no_unconfirmed_s > cfg.unconfirmed_reset_s:
+                self.unconfirmed_held_s = 0.0
+        else:
+            self._no_unconfirmed_s = 0.0
+        if governing is not None and constraints[governing].unconfirmed and speed < cfg.standstill_mps:
             self.unconfirmed_held_s += dt
         if holding:
             reason += " (holding)"

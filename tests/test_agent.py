@@ -411,12 +411,18 @@ def test_a_person_box_only_at_the_left_edge_holds_a_turning_car_for_a_bounded_ti
         trace = _stand_in_a_left_turn(driver, detections, 30.0)
         first = next(k for k, (_, why) in enumerate(trace) if "pedestrian" in why)
         assert "turn's sweep" in trace[first][1] or "in our path" in trace[first][1], name
-        stood = [k for k, (v, _) in enumerate(trace) if v < 0.1]
-        moving = [k for k, (v, _) in enumerate(trace) if k > first and v >= 0.5]
-        assert stood and moving, name  # it stopped, and it moved on
-        assert (moving[0] - first) * driver.dt < bound, name
-        assert max(v for v, _ in trace[moving[0]:]) <= 1.5, name  # slowly: it is still reported there
-        assert any("creeping" in why for _, why in trace), name
+        assert any(v < 0.1 for v, _ in trace[first:]), name  # it stopped for it
+        longest = run = 0
+        for v, _ in trace[first:]:
+            run = run + 1 if v < 0.1 else 0
+            longest = max(longest, run)
+        assert longest * driver.dt < bound, name  # but never stood for it long
+        assert sum(v for v, _ in trace[-100:]) > 0.5 * 100 * driver.dt, name  # and moves on to the end
+        if name == "every frame":
+            trace_every, first_every = trace, first
+    # reported every frame, the box is passed slowly, looking again every frame
+    assert max(v for v, _ in trace_every[first_every:]) <= 1.5
+    assert any("creeping" in why for _, why in trace_every)
 
 
 @needs_models
