@@ -22,6 +22,14 @@ environment renders it), its own speed and the route command. Each frame:
    waiting in the oncoming lane is not in our path). An object lost from view while in our path is kept
    where it was for a while; a person lost close in (the detector misses people who fill the frame, and
    beside the car's front is outside the view) is kept longer and does not drift.
+   What is easy to fake is marked unconfirmed, and the controller stands for it only for a bounded time:
+   a remembered object, a track the detector missed this frame (SORT coasting), and a person seen only at
+   the image's side edge. At night a lit facade, a pole or the kerb's line where it meets the side edge
+   scores as half a person, and with the car standing in a turn it stays there frame after frame; a real
+   person at the edge walked there through the picture, so a person at the side edge is confirmed only
+   while the same track was seen whole (clear of the side edges) within ``edge_confirm_s``, and a person
+   seen only at the side edge is not remembered when lost (that memory turned a three-frame false box at
+   the left edge into a person standing beside a car turning left, and re-armed with each new false box).
 5. **Controller** (``agent.controller``) and **ADAS** warnings (``agent.adas``).
 
 Per-stage timings (ms) for every frame are kept in ``timings``; the last frame's whole state in ``view``
@@ -114,6 +122,8 @@ class AgentConfig:
     near_memory_s: float = 4.0  # a pedestrian lost this near, or at the image's edge, stays (not drifting) this
     near_memory_m: float = 7.0  # long: the detector misses people who fill the frame, and beside the car's
     #                             front, outside the 90-degree view, is where they go
+    edge_confirm_s: float = 8.0  # a person at the image's side edge is confirmed this long after last seen whole
+    whole_margin_px: float = 3.0  # a box this near the image's side edge may be cut: it does not show the whole
     still_lateral_mps: float = 0.3  # a vehicle moving sideways slower than this gets the depth prior
     # A whole person's box (cut neither at the top nor at the bottom) whose bottom row puts them at z is about
     # f x 1.75 m / z tall: height x z / (f x 1.75) fell in 0.83-1.12 for every true detection on the detector's
@@ -326,6 +336,8 @@ class AgentDriver:
         self._lost: dict[int, PerceivedObject] = {}  # objects lost in our path, remembered for a while
         self._in_path: dict[int, PerceivedObject] = {}  # last frame's seen objects in our path
         self._at_side: dict[int, PerceivedObject] = {}  # last frame's near people at the image's side edge
+        self._whole_at: dict[int, float] = {}  # track id -> when a person's track was last seen whole
+        self._edge_only: set[int] = set()  # this frame's people seen only at the image's side edge
         self._turn = 0.0  # the heading change of the last frame (rad, positive to the right)
         self._yaw = 0.0  # dead-reckoned heading (rad, positive to the right) from our own speed and steering
         self._road_yaw: float | None = None  # the approach lane's heading in the same frame, from the lane fit
@@ -338,6 +350,7 @@ class AgentDriver:
     # ------------------------------------------------------------------ perception helpers
     def _objects(self, tracks: list[Track], t: float, depth: np.ndarray | None) -> list[PerceivedObject]:
         out = []
+        self._edge_only = set()
         alive = set()
         for tr in tracks:
             kind = CLASSES[tr.label] if 0 <= tr.label < len(CLASSES) else ""
@@ -376,11 +389,32 @@ class AgentDriver:
                 elif box[2] < cx:
                     xr = self.geometry.lateral(box[2], z + DEPTH_PRIOR_M[kind])
             out.append(PerceivedObject(tr.track_id, kind, float(z), float(xl), float(xr), closing, lateral,
-                                       (float(box[0]), float(box[1]), float(box[2]), float(box[3]))))
+                                       (float(box[0]), float(box[1]), float(box[2]), float(box[3])),
+                                       confirmed=self._confirmed(tr, kind, t)))
         for tid in list(self._history):
             if tid not in alive:
                 del self._history[tid]
+        for tid in list(self._whole_at):
+            if tid not in alive:
+                del self._whole_at[tid]
         return out
+
+    def _confirmed(self, track: Track, kind: str, t: float) -> bool:
+        """Whether the detector confirms this track this frame: it matched a detection (not SORT coasting on
+        its prediction), and a person at the image's side edge was seen whole lately (module docstring)."""
+        whole = kind != "pedestrian" or self._seen_whole(track, t)
+        if not whole:
+            self._edge_only.add(track.track_id)
+        return whole and track.time_since_update == 0
+
+    def _seen_whole(self, track: Track, t: float) -> bool:
+        """Whether a person's box is clear of the image's side edges, or its track was seen so (detected, not
+        predicted) within ``edge_confirm_s``."""
+        if not self._at_side_edge(track.box, self.config.whole_margin_px):
+            if track.time_since_update == 0:
+                self._whole_at[track.track_id] = t
+            return True
+        return t - self._whole_at.get(track.track_id, -math.inf) <= self.config.edge_confirm_s
 
     def _plausible_person(self, box: np.ndarray) -> bool:
         """Whether a pedestrian box's size agrees with where its bottom row meets the road (see
@@ -427,9 +461,23 @@ class AgentDriver:
             out.append(ghost)
         return out
 
-    def _at_side_edge(self, box: tuple[float, float, float, float]) -> bool:
-        """Whether a box touches the image's left or right edge (the object is leaving the view sideways)."""
-        return box[0] <= 0.5 or box[2] >= self.camera.width - 1.5
+    def _note_seen(self, objects: list[PerceivedObject], decision: Decision) -> list[PerceivedObject]:
+        """Keep what ``_remember`` recalls next frame if it is lost: the seen objects in our path, and the people
+        near the car at the image's side edge, but no person seen only there. Returns the objects in our path
+        (seen or remembered)."""
+        in_path = [o for o in objects if o.track_id in decision.in_path]
+        # A person seen only at the side edge is not remembered: nothing confirmed them (a track still coasting
+        # on a real detection is, as the detector misses what fills the frame).
+        seen = [o for o in objects if o.unseen_s == 0.0 and o.track_id not in self._edge_only]
+        self._in_path = {o.track_id: o for o in seen if o.track_id in decision.in_path}
+        self._at_side = {o.track_id: o for o in seen if o.kind == "pedestrian"
+                         and o.distance_m < self.config.near_memory_m and self._at_side_edge(o.box)}
+        return in_path
+
+    def _at_side_edge(self, box: tuple[float, float, float, float] | np.ndarray, margin_px: float = 0.5) -> bool:
+        """Whether a box touches the image's left or right edge, within ``margin_px`` (the object is leaving
+        the view sideways, or is cut by its edge)."""
+        return float(box[0]) <= margin_px or float(box[2]) >= self.camera.width - 1.0 - margin_px
 
     def _at_border(self, box: tuple[float, float, float, float]) -> bool:
         """Whether a box touches the image's bottom or side edge (the object goes on beyond the frame)."""
@@ -668,10 +716,7 @@ class AgentDriver:
         self._note_junction(stop)  # the bar as measured this frame, where the car is this frame
         self._odometry(speed, decision.steer, command)
         lap("control")
-        in_path = [o for o in objects if o.track_id in decision.in_path]
-        self._in_path = {o.track_id: o for o in in_path if o.unseen_s == 0.0}
-        self._at_side = {o.track_id: o for o in objects if o.kind == "pedestrian" and o.unseen_s == 0.0
-                         and o.distance_m < self.config.near_memory_m and self._at_side_edge(o.box)}
+        in_path = self._note_seen(objects, decision)
         offset = lanes.offset_m if lanes.confidence >= self.config.ldw_min_lane_confidence else math.nan
         warnings = self.adas.update(t, speed, offset, lanes.lane_width_m, in_path, turning=command in (1, 2))
         lap("adas")

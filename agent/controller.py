@@ -33,6 +33,12 @@ Why it is built this way:
   centre from the lane detector when it found one, else the arc the current steering drives. Objects
   outside the corridor (other lanes) get no reaction; pedestrians get a wider corridor, and a pedestrian
   whose lateral motion brings them into it within ``entering_horizon_s`` counts as in the path.
+- **No endless hold on what perception does not confirm.** A person remembered after the detector lost them,
+  or one the detector reports only at the image's side edge (a lit facade or a kerb there at night looks like
+  half a person, and nothing the camera sees can refute it while the car stands), is stopped for like any
+  other, but the car stands for such an object at most ``unconfirmed_hold_s`` (summed over whichever
+  unconfirmed objects hold it); then it creeps on at ``creep_speed_mps``, so the view changes and perception
+  looks again every frame, and a person the detector confirms stops it as always.
 
 Distances in ``Scene`` are measured from the camera along the ground; the controller converts them to
 the gap ahead of the front bumper with ``camera_to_front_m``.
@@ -90,6 +96,10 @@ class ControllerConfig:
     half_width_m: float = 0.95
     sweep_margin_m: float = 0.3  # kept clear of the body's swept ring, beyond a person's box
     sweep_min_steer: float = 0.25  # the body's sweep is checked only in a turn steered at least this hard
+    unconfirmed_hold_s: float = 5.0  # longest standstill for objects perception does not confirm (module docstring)
+    creep_speed_mps: float = 1.0  # ... after which the car creeps past them at this speed, looking again every frame
+    standstill_mps: float = 0.5  # below this the car counts as holding (for unconfirmed_hold_s)
+    unconfirmed_reset_s: float = 1.0  # the bounded hold starts afresh once no unconfirmed object is in our path this long
     max_steer_rad: float = 0.6
     idm_a_mps2: float = 3.0  # IDM a
     idm_b_mps2: float = 2.5  # IDM b (comfortable deceleration in the dynamic term)
@@ -109,6 +119,12 @@ class PerceivedObject:
     lateral_speed_mps: float = 0.0  # positive: moving right
     box: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     unseen_s: float = 0.0  # > 0: no longer detected, remembered where it was last (see agent_driver)
+    confirmed: bool = True  # False: detected, but only in a way that is easy to fake (see agent_driver)
+
+    @property
+    def unconfirmed(self) -> bool:
+        """Whether perception does not confirm the object this frame (remembered, or not confirmed)."""
+        return self.unseen_s > 0 or not self.confirmed
 
     @property
     def lateral_m(self) -> float:
@@ -142,6 +158,7 @@ class Constraint:
     accel_mps2: float = 0.0
     hard: bool = False  # comfortable braking cannot meet it
     hold: bool = False  # at the point at walking pace: brake to a standstill and stay
+    unconfirmed: bool = False  # from an object perception does not confirm (held for at most unconfirmed_hold_s)
 
 
 @dataclass
@@ -213,6 +230,8 @@ class Controller:
         self._light_unseen_s = math.inf
         self._yellow_go: bool | None = None  # the yellow decision, taken once per yellow
         self.note = ""  # why a seen light does not stop the car (shown as the reason when nothing else acts)
+        self.unconfirmed_held_s = 0.0  # standstill so far for unconfirmed objects in our path (module docstring)
+        self._no_unconfirmed_s = 0.0  # since an unconfirmed object was last in our path
 
     # ------------------------------------------------------------------ geometry
     def path_centre(self, scene: Scene, z_m: float, steer: float) -> float:
@@ -407,6 +426,7 @@ class Controller:
             if math.isinf(light.gap_m):  # a speed cap, not a point to stop at
                 light.accel_mps2 = self._idm(speed, min(target, light.speed_mps), None, 0.0, 0.0, 0.0)
             constraints.append(light)
+        creep = self.unconfirmed_held_s >= cfg.unconfirmed_hold_s
         for obj in scene.objects:
             swept = self.in_sweep(scene, obj, steer)  # a person where the body will pass, corridor or not
             if not swept and not self.in_path(scene, obj, steer):
@@ -416,8 +436,15 @@ class Controller:
             if obj.kind == "pedestrian":
                 what = ("in our path" if self.overlaps(scene, obj, steer) and obj.distance_m > 0
                         else "in the turn's sweep" if swept else "entering our path")
-                c = Constraint(f"pedestrian #{obj.track_id} {what} at {gap:.1f} m: stop", gap, 0.0,
-                               cfg.pedestrian_min_gap_m, 0.5)
+                if obj.unconfirmed and creep:
+                    c = Constraint(f"pedestrian #{obj.track_id} {what} not confirmed for "
+                                   f"{self.unconfirmed_held_s:.0f} s: creeping at {cfg.creep_speed_mps:.1f} m/s",
+                                   math.inf, cfg.creep_speed_mps, 0.0, 0.0,
+                                   self._idm(speed, min(target, cfg.creep_speed_mps), None, 0.0, 0.0, 0.0),
+                                   unconfirmed=True)
+                else:
+                    c = Constraint(f"pedestrian #{obj.track_id} {what} at {gap:.1f} m: stop", gap, 0.0,
+                                   cfg.pedestrian_min_gap_m, 0.5, unconfirmed=obj.unconfirmed)
             else:
                 lead_speed = max(0.0, speed - obj.closing_speed_mps)
                 verb = "stopped" if lead_speed < 0.5 else "following"
@@ -447,6 +474,17 @@ class Controller:
                 reason = constraints[governing].reason
         hard = governing is not None and constraints[governing].hard
         holding = governing is not None and constraints[governing].hold
+        # The clock of the bounded hold: it runs while the car stands for an unconfirmed object, keeps its
+        # count while one is in our path (creeping goes on, and a false box that comes and goes does not
+        # restart it), and restarts once none has been for unconfirmed_reset_s.
+        if not any(c.unconfirmed for c in constraints):
+            self._no_unconfirmed_s += dt
+            if self._no_unconfirmed_s > cfg.unconfirmed_reset_s:
+                self.unconfirmed_held_s = 0.0
+        else:
+            self._no_unconfirmed_s = 0.0
+        if governing is not None and constraints[governing].unconfirmed and speed < cfg.standstill_mps:
+            self.unconfirmed_held_s += dt
         if holding:
             reason += " (holding)"
         if accel > 0:  # gentle: capped, and rising at most jerk x dt per frame

@@ -363,3 +363,81 @@ def test_after_an_intervention_the_agent_forgets_what_it_dead_reckoned() -> None
     assert driver._junction is None and driver._road_yaw is None and not driver._pos.any()
     assert ctl.stop_line is None and ctl.light_state is None
     env.close()
+
+
+def _stand_in_a_left_turn(driver, detections, seconds: float) -> list[tuple[float, str]]:
+    """Drive ``act()`` on a black frame, PilotNet steering hard left (a junction's left turn, no lane lines),
+    the detector returning ``detections(frame)``; the car's speed follows its own acceleration. Returns the
+    (speed, reason) of every frame."""
+    from envs.drive_env import DriveConfig
+
+    cfg = DriveConfig()
+    driver.reset(SimpleNamespace(config=cfg))
+    driver.net = SimpleNamespace(steer=lambda image, command: -0.57)
+    frame = {"n": 0}
+
+    def detect(image):
+        frame["n"] += 1
+        return detections(frame["n"])
+
+    driver.detector = detect
+    image = np.zeros((cfg.camera.height, cfg.camera.width, 3), np.uint8)
+    speed, out = 0.0, []
+    for _ in range(int(seconds / driver.dt)):
+        driver.act({"image": image, "speed": np.array([speed], np.float32), "command": 1})
+        speed = max(0.0, speed + driver.view.decision.accel_mps2 * driver.dt)
+        out.append((speed, driver.view.decision.reason))
+    return out
+
+
+@needs_models
+def test_a_person_box_only_at_the_left_edge_holds_a_turning_car_for_a_bounded_time_then_it_creeps() -> None:
+    """Issue 25: at night a facade or kerb at the image's left edge scores as a tall person 2 m away, in the
+    sweep of a left turn; the car stood for it for good. The detector reports it every frame, or on and off
+    (each time a new track, remembered when it goes), but never whole: the car stands at most the bounded
+    time, then creeps on slowly, looking again every frame."""
+    from agent.autolabel import CLASSES
+    from agent.detector import Detection
+    from agent.drivers import make_driver
+
+    driver = make_driver("agent")
+    ped = CLASSES.index("pedestrian")
+    edge = (0.0, 40.0, 14.0, 160.0)  # cut by the left edge and the bottom: about 2.3 m ahead, 2.2 m left
+    # the last remembered box expires, and the bounded hold (summed over the boxes that hold the car) runs out:
+    # well within the 20 s the issue allows
+    bound = 12.0
+    for name, detections in (("every frame", lambda n: [Detection(edge, ped, 0.8)]),
+                             ("on and off", lambda n: [Detection(edge, ped, 0.8)] if n % 60 < 20 else [])):
+        trace = _stand_in_a_left_turn(driver, detections, 30.0)
+        first = next(k for k, (_, why) in enumerate(trace) if "pedestrian" in why)
+        assert "turn's sweep" in trace[first][1] or "in our path" in trace[first][1], name
+        assert any(v < 0.1 for v, _ in trace[first:]), name  # it stopped for it
+        longest = run = 0
+        for v, _ in trace[first:]:
+            run = run + 1 if v < 0.1 else 0
+            longest = max(longest, run)
+        assert longest * driver.dt < bound, name  # but never stood for it long
+        assert sum(v for v, _ in trace[-100:]) > 0.5 * 100 * driver.dt, name  # and moves on to the end
+        if name == "every frame":
+            trace_every, first_every = trace, first
+    # reported every frame, the box is passed slowly, looking again every frame
+    assert max(v for v, _ in trace_every[first_every:]) <= 1.5
+    assert any("creeping" in why for _, why in trace_every)
+
+
+@needs_models
+def test_a_person_seen_whole_in_the_turn_s_sweep_holds_the_car_as_long_as_they_stand_there() -> None:
+    from agent.autolabel import CLASSES
+    from agent.detector import Detection
+    from agent.drivers import make_driver
+
+    driver = make_driver("agent")
+    g = driver.geometry
+    rows = np.arange(0.0, 160.0, 0.25)
+    y1 = float(rows[np.nanargmin(np.abs(g.birdseye.ground_z_of_row(rows) - 4.0))])  # the road's row 4 m ahead
+    h = g.f * 1.75 / 4.0
+    whole = (95.0, y1 - h, 105.0, y1)  # a person 4 m ahead, 1.5 m left, standing
+    ped = CLASSES.index("pedestrian")
+    trace = _stand_in_a_left_turn(driver, lambda n: [Detection(whole, ped, 0.8)], 30.0)
+    assert all(v < 0.1 for v, _ in trace[40:])
+    assert "pedestrian" in trace[-1][1] and "creeping" not in trace[-1][1]

@@ -279,6 +279,45 @@ def test_a_person_on_the_kerb_side_of_a_tight_turn_is_in_the_body_s_sweep() -> N
     assert not ctrl.in_sweep(Scene(2.5, lane_centre=np.zeros(3)), ahead, 1.0)
 
 
+def _hold_in_a_left_turn(ctrl: Controller, people: Callable[[float], list[PerceivedObject]],
+                         seconds: float) -> list[tuple[float, Decision]]:
+    """A point-mass car standing in a left turn (steer -0.57, no lane), the given people reported each frame
+    where perception puts them (a false box stays where it is in the picture as the car creeps). Returns
+    (speed, decision) per frame."""
+    speed, out = 0.0, []
+    ctrl.last_steer = -0.57
+    for k in range(int(seconds / DT)):
+        d = ctrl.step(Scene(speed, objects=people(k * DT), turning=True), -0.57, DT)
+        speed = max(0.0, speed + d.accel_mps2 * DT)
+        out.append((speed, d))
+    return out
+
+
+def test_the_car_stands_for_an_unconfirmed_person_a_bounded_time_then_creeps_but_not_for_a_confirmed_one() -> None:
+    # a remembered person (unseen), then a chain of others, each seen only at the image's edge (unconfirmed)
+    ghost = [PerceivedObject(1, "pedestrian", 4.0, -2.3, -1.9, unseen_s=1.0)]
+    edge = [PerceivedObject(2, "pedestrian", 4.0, -2.3, -1.9, confirmed=False)]
+    for people in (lambda t: ghost if t < 3.0 else [PerceivedObject(2 + int(t), "pedestrian", 4.0, -2.3, -1.9,
+                                                                     confirmed=False)],
+                   lambda t: edge):
+        trace = _hold_in_a_left_turn(Controller(CFG), people, 30.0)
+        stood = [k for k, (v, _) in enumerate(trace) if v < 0.05]
+        assert stood and stood[0] * DT < 3.0  # it stops for them
+        moving = next(k for k in range(stood[0], len(trace)) if trace[k][0] > 0.5 * CFG.creep_speed_mps)
+        assert (moving - stood[0]) * DT <= CFG.unconfirmed_hold_s + 1.5  # within the bound (and the stop itself)
+        assert max(v for v, _ in trace[moving:]) <= CFG.creep_speed_mps + 0.05  # slowly, while they are reported
+        assert "creeping" in trace[moving][1].reason
+    # a person perception confirms holds the car, also after unconfirmed ones made it creep
+    confirmed = PerceivedObject(9, "pedestrian", 4.0, -2.3, -1.9)
+    trace = _hold_in_a_left_turn(Controller(CFG), lambda t: [confirmed], 30.0)
+    assert all(v < 0.05 for v, _ in trace[60:])
+    ctrl = Controller(CFG)
+    trace = _hold_in_a_left_turn(ctrl, lambda t: edge if t < 12.0 else [*edge, PerceivedObject(9, "pedestrian", 2.5,
+                                                                                                  -2.3, -1.9)], 25.0)
+    assert any("creeping" in d.reason for _, d in trace[:240])
+    assert all(v < 0.05 for v, _ in trace[300:]) and "pedestrian #9" in trace[-1][1].reason
+
+
 def test_gentle_limits_acceleration_jerk_and_steering_rate() -> None:
     ctrl = Controller(CFG)
     decisions = [ctrl.step(Scene(0.0), 1.0, DT) for _ in range(40)]
