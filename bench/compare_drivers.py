@@ -42,6 +42,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--traffic", type=float, default=0.0, help="NPC and pedestrian density (0: empty town)")
     ap.add_argument("--seconds", type=float, default=120.0, help="time limit per episode")
     ap.add_argument("--video", action="store_true", help="also write each driver's first-episode video")
+    ap.add_argument("--no-clips", action="store_true",
+                    help="no clip around each infraction and take-over (they draw the map every step: about 1 ms)")
     ap.add_argument("--out", type=Path, default=Path("out/compare"))
     add_rule_arguments(ap)
     ap.add_argument("--reuse", action="store_true",
@@ -57,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     def options(k: int) -> dict:
         return {"town_seed": args.town_seed + k % args.towns, "weather": weathers[k % len(weathers)]}
 
-    settings = {k: v for k, v in vars(args).items() if k not in ("drivers", "out", "reuse", "video")}
+    settings = {k: v for k, v in vars(args).items() if k not in ("drivers", "out", "reuse", "video", "no_clips")}
     rows = []
     for spec in args.drivers:
         name, _, model = spec.partition("@")
@@ -74,7 +76,8 @@ def main(argv: list[str] | None = None) -> int:
             # world, and so every figure, is the same; it runs about 50 times faster).
             blind = driver.privileged and not args.video
             metrics = evaluate(driver, replace(config, render_camera=False) if blind else config, args.episodes,
-                               args.seed, folder, video=args.video, options=options, rules=rules)
+                               args.seed, folder, video=args.video, options=options, rules=rules,
+                               clips=not args.no_clips)
             earlier.write_text(json.dumps(settings, indent=2))
             (folder / "wall_s.txt").write_text(f"{time.perf_counter() - t0:.1f}\n")
         m = metrics["mean"]

@@ -216,7 +216,7 @@ def recompute(town: Town, trace: AuditTrace) -> list[dict[str, Any]]:
 def compare(reported: list[dict[str, Any]], recomputed: list[dict[str, Any]]) -> dict[str, Any]:
     """Match reported against recomputed infractions (same kind and party, within ``MATCH_S``):
     per kind, how many were confirmed, and the events reported but not confirmed, and missed."""
-    left = [r for r in recomputed]
+    left = list(recomputed)
     result: dict[str, Any] = {kind: {"confirmed": 0, "unconfirmed": [], "missed": []} for kind in AUDITED}
     for inf in reported:
         kind = inf["kind"]

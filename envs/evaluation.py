@@ -190,9 +190,10 @@ def run_episode(env: DriveEnv, driver: Driver, seed: int, video: Any = None, pro
         if truth is not None:
             truth.record(world, carried)
             carried = False
-        reason = str(getattr(driver, "reason", "") or "")
+        takeover = needs_intervention(info) and not world.route_done
+        reason = str(getattr(driver, "reason", "") or "") if info["infractions"] or takeover else ""
         new_events = [{**inf, **({"reason": reason} if reason else {})} for inf in info["infractions"]]
-        if needs_intervention(info) and not world.route_done:
+        if takeover:
             trace.interventions.append(info["time_s"])
             new_events.append(_takeover_event(info, reason))
             world.put_back_on_route()
