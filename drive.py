@@ -37,7 +37,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="pilotnet/agent: PilotNet's inference backend (default: torch for a --model .pt, else onnx)")
     p.add_argument("--target-speed", type=float, default=None, help="pilotnet: cruise speed in m/s (default 7)")
     p.add_argument("--profile", default=None, metavar="NAME",
-                   help="run the agent with a deployment profile (agent/profiles/NAME.yaml, or a .yaml path): its "
+                   help="run the agent with a deployment profile (agent/deploy/profiles/NAME.yaml, or a .yaml path): its "
                         "backends, module rates, budgets, camera and alerts; a real camera runs without the simulator")
     p.add_argument("--camera", default=None, metavar="SOURCE",
                    help="with --profile: real frames instead of the profile's camera: a video file, an episode .h5, "
@@ -146,8 +146,8 @@ def make_named_driver(args: argparse.Namespace) -> Any:
     if getattr(args, "profile", None):
         if args.driver not in ("autopilot", "agent"):  # autopilot: the default, so --driver was not given
             raise ValueError(f"--profile runs the agent driver, not {args.driver}; drop --driver.")
-        from agent.deploy import ProfiledAgent
-        from agent.profiles import load_profile
+        from agent.deploy.profiled_agent import ProfiledAgent
+        from agent.deploy.profiles import load_profile
 
         return ProfiledAgent(load_profile(args.profile))
 
@@ -341,7 +341,7 @@ def scenarios(args: argparse.Namespace) -> int:
 
 def real_frames(args: argparse.Namespace) -> int:
     """The profile's agent on a real camera, a video file or a recorded episode, without the simulator."""
-    from agent.deploy import run_profile
+    from agent.deploy.profiled_agent import run_profile
 
     out = args.out or Path("out/deploy_run")
     summary = run_profile(args.profile, args.camera, out, args.speed, args.show, args.alerts, args.serial)
@@ -359,7 +359,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.camera and not args.profile:
             raise ValueError("--camera needs --profile (e.g. --profile cpu --camera drive.mp4).")
         if args.profile:
-            from agent.profiles import load_profile
+            from agent.deploy.profiles import load_profile
 
             profile = load_profile(args.profile)
             if args.camera or profile.camera.source != "simulator":

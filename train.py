@@ -12,10 +12,10 @@ import sys
 
 # subcommand -> module with add_arguments(parser) and run(args)
 SUBCOMMANDS: dict[str, str] = {
-    "pilotnet": "agent.pilotnet_training",
-    "detector": "agent.detector_training",
-    "rl": "agent.rl_training",
-    "export": "agent.export_profile",
+    "pilotnet": "agent.training.pilotnet_training",
+    "detector": "agent.training.detector_training",
+    "rl": "agent.training.rl_training",
+    "export": "agent.deploy.export_profile",
 }
 
 

@@ -6,7 +6,7 @@ environment renders it), its own speed and the route command. Each frame:
 1. **PilotNet** proposes the steering (``agent.pilotnet_driver.PilotNetModel``). Going straight through a
    junction, where there are no lines and PilotNet drifts, the car instead holds the approach lane's heading
    and its place across it, both measured from the lane fit before the stop line and dead-reckoned since.
-2. **Detector** (YOLO-style, ONNX Runtime, then the pedestrian refiner of agent/ped_refiner.py) every
+2. **Detector** (YOLO-style, ONNX Runtime, then the pedestrian refiner of agent/perception/ped_refiner.py) every
    ``detect_every`` frames; **SORT** tracks vehicles and
    pedestrians (Kalman predictions on the frames in between); traffic lights are taken from the latest
    detections: the nearest light box hanging within ``light_max_lateral_m`` of the lane the car came along
@@ -30,7 +30,7 @@ environment renders it), its own speed and the route command. Each frame:
    while the same track was seen whole (clear of the side edges) within ``edge_confirm_s``, and a person
    seen only at the side edge is not remembered when lost (that memory turned a three-frame false box at
    the left edge into a person standing beside a car turning left, and re-armed with each new false box).
-5. **Controller** (``agent.controller``) and **ADAS** warnings (``agent.adas``).
+5. **Controller** (``agent.decision.controller``) and **ADAS** warnings (``agent.decision.adas``).
 
 Per-stage timings (ms) for every frame are kept in ``timings``; the last frame's whole state in ``view``
 (for overlays, ``agent.agent_overlay``); the episode's ADAS events in ``adas``.
@@ -49,16 +49,17 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from agent.adas import Adas, AdasConfig
-from agent.autolabel import CLASSES, LIGHT_CLASSES
-from agent.blind_spot import BlindSpot, BlindSpotConfig, MirrorMount
-from agent.controller import Controller, ControllerConfig, Decision, PerceivedObject, Scene
-from agent.detector import Detection, OnnxDetector
+from agent.decision.adas import Adas, AdasConfig
+from agent.decision.blind_spot import BlindSpot, BlindSpotConfig, MirrorMount
+from agent.decision.controller import Controller, ControllerConfig, Decision, PerceivedObject, Scene
 from agent.drivers import register
-from agent.lanes import BirdsEye, LaneDetector, LaneResult
+from agent.perception.classes import CLASSES, LIGHT_CLASSES
+from agent.perception.detector import Detection, OnnxDetector
+from agent.perception.lanes import BirdsEye, LaneDetector, LaneResult
+from agent.perception.stop_line import StopLine, StopLineDetector
+from agent.perception.tracking import Sort, SortConfig, Track
 from agent.pilotnet_driver import DEFAULT_MODEL, PilotNetModel
-from agent.stop_line import StopLine, StopLineDetector
-from agent.tracking import Sort, SortConfig, Track
+from agent.shipped import DETECTOR_ONNX, REFINER_ONNX
 from envs.drive_env import BLIND_SPOT_CAMERA, BLIND_SPOT_MOUNT_M, BLIND_SPOT_YAW_DEG
 from sim.ego import EgoVehicle
 from sim.render import CameraConfig
@@ -66,9 +67,8 @@ from sim.render import CameraConfig
 if TYPE_CHECKING:
     from envs.drive_env import DriveEnv
 
-ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_DETECTOR = ROOT / "data" / "models" / "detector.onnx"
-DEFAULT_REFINER = ROOT / "data" / "models" / "ped_refiner.onnx"
+DEFAULT_DETECTOR = DETECTOR_ONNX
+DEFAULT_REFINER = REFINER_ONNX
 # Size priors (metres): typical heights, which unlike widths do not change with the viewing angle.
 HEIGHT_PRIOR_M = {"car": 1.5, "truck": 2.8, "pedestrian": 1.75}
 # The least depth a vehicle shows, whatever its yaw: its width (depth = L|sin| + W|cos| >= W). A vehicle wholly
@@ -298,7 +298,7 @@ class AgentDriver:
                                     MirrorMount(*BLIND_SPOT_MOUNT_M, BLIND_SPOT_YAW_DEG), self.config.blind_spot)
         self.stereo = None
         if self.config.distance == "stereo":
-            from agent.stereo import StereoDepth
+            from agent.perception.stereo import StereoDepth
 
             self.stereo = StereoDepth(camera)
 
@@ -588,7 +588,7 @@ class AgentDriver:
         return float(np.clip(delta / EgoVehicle.MAX_STEER_RAD, -1.0, 1.0))
 
     def _blind_spot_check(self, t: float, command: int) -> str | None:
-        """Look through a mirror camera when it is time (``agent.blind_spot``); the side of a pending lane change
+        """Look through a mirror camera when it is time (``agent.decision.blind_spot``); the side of a pending lane change
         that is held, else None. Pending: a left or right command, no junction turn placed yet, and no solid line
         seen on that side last frame (a solid line there is the road's edge or centre line: no lane to go to)."""
         if self._look is None:

@@ -13,10 +13,10 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from agent.autolabel import CLASSES
-from agent.detector import Detection
-from agent.lanes import BirdsEye
 from agent.overlays import draw_detections
+from agent.perception.classes import CLASSES
+from agent.perception.detector import Detection
+from agent.perception.lanes import BirdsEye
 
 if TYPE_CHECKING:
     from agent.agent_driver import AgentView
@@ -41,7 +41,7 @@ def lane_polygon(view: AgentView, birdseye: BirdsEye) -> np.ndarray | None:
         half = view.lane_width_m / 2
     else:  # no lane: the corridor the current steering drives (as the controller assumes)
         ctrl = view.decision
-        from agent.controller import ControllerConfig
+        from agent.decision.controller import ControllerConfig
 
         c = ControllerConfig()
         curvature = np.tan(ctrl.steer * c.max_steer_rad) / c.wheelbase_m

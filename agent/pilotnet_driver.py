@@ -22,13 +22,14 @@ import numpy as np
 
 from agent.autopilot import PID, STEER_RATE_PER_S
 from agent.drivers import register
-from agent.pilotnet import Crop, preprocess, to_tensor
+from agent.perception.pilotnet import Crop, preprocess, to_tensor
+from agent.shipped import PILOTNET
 from sim.ego import EgoVehicle
 
 if TYPE_CHECKING:
     from envs.drive_env import DriveEnv
 
-DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "data" / "models" / "pilotnet.pt"
+DEFAULT_MODEL = PILOTNET
 
 
 class PilotNetModel:
@@ -50,7 +51,7 @@ class PilotNetModel:
         if backend == "onnx":
             import json
 
-            from agent.onnx_export import onnx_session
+            from agent.perception.onnx_runtime import onnx_session
 
             self.session = onnx_session(path, threads=threads, role="PilotNet")
             self.conditional = "command" in {i.name for i in self.session.get_inputs()}
@@ -62,7 +63,7 @@ class PilotNetModel:
         else:
             import torch
 
-            from agent.pilotnet_training import load_model
+            from agent.training.pilotnet_training import load_model
 
             self.model, meta = load_model(path)
             self.conditional = bool(meta["conditional"])

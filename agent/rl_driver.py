@@ -18,11 +18,12 @@ import numpy as np
 
 from agent.drivers import register
 from agent.rl_features import StateFeatures
+from agent.shipped import RL_POLICY
 
 if TYPE_CHECKING:
     from envs.drive_env import DriveEnv
 
-DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "data" / "models" / "rl_ppo.zip"
+DEFAULT_MODEL = RL_POLICY
 
 
 @register("rl")

@@ -26,7 +26,7 @@ import cv2
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agent.agent_driver import STAGES  # noqa: E402
-from agent.blind_spot import BlindSpotConfig  # noqa: E402
+from agent.decision.blind_spot import BlindSpotConfig  # noqa: E402
 from agent.drivers import make_driver  # noqa: E402
 from bench.timing import latency_of  # noqa: E402
 from envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pin", action="store_true", help="pin the process to one CPU core")
     ap.add_argument("--model", type=Path, default=None, help="PilotNet model (default data/models/pilotnet.pt)")
     ap.add_argument("--no-blind-spot", action="store_true",
-                    help="without the mirror-camera look before lane changes (agent.blind_spot; on by default)")
+                    help="without the mirror-camera look before lane changes (agent.decision.blind_spot; on by default)")
     args = ap.parse_args(argv)
     cv2.setNumThreads(1)
     if args.pin and hasattr(os, "sched_setaffinity"):

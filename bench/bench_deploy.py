@@ -16,7 +16,7 @@ not timed here (bench_perception: SGBM).
 2. Detector every k frames (SORT predicts in between, seed 000's skipping): loop FPS, and tracking MOTA /
    IDF1 / identity switches of the trained detector + SORT against the simulator's ids (motmetrics,
    ``eval_tracking.evaluate``, objects under 25 visible pixels are ignore regions).
-3. The whole agent driver (``agent.deploy.ProfiledAgent``) replayed on a recorded episode, per backend,
+3. The whole agent driver (``agent.deploy.profiled_agent.ProfiledAgent``) replayed on a recorded episode, per backend,
    detector precision and skipping.
 
 The fp16 and int8 files come from ``python train.py export --profile cpu`` (``--export-dir`` elsewhere).
@@ -36,11 +36,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.backends import open_detector, open_pilotnet  # noqa: E402
-from agent.lanes import LaneDetector  # noqa: E402
-from agent.profiles import load_profile, profile_from_dict  # noqa: E402
-from agent.stop_line import StopLineDetector  # noqa: E402
-from agent.tracking import Sort, SortConfig  # noqa: E402
+from agent.deploy.backends import open_detector, open_pilotnet  # noqa: E402
+from agent.deploy.profiles import load_profile, profile_from_dict  # noqa: E402
+from agent.perception.lanes import LaneDetector  # noqa: E402
+from agent.perception.stop_line import StopLineDetector  # noqa: E402
+from agent.perception.tracking import Sort, SortConfig  # noqa: E402
 from bench.eval_tracking import evaluate, record  # noqa: E402
 from bench.timing import latency_of  # noqa: E402
 
@@ -116,10 +116,10 @@ def run_loop(profile: object, sequences: list, every: int, clock: Callable[[], f
 
 
 def agent_section(args: argparse.Namespace, report: dict) -> None:
-    """The whole ``agent`` driver (agent.deploy.ProfiledAgent) replayed on a recorded episode, per backend."""
+    """The whole ``agent`` driver (agent.deploy.profiled_agent.ProfiledAgent) replayed on a recorded episode, per backend."""
     try:
-        from agent.camera_sources import EpisodeSource
-        from agent.deploy import ProfiledAgent, budget_report, frame_env
+        from agent.deploy.camera_sources import EpisodeSource
+        from agent.deploy.profiled_agent import ProfiledAgent, budget_report, frame_env
     except ImportError as exc:
         print(f"\nthe agent driver: not available ({exc}); skipped")
         return

@@ -9,7 +9,7 @@ towns), so that NMS sees a realistic number of candidates. The refiner's cost gr
 pedestrian candidates in a frame, so --frames N also times detector + refiner once per frame over N frames
 from towns 200-211 in all four weathers (several passes), the p95 taken over frames. "Frame to
 detections" includes the uint8 to float conversion, the network with its decoding, thresholding and OpenCV
-NMS; "+ refiner" adds the pedestrian refiner (agent/ped_refiner.py: crops, its network, NMS again) on every
+NMS; "+ refiner" adds the pedestrian refiner (agent/perception/ped_refiner.py: crops, its network, NMS again) on every
 pedestrian candidate the operating threshold (0.3) can use, and "at 0.01" on every candidate the AP
 evaluation refines (down to the refiner's candidate depth). Run it at --threads 1 and 2: ONNX Runtime's
 second thread is the machine's other core. Target: <= 15 ms per frame through ONNX Runtime, detector and
@@ -67,8 +67,8 @@ def sample_frames(count: int) -> list:
 
 def pedestrian_candidates(raw, lowest: float) -> int:
     """How many pedestrian boxes the refiner gets from the detector's raw output at score >= ``lowest``."""
-    from agent.detector import postprocess
-    from agent.ped_refiner import PEDESTRIAN
+    from agent.perception.detector import postprocess
+    from agent.perception.ped_refiner import PEDESTRIAN
 
     return sum(d.cls == PEDESTRIAN for d in postprocess(raw, lowest))
 
@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
     import torch
 
-    from agent.detector import OnnxDetector, TorchDetector, to_input
+    from agent.perception.detector import OnnxDetector, TorchDetector, to_input
     from bench.timing import measure
 
     torch.set_num_threads(args.threads)

@@ -21,10 +21,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.pilotnet import build, preprocess, to_tensor  # noqa: E402
-from agent.pilotnet_data import Augmenter, FrameSet, balance_weights  # noqa: E402
+from agent.perception.pilotnet import build, preprocess, to_tensor  # noqa: E402
 from agent.pilotnet_driver import DEFAULT_MODEL, PilotNetModel  # noqa: E402
-from agent.pilotnet_training import _batches  # noqa: E402
+from agent.training.pilotnet_data import Augmenter, FrameSet, balance_weights  # noqa: E402
+from agent.training.pilotnet_training import _batches  # noqa: E402
 from bench.timing import measure  # noqa: E402
 from envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
 from sim.render import CameraConfig  # noqa: E402

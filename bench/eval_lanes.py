@@ -32,9 +32,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agent.autopilot import Autopilot  # noqa: E402
-from agent.lanes import BirdsEye, LaneDetector, LaneResult, draw_birdseye, draw_lanes  # noqa: E402
-from agent.lanes_hough import HoughLaneDetector  # noqa: E402
-from agent.stop_line import StopLine, StopLineDetector  # noqa: E402
+from agent.perception.lanes import BirdsEye, LaneDetector, LaneResult, draw_birdseye, draw_lanes  # noqa: E402
+from agent.perception.lanes_hough import HoughLaneDetector  # noqa: E402
+from agent.perception.stop_line import StopLine, StopLineDetector  # noqa: E402
 from envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
 from envs.perception_truth import camera_pose, lane_truth, lane_z_range_rows, stop_line_truth, tusimple_frame  # noqa: E402
 from sim.scene_meshes import to_world  # noqa: E402

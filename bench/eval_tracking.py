@@ -27,7 +27,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agent.autopilot import Autopilot  # noqa: E402
-from agent.tracking import SkipTracker, Sort, SortConfig, Track, iou_matrix  # noqa: E402
+from agent.perception.tracking import SkipTracker, Sort, SortConfig, Track, iou_matrix  # noqa: E402
 from envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
 from envs.perception_truth import object_boxes  # noqa: E402
 
@@ -148,7 +148,7 @@ def main() -> None:
     ap.add_argument("--dropout", type=float, default=0.1, help="probability that a box is missed")
     ap.add_argument("--false-rate", type=float, default=0.2, help="spurious boxes per frame (Poisson mean)")
     ap.add_argument("--picture", type=Path, default=None, help="write frames with SORT's tracks and ids here")
-    ap.add_argument("--detector", type=Path, default=None, help="trained detector checkpoint (agent/detector.py)")
+    ap.add_argument("--detector", type=Path, default=None, help="trained detector checkpoint (agent/perception/detector.py)")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     t0 = time.perf_counter()
@@ -229,17 +229,17 @@ def _picture(seq, dets: list[np.ndarray], config: SortConfig, path: Path) -> Non
 
 
 def _with_detector(path: Path, sequences, config: SortConfig, mh) -> None:
-    """MOTA with the trained detector's car, truck and pedestrian boxes (agent/detector.py's TorchDetector),
+    """MOTA with the trained detector's car, truck and pedestrian boxes (agent/perception/detector.py's TorchDetector),
     followed by the pedestrian refiner as the agent runs it when the shipped one is there."""
     try:
-        from agent.detector import TorchDetector
-        from agent.detector_eval import resolve_refiner
+        from agent.perception.detector import TorchDetector
+        from agent.training.detector_eval import resolve_refiner
         refiner = resolve_refiner("auto", str(path))
         model = TorchDetector(path, refiner=refiner)
     except Exception as exc:  # the detector is someone else's work; say why it could not be used
         print(f"trained detector: cannot load {path} ({exc}); skipped")
         return
-    from agent.checkpoints import load_checkpoint
+    from agent.perception.checkpoints import load_checkpoint
 
     # The checkpoint's own record: a log file beside it may belong to an earlier run of the same name.
     meta = load_checkpoint(path, "detector")

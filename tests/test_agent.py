@@ -54,9 +54,9 @@ def rotated(lateral_m: float, z_m: float, turned_rad: float) -> tuple[float, flo
 
 @needs_models
 def test_our_light_is_the_one_across_the_junction_not_the_cross_streets() -> None:
-    from agent.autolabel import CLASSES
-    from agent.detector import Detection
     from agent.drivers import make_driver
+    from agent.perception.classes import CLASSES
+    from agent.perception.detector import Detection
     from envs.drive_env import DriveConfig
 
     driver = make_driver("agent")
@@ -122,9 +122,9 @@ def car_beside_box(geo: BoxGeometry, inner_m: float, near_m: float, length_m: fl
 
 @needs_models
 def test_a_car_wholly_beside_the_axis_is_placed_by_its_far_corner_not_nearer() -> None:
-    from agent.autolabel import CLASSES
     from agent.drivers import make_driver
-    from agent.tracking import Track
+    from agent.perception.classes import CLASSES
+    from agent.perception.tracking import Track
     from envs.drive_env import DriveConfig
 
     driver = make_driver("agent")
@@ -150,9 +150,9 @@ def test_a_car_wholly_beside_the_axis_is_placed_by_its_far_corner_not_nearer() -
 
 @needs_models
 def test_a_pedestrian_box_too_small_for_where_it_stands_is_no_person() -> None:
-    from agent.autolabel import CLASSES
     from agent.drivers import make_driver
-    from agent.tracking import Track
+    from agent.perception.classes import CLASSES
+    from agent.perception.tracking import Track
     from envs.drive_env import DriveConfig
 
     driver = make_driver("agent")
@@ -176,7 +176,7 @@ def test_a_pedestrian_box_too_small_for_where_it_stands_is_no_person() -> None:
 def test_a_person_who_leaves_the_view_at_its_side_edge_is_remembered_and_turns_with_us() -> None:
     import math
 
-    from agent.controller import PerceivedObject
+    from agent.decision.controller import PerceivedObject
     from agent.drivers import make_driver
     from envs.drive_env import DriveConfig
 
@@ -198,7 +198,7 @@ def test_a_person_who_leaves_the_view_at_its_side_edge_is_remembered_and_turns_w
 
 @needs_models
 def test_a_person_lost_near_the_car_stays_where_last_seen_for_a_while() -> None:
-    from agent.controller import PerceivedObject
+    from agent.decision.controller import PerceivedObject
     from agent.drivers import make_driver
     from envs.drive_env import DriveConfig
 
@@ -306,7 +306,7 @@ def test_a_commanded_turn_follows_the_junctions_arc_into_the_same_lane(command: 
     """The agent's turn, dead-reckoned from a stop bar seen 10 m ahead of the camera, on the world's own bicycle model and
     connectors: the car stays within the band of its lanes and comes out on the road it turned into."""
     from agent.drivers import make_driver
-    from agent.stop_line import StopLine
+    from agent.perception.stop_line import StopLine
     from envs.drive_env import DriveConfig, DriveEnv
     from envs.scenarios import APPROACH_ARM, APPROACH_NODE, exit_edge
     from sim.routes import shortest_route
@@ -396,9 +396,9 @@ def test_a_person_box_only_at_the_left_edge_holds_a_turning_car_for_a_bounded_ti
     sweep of a left turn; the car stood for it for good. The detector reports it every frame, or on and off
     (each time a new track, remembered when it goes), but never whole: the car stands at most the bounded
     time, then creeps on slowly, looking again every frame."""
-    from agent.autolabel import CLASSES
-    from agent.detector import Detection
     from agent.drivers import make_driver
+    from agent.perception.classes import CLASSES
+    from agent.perception.detector import Detection
 
     driver = make_driver("agent")
     ped = CLASSES.index("pedestrian")
@@ -427,9 +427,9 @@ def test_a_person_box_only_at_the_left_edge_holds_a_turning_car_for_a_bounded_ti
 
 @needs_models
 def test_a_person_seen_whole_in_the_turn_s_sweep_holds_the_car_as_long_as_they_stand_there() -> None:
-    from agent.autolabel import CLASSES
-    from agent.detector import Detection
     from agent.drivers import make_driver
+    from agent.perception.classes import CLASSES
+    from agent.perception.detector import Detection
 
     driver = make_driver("agent")
     g = driver.geometry

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from agent.autolabel import CLASSES, CameraPose, box_corners, in_view_fraction, projected_hull, render_and_label
+from agent.training.autolabel import CLASSES, CameraPose, box_corners, in_view_fraction, projected_hull, render_and_label
 from sim.objects import SemanticClass
 from sim.render import CameraConfig, SceneRenderer
 from sim.world import World, WorldConfig

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from agent.agent_driver import DEFAULT_DETECTOR, BoxGeometry
-from agent.autolabel import CLASSES
-from agent.blind_spot import BlindSpot, BlindSpotConfig, MirrorMount
-from agent.detector import Detection
+from agent.decision.blind_spot import BlindSpot, BlindSpotConfig, MirrorMount
+from agent.perception.classes import CLASSES
+from agent.perception.detector import Detection
 from agent.pilotnet_driver import DEFAULT_MODEL
 from envs.drive_env import BLIND_SPOT_CAMERA, BLIND_SPOT_MOUNT_M, BLIND_SPOT_YAW_DEG, DriveConfig, DriveEnv
 from sim.render import CameraConfig
@@ -102,7 +102,7 @@ def test_agent_looks_in_the_mirrors_and_the_overlay_lights_the_side() -> None:
     env = DriveEnv(DriveConfig())
     try:
         obs, _ = env.reset(seed=3)
-        assert make_driver("agent").config.blind_spot.enabled is True  # on by default (agent.blind_spot)
+        assert make_driver("agent").config.blind_spot.enabled is True  # on by default (agent.decision.blind_spot)
         driver = make_driver("agent", blind_spot=BlindSpotConfig(enabled=True))
         driver.reset(env)
         looks = []

@@ -19,11 +19,18 @@ import onnx
 import pytest
 import torch
 
-from agent.alerts import AlertFrame, JsonlAlerts, SerialAlerts, parse_line
-from agent.backends import BackendUnavailable, DetectorRunner, PilotNetRunner, open_backend, open_detector, open_pilotnet
-from agent.camera_sources import EpisodeSource, csi_pipeline, fit_frame, gstreamer_available, split_side_by_side, video_source
-from agent.export_profile import FP16_ATOL, FP16_RTOL, export_profile, fp16_check
-from agent.profiles import ProfileError, available_profiles, load_profile, profile_from_dict
+from agent.deploy.alerts import AlertFrame, JsonlAlerts, SerialAlerts, parse_line
+from agent.deploy.backends import BackendUnavailable, DetectorRunner, PilotNetRunner, open_backend, open_detector, open_pilotnet
+from agent.deploy.camera_sources import (
+    EpisodeSource,
+    csi_pipeline,
+    fit_frame,
+    gstreamer_available,
+    split_side_by_side,
+    video_source,
+)
+from agent.deploy.export_profile import FP16_ATOL, FP16_RTOL, export_profile, fp16_check
+from agent.deploy.profiles import ProfileError, available_profiles, load_profile, profile_from_dict
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -32,10 +39,10 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")
 def tiny_models(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """A conditional PilotNet and a narrow detector with seeded random weights, in the checkpoint formats."""
-    from agent.autolabel import CLASSES
-    from agent.detector import Detector, DetectorConfig
-    from agent.pilotnet import build
-    from agent.pilotnet_training import save_checkpoint
+    from agent.perception.classes import CLASSES
+    from agent.perception.detector import Detector, DetectorConfig
+    from agent.perception.pilotnet import build
+    from agent.training.pilotnet_training import save_checkpoint
 
     folder = tmp_path_factory.mktemp("models")
     torch.manual_seed(0)
@@ -195,7 +202,7 @@ def test_export_writes_fp32_fp16_calibration_and_manifest(exported) -> None:
 
 
 def test_calibration_inputs_are_the_models_inputs(exported, episode_dir: Path) -> None:
-    from agent.backends import detector_feeds, pilotnet_feeds
+    from agent.deploy.backends import detector_feeds, pilotnet_feeds
 
     profile, manifest = exported
     out = profile.export_path
@@ -243,9 +250,10 @@ def test_onnx_matches_torch_per_model_fp32_and_fp16(exported) -> None:
 @pytest.mark.parametrize("name, size", [("detector", (320, 160)), ("pilotnet", (200, 66))])
 def test_shipped_model_parity_fp32_and_fp16(tmp_path: Path, name: str, size: tuple[int, int]) -> None:
     """The models that ship in data/models: exported again and compared with torch on road-like frames."""
-    from agent.backends import detector_feeds, pilotnet_feeds
-    from agent.export_profile import prepare, to_fp16, torch_outputs
-    from agent.onnx_export import export_onnx, onnx_session
+    from agent.deploy.backends import detector_feeds, pilotnet_feeds
+    from agent.deploy.export_profile import prepare, to_fp16, torch_outputs
+    from agent.deploy.onnx_export import export_onnx
+    from agent.perception.onnx_runtime import onnx_session
 
     checkpoint = ROOT / "data" / "models" / f"{name}.pt"
     if not checkpoint.is_file():
@@ -342,7 +350,7 @@ def test_int8_script_stops_at_calibration_without_tensorrt(tiny_models: dict[str
     profile = tiny_profile(tmp_path, tiny_models, detector={"backend": "tensorrt", "precision": "int8"})
     export_profile(profile, models=["detector"], episodes=[episode_dir], calib_frames=4)
     text = (profile.export_path / "build_engines.sh").read_text()
-    assert "agent.trt_calibrate" in text and "--int8" in text and "--calib=" in text
+    assert "agent.deploy.trt_calibrate" in text and "--int8" in text and "--calib=" in text
     done = run_script(profile.export_path / "build_engines.sh", fake_trtexec(tmp_path))
     assert done.returncode != 0
     assert "TensorRT is not installed" in done.stderr
@@ -376,7 +384,7 @@ def test_serial_protocol_through_a_pty() -> None:
     os.close(master)
     os.close(slave)
     lines = data.split(b"\r\n")[:-1]
-    assert lines[0] == b"$TDA,417,R,FOB,62,-8,31,-*68"  # the example in agent/alerts.py's docstring
+    assert lines[0] == b"$TDA,417,R,FOB,62,-8,31,-*68"  # the example in agent/deploy/alerts.py's docstring
     got = [parse_line(line) for line in lines]
     assert got[0] == {"seq": 417, "lane": "R", "warn": "FOB", "brake_pct": 62, "steer_pct": -8, "speed_kmh": 31,
                       "light": ""}
@@ -406,7 +414,7 @@ def test_jsonl_alerts(tmp_path: Path) -> None:
 def test_alert_from_the_agents_view_maps_its_worded_warnings() -> None:
     from types import SimpleNamespace
 
-    from agent.alerts import alert_from_view, encode_line
+    from agent.deploy.alerts import alert_from_view, encode_line
 
     decision = SimpleNamespace(in_path=[7], throttle_brake=-0.7, steer=0.1, light="red", reason="pedestrian #7")
     view = SimpleNamespace(decision=decision, lanes=SimpleNamespace(detected=True), time_s=3.0, speed_mps=5.0,
@@ -448,7 +456,7 @@ def test_side_by_side_and_csi_pipeline() -> None:
 
 
 def test_csi_without_gstreamer_is_one_clear_error() -> None:
-    from agent.camera_sources import csi_source
+    from agent.deploy.camera_sources import csi_source
 
     if gstreamer_available():
         pytest.skip("this OpenCV has GStreamer")
@@ -523,9 +531,9 @@ def test_agent_runs_on_a_recorded_simulator_video(sim_video: Path, tiny_models: 
 
     import imageio.v2 as imageio
 
-    from agent.alerts import Alerts, JsonlAlerts
-    from agent.deploy import ProfiledAgent, run_on_source
-    from agent.pilotnet_training import export, load_model
+    from agent.deploy.alerts import Alerts, JsonlAlerts
+    from agent.deploy.profiled_agent import ProfiledAgent, run_on_source
+    from agent.training.pilotnet_training import export, load_model
 
     detector = ROOT / "data" / "models" / "detector.pt"
     if not detector.with_suffix(".onnx").is_file():
@@ -573,8 +581,8 @@ def test_agent_runs_on_a_recorded_simulator_video(sim_video: Path, tiny_models: 
 def test_agent_with_side_by_side_stereo_every_second_frame(tmp_path: Path) -> None:
     """A ZED-style recording (left | right in one frame) from the simulator's stereo pair: the agent splits it,
     and stereo matching runs on every 2nd frame only, as the profile says."""
-    from agent.alerts import Alerts
-    from agent.deploy import ProfiledAgent, run_on_source
+    from agent.deploy.alerts import Alerts
+    from agent.deploy.profiled_agent import ProfiledAgent, run_on_source
     from envs.drive_env import DriveConfig
     from sim.render import CameraConfig
 

@@ -58,11 +58,11 @@ def _episode(path: Path, steps: int = 5, steer: float = 0.1) -> Path:
 def test_1_a_crafted_checkpoint_runs_no_code(tmp_path: Path) -> None:
     import torch
 
-    from agent.checkpoints import load_checkpoint
-    from agent.detector import load_detector
-    from agent.ped_refiner import load_refiner
+    from agent.perception.checkpoints import load_checkpoint
+    from agent.perception.detector import load_detector
+    from agent.perception.ped_refiner import load_refiner
     from agent.pilotnet_driver import PilotNetModel
-    from agent.pilotnet_training import load_model
+    from agent.training.pilotnet_training import load_model
 
     marker = tmp_path / "code_ran"
     evil = tmp_path / "x.pt"
@@ -234,7 +234,7 @@ def test_4_bad_flags_are_one_sentence_and_exit_2(flags: list[str], words: str, c
 
 # ------------------------------------------------------------------------------------------ 5. ONNX files
 def test_5_corrupt_or_mismatched_onnx_is_one_sentence_naming_the_file(tmp_path: Path) -> None:
-    from agent.detector import OnnxDetector
+    from agent.perception.detector import OnnxDetector
     from agent.pilotnet_driver import PilotNetModel
 
     broken = tmp_path / "broken.onnx"
@@ -309,7 +309,7 @@ def test_7_alerts_are_refused_in_simulator_runs(capsys: pytest.CaptureFixture) -
 @pytest.mark.parametrize("line", ["TDA,1,GG,-,0,0,0,-", "TDA,1,G,-,101,0,0,-", "TDA,1,G,-,0,500,0,-",
                                   "TDA,1,G,-,0,0,-5,-", "TDA,1,G,BF,0,0,5,-", "TDA,1,G,-,0,0,5,X"])
 def test_7_alert_parser_refuses_out_of_spec_fields(line: str) -> None:
-    from agent.alerts import checksum, parse_line
+    from agent.deploy.alerts import checksum, parse_line
 
     with pytest.raises(ValueError, match="must be"):
         parse_line(f"${line}*{checksum(line)}\r\n")
@@ -335,7 +335,7 @@ def test_7_export_udacity_leaves_no_orphan_images(tmp_path: Path) -> None:
 
 
 def test_7_non_utf8_profile_and_csv_name_the_file(tmp_path: Path) -> None:
-    from agent.profiles import ProfileError, load_profile, profile_from_dict
+    from agent.deploy.profiles import ProfileError, load_profile, profile_from_dict
     from data.udacity import UdacityError, read_log
 
     bad = tmp_path / "p.yaml"

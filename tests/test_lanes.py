@@ -10,9 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
-from agent.lanes import BirdsEye, BirdsEyeConfig, LaneDetector, ground_homography
-from agent.lanes_hough import HoughLaneDetector
-from agent.stop_line import StopLineDetector
+from agent.perception.lanes import BirdsEye, BirdsEyeConfig, LaneDetector, ground_homography
+from agent.perception.lanes_hough import HoughLaneDetector
+from agent.perception.stop_line import StopLineDetector
 from envs.perception_truth import lane_z_range_rows, tusimple_frame
 from sim.render import CameraConfig
 
@@ -233,7 +233,7 @@ def test_lane_centre_from_one_line_with_the_car_turned() -> None:
     """With only the solid edge line seen and the car turned 20 degrees to the lane (a lane change), the lane
     centre is half a lane across the boundary measured across the lane, not along the car's axis (which would be
     0.1 m off here)."""
-    from agent.lanes import LaneLine
+    from agent.perception.lanes import LaneLine
 
     det = LaneDetector(CAM)
     z0 = -CAM.mount_forward_m

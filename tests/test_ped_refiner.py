@@ -9,17 +9,15 @@ import numpy as np
 import pytest
 import torch
 
-from agent.autolabel import CLASSES, render_and_label
-from agent.detector import Detection, OnnxDetector, TorchDetector, box_iou
-from agent.detector_eval import Sample
-from agent.ped_refiner import (
+from agent.deploy.onnx_export import export_refiner
+from agent.perception.detector import Detection, OnnxDetector, TorchDetector, box_iou
+from agent.perception.ped_refiner import (
     CROP_HW,
     PEDESTRIAN,
     PedRefiner,
     Refine,
     RefinerConfig,
     crop_windows,
-    export_refiner,
     from_window,
     load_refiner,
     onnx_refine,
@@ -27,7 +25,9 @@ from agent.ped_refiner import (
     torch_refine,
     windows,
 )
-from agent.ped_refiner_training import build_samples, refiner_loss
+from agent.training.autolabel import CLASSES, render_and_label
+from agent.training.detector_eval import Sample
+from agent.training.ped_refiner_training import build_samples, refiner_loss
 
 MODELS = Path(__file__).resolve().parents[1] / "data" / "models"
 CAR = CLASSES.index("car")
@@ -177,8 +177,8 @@ def test_shipped_detector_and_refiner_box_a_pedestrian_at_the_kerb(town, backend
 
 @pytest.mark.skipif(not (MODELS / "ped_refiner.onnx").is_file(), reason="no shipped refiner")
 def test_deployment_profiles_run_the_refiner_unless_it_is_disabled():
-    from agent.backends import open_detector
-    from agent.profiles import load_profile, profile_from_dict
+    from agent.deploy.backends import open_detector
+    from agent.deploy.profiles import load_profile, profile_from_dict
 
     assert open_detector(load_profile("cpu")).refine is not None
     off = profile_from_dict({"modules": {"refiner": {"enabled": False}}})

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from agent.pilotnet import ConditionalPilotNet, PilotNet, build, parameter_count, preprocess, to_tensor
-from agent.pilotnet_data import (
+from agent.perception.pilotnet import ConditionalPilotNet, PilotNet, build, parameter_count, preprocess, to_tensor
+from agent.training.pilotnet_data import (
     MIRRORED_COMMAND,
     Augment,
     Augmenter,
@@ -122,7 +122,7 @@ def test_split_is_by_episode():
 
 
 def test_onnx_export_matches_torch(tmp_path):
-    from agent.pilotnet_training import export, load_model
+    from agent.training.pilotnet_training import export, load_model
 
     torch.manual_seed(0)
     model = build(conditional=True).eval()
@@ -136,7 +136,7 @@ def test_onnx_export_matches_torch(tmp_path):
 
 
 def test_loading_a_wrong_file_is_one_clear_error(tmp_path):
-    from agent.pilotnet_training import load_model
+    from agent.training.pilotnet_training import load_model
 
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")
@@ -159,7 +159,7 @@ def tiny_dataset(tmp_path_factory):
 
 
 def test_side_cameras_load_with_corrected_labels(tiny_dataset):
-    from agent.pilotnet_data import load_frames
+    from agent.training.pilotnet_data import load_frames
 
     with_side = load_frames([tiny_dataset])
     centre = load_frames([tiny_dataset], side_cameras=False)
@@ -177,7 +177,7 @@ def _train(folder, out, *extra):
 
 
 def test_training_is_deterministic_resumable_and_exports(tiny_dataset, tmp_path):
-    from agent.pilotnet_training import load_model
+    from agent.training.pilotnet_training import load_model
 
     assert _train(tiny_dataset, tmp_path / "a", "--epochs", "2") == 0
     assert _train(tiny_dataset, tmp_path / "b", "--epochs", "1") == 0

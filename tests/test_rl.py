@@ -87,7 +87,7 @@ class _ScriptedEnv:
 
 
 def test_shaping_charges_speeding_and_ends_the_episode_on_a_red_light():
-    from agent.rl_shaping import ShapingConfig, TrafficRulesShaping
+    from agent.training.rl_shaping import ShapingConfig, TrafficRulesShaping
 
     cfg = ShapingConfig(speed_limit_mps=10.0, overspeed_penalty=0.02, red_light_penalty=-10.0)
     env = TrafficRulesShaping(_ScriptedEnv([9.0, 15.0, 9.0], [[], ["wrong_way"], ["red_light"]]), cfg)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agent.stereo import StereoDepth, fill_invalid
+from agent.perception.stereo import StereoDepth, fill_invalid
 from envs.perception_truth import d1_all
 from sim.render import CameraConfig
 

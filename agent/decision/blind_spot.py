@@ -25,7 +25,7 @@ import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from agent.detector import Detection
+from agent.perception.detector import Detection
 
 if TYPE_CHECKING:
     from agent.agent_driver import BoxGeometry

@@ -20,8 +20,8 @@ import torch
 from tqdm import tqdm
 
 from agent.autopilot import Autopilot
-from agent.pilotnet import preprocess, to_tensor
-from agent.pilotnet_data import FrameSet, load_frames, split_by_episode
+from agent.perception.pilotnet import preprocess, to_tensor
+from agent.training.pilotnet_data import FrameSet, load_frames, split_by_episode
 from data.episodes import EpisodeWriter, next_episode_path
 from envs.drive_env import DriveConfig, DriveEnv
 from envs.metrics import needs_intervention
@@ -81,7 +81,7 @@ def collect(model: torch.nn.Module, folder: Path, episodes: int, seed: int, town
 def dagger(model: torch.nn.Module, meta: dict[str, Any], frames: FrameSet, args: argparse.Namespace,
            out: Path) -> tuple[torch.nn.Module, dict[str, Any]]:
     """``args.dagger`` rounds of collect + fine-tune; returns the best model and its metadata."""
-    from agent.pilotnet_training import fit, load_model
+    from agent.training.pilotnet_training import fit, load_model
 
     train, val = split_by_episode(frames, args.validation, args.seed)
     towns = sorted({int(_attr_town(p)) for p in frames.episode_paths}) or [1]

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 if TYPE_CHECKING:
-    from agent.profiles import Profile
+    from agent.deploy.profiles import Profile
 
 
 @dataclass
@@ -201,7 +201,7 @@ class EpisodeSource:
 
 def open_source(profile: Profile) -> OpenCVSource | EpisodeSource:
     """The profile's camera source (``camera.source``: video, usb, csi or episode)."""
-    from agent.profiles import resolve
+    from agent.deploy.profiles import resolve
 
     c = profile.camera
     if c.source == "video":

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from agent.lanes import BirdsEye, BirdsEyeConfig, LaneResult
+from agent.perception.lanes import BirdsEye, BirdsEyeConfig, LaneResult
 from sim.render import CameraConfig
 
 

@@ -1,17 +1,13 @@
-"""Export a torch model to ONNX and prove that ONNX Runtime computes the same thing.
+"""Open an ONNX model for inference on ONNX Runtime, checked for the role it plays in the car.
 
-Shared by every model the project ships (PilotNet, the detector): the export is only accepted when
-ONNX Runtime's outputs equal torch's within a tolerance on the given example inputs.
+Why here: every network the car runs (PilotNet, the detector, the pedestrian refiner) is opened through one
+function, so a wrong, damaged or mismatched file is one sentence naming the file when it is opened, never an
+ONNX Runtime traceback at the first frame. Writing ONNX files is ``agent.deploy.onnx_export``.
 """
 
 from __future__ import annotations
 
-import warnings
-from collections.abc import Sequence
 from pathlib import Path
-
-import numpy as np
-import torch
 
 # What each role's ONNX file must take and give: input name -> (element type, rank, fixed trailing dims or None),
 # and the output names. A file for another role (a detector given as PilotNet) fails when it is opened, not at
@@ -76,41 +72,3 @@ def check_role(session, path: str | Path, role: str) -> None:
             problems.append(name)
     if problems:
         raise ValueError(f"{path} is not a {role} model (it has {describe()}).")
-
-
-def export_onnx(model: torch.nn.Module, example_inputs: Sequence[torch.Tensor], path: str | Path,
-                input_names: Sequence[str], output_names: Sequence[str], tolerance: float = 1e-4,
-                opset: int = 17, metadata: dict[str, str] | None = None) -> float:
-    """Write ``model`` to ``path`` with a dynamic batch axis; return the largest |onnx - torch| difference.
-    ``metadata``: key-value strings stored in the file's ``metadata_props`` (what a runtime needs besides the
-    weights, so that it never has to open a second file).
-
-    Raises ``ValueError`` if the difference exceeds ``tolerance`` (the file is then removed).
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    model = model.eval()
-    dynamic = {name: {0: "batch"} for name in (*input_names, *output_names)}
-    with torch.no_grad(), warnings.catch_warnings():
-        # The TorchScript exporter is deprecated in favour of dynamo's, which needs onnxscript; it still works.
-        warnings.simplefilter("ignore", DeprecationWarning)
-        torch.onnx.export(model, tuple(example_inputs), str(path), input_names=list(input_names),
-                          output_names=list(output_names), dynamic_axes=dynamic, opset_version=opset,
-                          dynamo=False)
-        expected = model(*example_inputs)
-    if metadata:
-        import onnx
-
-        proto = onnx.load(str(path))
-        for key, value in metadata.items():
-            entry = proto.metadata_props.add()
-            entry.key, entry.value = key, value
-        onnx.save(proto, str(path))
-    expected_list = [expected] if isinstance(expected, torch.Tensor) else list(expected)
-    session = onnx_session(path)
-    got = session.run(list(output_names), {n: t.numpy() for n, t in zip(input_names, example_inputs, strict=True)})
-    diff = max(float(np.max(np.abs(g - e.numpy()))) for g, e in zip(got, expected_list, strict=True))
-    if not diff <= tolerance:
-        path.unlink(missing_ok=True)
-        raise ValueError(f"ONNX export of {path.name} differs from torch by {diff:.2e} (> {tolerance:.0e}); not written.")
-    return diff

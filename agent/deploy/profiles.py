@@ -4,7 +4,7 @@ A profile says, per model (``pilotnet``, ``detector``), the inference backend (`
 ``tensorrt``), the precision (``fp32``, ``fp16``, ``int8``) and the input size; per module, how often it
 runs (the detector every k frames with SORT predicting in between, as seed 000 did; stereo every m frames);
 a latency budget per stage; the camera source; and the alert output. The shipped profiles live in
-``agent/profiles/``: ``cpu`` (the default, runs here), ``jetson-nano``, ``jetson-xavier``, ``jetson-orin``.
+``agent/deploy/profiles/``: ``cpu`` (the default, runs here), ``jetson-nano``, ``jetson-xavier``, ``jetson-orin``.
 
 Why so strict: a profile is edited by hand on a car, and a misspelt key (``precison: int8``) that is
 silently ignored would run fp32 and report the wrong latency. Every unknown key or value is one
@@ -12,7 +12,7 @@ silently ignored would run fp32 and report the wrong latency. Every unknown key 
 empty file is the CPU profile. Relative paths are relative to the repository root.
 
 The agent driver takes a ``Profile`` (``load_profile("cpu")``) and asks it for its models
-(``agent.backends.open_pilotnet(profile)``, ``open_detector(profile)``), its module rates
+(``agent.deploy.backends.open_pilotnet(profile)``, ``open_detector(profile)``), its module rates
 (``profile.every("detector")``), its camera geometry (``profile.camera_config()``) and its budgets.
 """
 
@@ -23,14 +23,15 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, get_type_hints
 
-ROOT = Path(__file__).resolve().parents[1]
+from agent.shipped import ROOT
+
 PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
 
 BACKENDS = ("torch", "onnxruntime", "tensorrt")
 PRECISIONS = ("fp32", "fp16", "int8")
 MODELS = ("pilotnet", "detector")
 MODULES = ("detector", "refiner", "lanes", "stop_line", "stereo")
-# The agent driver's stages (agent.agent_driver: distance includes stereo matching, which agent.deploy times
+# The agent driver's stages (agent.agent_driver: distance includes stereo matching, which agent.deploy.profiled_agent times
 # apart as "stereo"), plus reading the camera and sending alerts.
 STAGES = ("camera", "pilotnet", "detector", "tracking", "lanes", "stop_line", "stereo", "distance", "control", "adas",
           "alerts", "total")

@@ -3,8 +3,8 @@
 Actions, in the order a new user runs them:
 
   dataset   drive the autopilot through many towns and weathers and write YOLO-layout labelled frames
-  train     train the YOLO-style detector (agent/detector.py), keep the best checkpoint by val mAP@0.5
-  refiner   train the pedestrian refiner (agent/ped_refiner.py) on the trained detector's candidates
+  train     train the YOLO-style detector (agent/perception/detector.py), keep the best checkpoint by val mAP@0.5
+  refiner   train the pedestrian refiner (agent/perception/ped_refiner.py) on the trained detector's candidates
   evaluate  per-class AP@0.5 and AP@0.5:0.95 on the held-out towns, cars/pedestrians within 40 m,
             traffic-light state against the HSV baseline, accuracy against distance
   export    write the ONNX model, check it against torch, run it through ONNX Runtime
@@ -115,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _dataset(args: argparse.Namespace) -> int:
-    from agent.autolabel import default_splits, generate_split, write_dataset_yaml
+    from agent.training.autolabel import default_splits, generate_split, write_dataset_yaml
 
     root = Path(args.out)
     t0 = time.perf_counter()
@@ -142,30 +142,30 @@ def _dataset(args: argparse.Namespace) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from agent.detector_train_loop import train
+    from agent.training.detector_train_loop import train
 
     return train(args)
 
 
 def _refiner(args: argparse.Namespace) -> int:
-    from agent.ped_refiner_training import train_refiner
+    from agent.training.ped_refiner_training import train_refiner
 
     return train_refiner(args)
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from agent.detector_eval import evaluate_command
+    from agent.training.detector_eval import evaluate_command
 
     return evaluate_command(args)
 
 
 def _export(args: argparse.Namespace) -> int:
-    from agent.detector import export_detector
+    from agent.deploy.onnx_export import export_detector
 
     diff = export_detector(args.model, args.out)
     print(f"Wrote {args.out}; largest |ONNX Runtime - torch| difference on the check inputs: {diff:.2e}")
     if args.refiner != "none":
-        from agent.ped_refiner import export_refiner
+        from agent.deploy.onnx_export import export_refiner
 
         diff = export_refiner(args.refiner, args.refiner_out)
         print(f"Wrote {args.refiner_out}; largest |ONNX Runtime - torch| difference: {diff:.2e}")
@@ -177,12 +177,12 @@ def _sheet(args: argparse.Namespace) -> int:
     import cv2
     import numpy as np
 
-    from agent.detector import OnnxDetector
-    from agent.detector_eval import load_split, read_rgb
     from agent.overlays import draw_detections
+    from agent.perception.detector import OnnxDetector
+    from agent.training.detector_eval import load_split, read_rgb
 
     samples = load_split(args.data, args.split)
-    from agent.detector_eval import resolve_refiner
+    from agent.training.detector_eval import resolve_refiner
 
     detector = OnnxDetector(args.model, score_threshold=0.3, refiner=resolve_refiner(args.refiner, args.model))
     tiles = []

@@ -18,15 +18,15 @@ a pedestrian logit.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch import nn
 
-from agent.autolabel import CLASSES
-from agent.detector import Detection, nms_numpy
+from agent.perception.classes import CLASSES
+from agent.perception.detector import Detection, nms_numpy
 
 PEDESTRIAN = CLASSES.index("pedestrian")
 DEFAULT_REFINER_ONNX = "data/models/ped_refiner.onnx"
@@ -163,7 +163,7 @@ def load_refiner(path: str | Path) -> PedRefiner:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"Pedestrian refiner {path} not found; train one with `python train.py detector refiner`.")
-    from agent.checkpoints import load_checkpoint
+    from agent.perception.checkpoints import load_checkpoint
 
     ckpt = load_checkpoint(path, "pedestrian refiner")
     if ckpt.get("kind") != "ped_refiner":
@@ -187,7 +187,7 @@ def onnx_refine(path: str | Path, threads: int = 0) -> Refine:
     """The exported refiner through ONNX Runtime; its config travels in the ONNX file's metadata."""
     import json
 
-    from agent.onnx_export import onnx_session
+    from agent.perception.onnx_runtime import onnx_session
 
     session = onnx_session(path, threads, role="pedestrian refiner")
     meta = session.get_modelmeta().custom_metadata_map
@@ -197,22 +197,3 @@ def onnx_refine(path: str | Path, threads: int = 0) -> Refine:
     config = RefinerConfig(**json.loads(meta["refiner_config"]))
     name = session.get_inputs()[0].name
     return Refine(lambda x: session.run(None, {name: x})[0], config)
-
-
-def export_refiner(checkpoint: str | Path, out: str | Path, tolerance: float = 1e-4) -> float:
-    """Write the refiner to ONNX (config in the metadata); returns ONNX Runtime's largest difference from torch."""
-    import json
-
-    import onnx
-
-    from agent.onnx_export import export_onnx
-
-    model = load_refiner(checkpoint)
-    gen = torch.Generator().manual_seed(0)
-    example = torch.rand(3, 4, *CROP_HW, generator=gen) - 0.5
-    diff = export_onnx(model, [example], out, ["crops"], ["refined"], tolerance=tolerance)
-    proto = onnx.load(str(out))
-    entry = proto.metadata_props.add()
-    entry.key, entry.value = "refiner_config", json.dumps(asdict(model.config))
-    onnx.save(proto, str(out))
-    return diff

@@ -27,14 +27,12 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
+from agent.perception.classes import CLASSES, LIGHT_CLASSES, STATE_OF_CLASS  # noqa: F401 (re-exported)
 from sim.objects import LIGHT_ID_BASE, LightState, ObjectSnapshot, SemanticClass
 from sim.render import CameraConfig, SceneRenderer
 from sim.scene_meshes import HOUSING_HALF, SURFACE_RAISED, Z_SLAB, to_world
 from sim.town import Town
 
-CLASSES: tuple[str, ...] = ("car", "truck", "pedestrian", "light_red", "light_yellow", "light_green")
-LIGHT_CLASSES: tuple[str, ...] = CLASSES[3:]
-STATE_OF_CLASS = {"light_red": "red", "light_yellow": "yellow", "light_green": "green"}
 _KIND_CLASS = {SemanticClass.CAR: 0, SemanticClass.TRUCK: 1, SemanticClass.PEDESTRIAN: 2}
 _STATE_CLASS = {LightState.RED: 3, LightState.YELLOW: 4, LightState.GREEN: 5}
 

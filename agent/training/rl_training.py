@@ -5,7 +5,7 @@
 
 The state variant observes ``agent.rl_features`` (the autopilot's plan as 24 numbers) with the camera off,
 so thousands of steps per second are possible. The reward is Drive-v0's documented one plus a speed limit and
-red lights that end the episode (``agent.rl_shaping`` says why; ``--no-shaping`` drops them). The run
+red lights that end the episode (``agent.training.rl_shaping`` says why; ``--no-shaping`` drops them). The run
 folder (``--out``) gets SB3's CSV log (``progress.csv``), evaluation logs (``evaluations.npz``), periodic
 checkpoints, ``best_model.zip`` (best mean evaluation reward) and ``learning_curve.png``. The final model is
 copied to ``--model`` (default ``data/models/rl_<algo>.zip``) together with a JSON of how it was made.
@@ -37,7 +37,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--init", type=Path, default=None,
                    help="start from this saved policy (same algorithm), e.g. a plain-reward run to fine-tune with shaping")
     p.add_argument("--no-shaping", action="store_true",
-                   help="train on Drive-v0's plain reward (default: speed limit and red lights added, agent.rl_shaping)")
+                   help="train on Drive-v0's plain reward (default: speed limit and red lights added, agent.training.rl_shaping)")
     p.add_argument("--eval-every", type=int, default=20_000, help="evaluate every this many steps")
     p.add_argument("--out", type=Path, default=None, help="run folder (default out/rl_<algo>)")
     p.add_argument("--model", type=Path, default=None, help="final model (default data/models/rl_<algo>.zip)")
@@ -51,7 +51,7 @@ def make_env(args: argparse.Namespace, rank: int, evaluation: bool = False):
         from stable_baselines3.common.monitor import Monitor
 
         from agent.rl_features import StateObservation
-        from agent.rl_shaping import TrafficRulesShaping
+        from agent.training.rl_shaping import TrafficRulesShaping
         from envs.drive_env import DriveConfig, DriveEnv
         from sim.render import CameraConfig
         from sim.world import WorldConfig

@@ -26,11 +26,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from agent.autolabel import CLASSES
-from agent.tracking import iou_matrix as box_iou  # one IoU for NMS, evaluation and tracking
+from agent.perception.classes import CLASSES
+from agent.perception.tracking import iou_matrix as box_iou  # one IoU for NMS, evaluation and tracking
 
 if TYPE_CHECKING:
-    from agent.ped_refiner import Refine
+    from agent.perception.ped_refiner import Refine
 
 STRIDES = (8, 16)  # the default (and every checkpoint without "strides" in its config); (4, 8, 16) adds a stride-4 head
 INPUT_HW = (160, 320)
@@ -233,7 +233,7 @@ def to_input(rgb: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- checkpoints and inference
 def load_detector(path: str | Path) -> Detector:
     """A trained detector from a checkpoint written by ``train.py detector train``."""
-    from agent.checkpoints import load_checkpoint
+    from agent.perception.checkpoints import load_checkpoint
 
     path = Path(path)
     if not path.is_file():
@@ -257,11 +257,11 @@ def detect_and_refine(raw: np.ndarray, rgb: np.ndarray, score_threshold: float,
 
 
 class TorchDetector:
-    """Frames in, detections out, with torch; ``refiner``: a pedestrian refiner checkpoint (agent/ped_refiner.py)."""
+    """Frames in, detections out, with torch; ``refiner``: a pedestrian refiner checkpoint (agent/perception/ped_refiner.py)."""
 
     def __init__(self, path: str | Path = "data/models/detector.pt", score_threshold: float = 0.3,
                  refiner: str | Path | None = None) -> None:
-        from agent.ped_refiner import torch_refine
+        from agent.perception.ped_refiner import torch_refine
 
         self.model = DecodedDetector(load_detector(path)).eval()
         self.score_threshold = score_threshold
@@ -281,8 +281,8 @@ class OnnxDetector:
 
     def __init__(self, path: str | Path = "data/models/detector.onnx", score_threshold: float = 0.3,
                  threads: int = 0, refiner: str | Path | None = None) -> None:
-        from agent.onnx_export import onnx_session
-        from agent.ped_refiner import onnx_refine
+        from agent.perception.onnx_runtime import onnx_session
+        from agent.perception.ped_refiner import onnx_refine
 
         self.session = onnx_session(path, threads, role="detector")
         self.input_name = self.session.get_inputs()[0].name
@@ -294,13 +294,3 @@ class OnnxDetector:
 
     def __call__(self, rgb: np.ndarray) -> list[Detection]:
         return detect_and_refine(self.raw(rgb), rgb, self.score_threshold, self.refine)
-
-
-def export_detector(checkpoint: str | Path, out: str | Path, tolerance: float = 1e-4) -> float:
-    """Write the decoded detector to ONNX; returns ONNX Runtime's largest difference from torch."""
-    from agent.onnx_export import export_onnx
-
-    model = DecodedDetector(load_detector(checkpoint)).eval()
-    gen = torch.Generator().manual_seed(0)
-    example = torch.rand(2, 3, *INPUT_HW, generator=gen)
-    return export_onnx(model, [example], out, ["image"], ["detections"], tolerance=tolerance)

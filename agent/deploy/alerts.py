@@ -51,7 +51,7 @@ class AlertFrame:
     frame: int
     time_s: float
     lane: str  # "green" (clear), "red" (object in our lane), "none" (no lane found)
-    warnings: tuple[str, ...] = ()  # agent.adas names: lane_departure, forward_collision, object_in_lane
+    warnings: tuple[str, ...] = ()  # agent.decision.adas names: lane_departure, forward_collision, object_in_lane
     brake: float = 0.0  # 0..1
     steer: float = 0.0  # -1..1
     speed_mps: float = 0.0
@@ -214,10 +214,10 @@ def alert_from_view(view: Any, frame: int, timings_ms: dict[str, float] | None =
     """The alert of one frame of the ``agent`` driver (its ``view``: lanes, decision, warnings).
 
     The lane is red when the controller has an object in our path (seed 000's rule), none when no lane line
-    was found, green otherwise. The agent words its warnings for people (``agent.adas.LABELS``: "OBJECT IN
+    was found, green otherwise. The agent words its warnings for people (``agent.decision.adas.LABELS``: "OBJECT IN
     LANE: car #4 at 12.0 m"); the alert carries their kinds and keeps the words in ``details``.
     """
-    from agent.adas import LABELS
+    from agent.decision.adas import LABELS
 
     kinds = {label: kind for kind, label in LABELS.items()}
     decision = view.decision

@@ -1,6 +1,6 @@
 """PilotNet training data: frames from recorded episodes, selected, split by episode, balanced and augmented.
 
-Every frame goes through ``agent.pilotnet.preprocess`` once, when it is loaded, and is kept as uint8 YUV
+Every frame goes through ``agent.perception.pilotnet.preprocess`` once, when it is loaded, and is kept as uint8 YUV
 66x200 (40 kB a frame). Augmentation then works on those small images:
 
 * viewpoint shifts and rotations, as in the PilotNet paper: the image is re-projected as a camera moved
@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from agent.pilotnet import DEFAULT_CROP, INPUT_HEIGHT, INPUT_WIDTH, Crop, preprocess
+from agent.perception.pilotnet import DEFAULT_CROP, INPUT_HEIGHT, INPUT_WIDTH, Crop, preprocess
 from data.episodes import EpisodeError, list_episodes, read_episode
 from sim.ego import EgoVehicle
 from sim.render import CameraConfig

@@ -2,7 +2,7 @@
 
   python train.py pilotnet --data data/episodes/autopilot --out out/pilotnet --epochs 12 --seed 0
   python train.py pilotnet --data ... --resume                 # continue from out/pilotnet/last.pt
-  python train.py pilotnet --data ... --dagger 2               # then DAgger rounds (see agent.pilotnet_dagger)
+  python train.py pilotnet --data ... --dagger 2               # then DAgger rounds (see agent.training.pilotnet_dagger)
 
 A run folder holds ``last.pt`` (every epoch, for resuming), ``best.pt`` (lowest validation loss),
 ``log.csv`` and ``loss.png``. At the end the best checkpoint is written to ``--model`` (default
@@ -28,9 +28,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from agent.checkpoints import load_checkpoint
-from agent.pilotnet import DEFAULT_CROP, INPUT_HEIGHT, INPUT_WIDTH, Crop, build, parameter_count, to_tensor
-from agent.pilotnet_data import Augment, Augmenter, FrameSet, balance_weights, load_frames, split_by_episode
+from agent.perception.checkpoints import load_checkpoint
+from agent.perception.pilotnet import DEFAULT_CROP, INPUT_HEIGHT, INPUT_WIDTH, Crop, build, parameter_count, to_tensor
+from agent.training.pilotnet_data import Augment, Augmenter, FrameSet, balance_weights, load_frames, split_by_episode
 from data.episodes import EpisodeError
 from sim.render import CameraConfig
 
@@ -65,14 +65,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 # --------------------------------------------------------------------------- checkpoints
 def save_checkpoint(path: Path, model: torch.nn.Module, extra: dict[str, Any]) -> None:
-    from agent.checkpoints import save_checkpoint as save
+    from agent.perception.checkpoints import save_checkpoint as save
 
     save(path, {"state_dict": model.state_dict(), **extra})
 
 
 def load_model(path: str | Path) -> tuple[torch.nn.Module, dict[str, Any]]:
     """A PilotNet checkpoint (ours): the model in eval mode and its metadata. Errors name the file."""
-    from agent.checkpoints import load_checkpoint
+    from agent.perception.checkpoints import load_checkpoint
 
     path = Path(path)
     if not path.is_file():
@@ -89,7 +89,7 @@ def load_model(path: str | Path) -> tuple[torch.nn.Module, dict[str, Any]]:
 
 def export(model: torch.nn.Module, meta: dict[str, Any], pt_path: Path) -> float:
     """Write ``pt_path`` (weights + metadata) and its ``.onnx``; return ONNX Runtime's largest difference."""
-    from agent.onnx_export import export_onnx
+    from agent.deploy.onnx_export import export_onnx
 
     pt_path.parent.mkdir(parents=True, exist_ok=True)
     save_checkpoint(pt_path, model, meta)
@@ -257,7 +257,7 @@ def run(args: argparse.Namespace) -> int:
         fit(model, train, val, args, out, first_epoch, opt_state, best, remaining, meta)
     best_model, best_meta = load_model(out / "best.pt")
     if args.dagger:
-        from agent.pilotnet_dagger import dagger
+        from agent.training.pilotnet_dagger import dagger
 
         best_model, best_meta = dagger(best_model, best_meta, frames, args, out)
     diff = export(best_model, best_meta, args.model)

@@ -1,13 +1,13 @@
 """The agent as a deployment profile runs it: in the simulator, or on real frames without the simulator.
 
 ``ProfiledAgent`` is the ``agent`` driver (``agent.agent_driver.AgentDriver``) with what the profile says:
-PilotNet and the detector on the profile's backends and precisions (``agent.backends``), the detector
+PilotNet and the detector on the profile's backends and precisions (``agent.deploy.backends``), the detector
 every k frames (SORT predicts in between), lanes and the stop line every k frames (the last result is
 reused in between), stereo every m frames (box geometry gives the distances in between), and stereo
 matching timed apart from the rest of the distance stage so that it can be held to its own budget.
 
-``run_on_source`` drives it from a camera source (``agent.camera_sources``: a video file, a USB or CSI
-camera, a recorded episode): each frame's decision goes to the alert outputs (``agent.alerts``: serial
+``run_on_source`` drives it from a camera source (``agent.deploy.camera_sources``: a video file, a USB or CSI
+camera, a recorded episode): each frame's decision goes to the alert outputs (``agent.deploy.alerts``: serial
 line protocol, JSON lines), the overlay to a video (and a window with ``show``), and the per-stage
 latencies, against the profile's budgets, to ``summary.json``. A real car has its speed from CAN or
 odometry and its route command from navigation; a video file has neither, so they are given
@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from agent.agent_driver import AgentConfig, AgentDriver
-from agent.profiles import Profile, ProfileError
+from agent.deploy.profiles import Profile, ProfileError
 
 
 class EveryK:
@@ -46,7 +46,7 @@ class ProfiledAgent(AgentDriver):
     """The agent driver configured by a profile (see module docstring)."""
 
     def __init__(self, profile: Profile, **config_overrides: Any) -> None:
-        from agent.backends import open_detector, open_pilotnet
+        from agent.deploy.backends import open_detector, open_pilotnet
 
         if not profile.every("detector"):
             raise ProfileError(f"{profile.source_file}: the agent needs its detector; set modules.detector.enabled: true.")
@@ -110,7 +110,7 @@ def run_on_source(profile: Profile, source: Any, out: Path | None = None, speed_
                   max_frames: int | None = None, show: bool = False, alerts: Any = None,
                   agent: ProfiledAgent | None = None) -> dict[str, Any]:
     """Drive the profile's agent on a camera source (see module docstring); returns the summary."""
-    from agent.alerts import alert_from_view, open_alerts
+    from agent.deploy.alerts import alert_from_view, open_alerts
 
     agent = agent or ProfiledAgent(profile)
     alerts = alerts or open_alerts(profile.alerts.serial_port, profile.alerts.baud, profile.alerts.jsonl)
@@ -203,9 +203,9 @@ def run_profile(name: str, camera: str | None, out: Path, speed_mps: float = 8.0
     """``drive.py --profile NAME`` on real frames: the profile's camera (or ``camera``), alerts, overlay video."""
     from dataclasses import replace
 
-    from agent.alerts import open_alerts
-    from agent.camera_sources import open_source
-    from agent.profiles import load_profile
+    from agent.deploy.alerts import open_alerts
+    from agent.deploy.camera_sources import open_source
+    from agent.deploy.profiles import load_profile
 
     profile = load_profile(name)
     if camera is not None:

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from agent.lanes import BirdsEye, BirdsEyeConfig, LaneLine, LaneResult, ThresholdConfig, lane_masks
+from agent.perception.lanes import BirdsEye, BirdsEyeConfig, LaneLine, LaneResult, ThresholdConfig, lane_masks
 from sim.render import CameraConfig
 
 
