@@ -84,7 +84,7 @@ def check_args(args: argparse.Namespace) -> None:
     so a bad value is one sentence naming the flag before anything runs."""
     from envs import options
     from sim.checks import check_number
-    from sim.render import check_image_size
+    from sim.spec import check_image_size
 
     check_image_size("--width", args.width)
     check_image_size("--height", args.height)

@@ -16,13 +16,14 @@ recording should store as the label (as in the PilotNet and conditional imitatio
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from highway_env.road.lane import AbstractLane
 
+from agent.decision.pid import PID, STEER_RATE_PER_S  # noqa: F401 (re-exported)
 from agent.drivers import register
+from envs.driver_context import DriverContext
 from sim.objects import LightState
 from sim.town import Command, lanes_for
 from sim.traffic import Agents, crosswalk_gap, curve_speed_limit, idm_acceleration, oncoming_conflict, path_gap
@@ -35,28 +36,6 @@ if TYPE_CHECKING:
 LEAD_GAP_M = 2.5  # bumper gap kept to a stopped vehicle or pedestrian ahead
 STOP_GAP_M = 0.3  # ... and to the stop point before a stop line
 HOLD_MARGIN_M = 0.8  # within this of the stopping point at walking pace, brake to a standstill
-STEER_RATE_PER_S = 1.5  # largest change of the steer command per second
-
-
-@dataclass
-class PID:
-    """A textbook PID on one error signal, with a clamped integral (anti-windup)."""
-
-    kp: float
-    ki: float
-    kd: float
-    integral_limit: float = 2.0
-    _integral: float = 0.0
-    _last: float | None = None
-
-    def reset(self) -> None:
-        self._integral, self._last = 0.0, None
-
-    def __call__(self, error: float, dt: float) -> float:
-        self._integral = max(-self.integral_limit, min(self.integral_limit, self._integral + error * dt))
-        derivative = 0.0 if self._last is None else (error - self._last) / dt
-        self._last = error
-        return self.kp * error + self.ki * self._integral + self.kd * derivative
 
 
 @register("autopilot")
@@ -89,8 +68,8 @@ class Autopilot:
         self._noise_until_s = -1.0
         self._noise_sign = 1.0
 
-    def reset(self, env: DriveEnv) -> None:
-        self.env = env
+    def reset(self, env: DriveEnv | Any) -> None:
+        self.env = DriverContext.of(env, privileged=True).env
         self.speed_pid.reset()
         self._last_steer = 0.0
         self._rng = np.random.default_rng((self.noise_seed, self._episodes))

@@ -20,69 +20,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from agent.autopilot import PID, STEER_RATE_PER_S
+from agent.decision.pid import PID, STEER_RATE_PER_S
 from agent.drivers import register
-from agent.perception.pilotnet import Crop, preprocess, to_tensor
-from agent.shipped import PILOTNET
-from sim.ego import EgoVehicle
+from agent.perception.pilotnet import DEFAULT_MODEL, PilotNetModel
+from envs.driver_context import DriverContext
+from sim.spec import VEHICLE
 
 if TYPE_CHECKING:
-    from envs.drive_env import DriveEnv
+    pass
 
-DEFAULT_MODEL = PILOTNET
-
-
-class PilotNetModel:
-    """A trained PilotNet behind one call, ``steer(rgb, command)``, on ONNX Runtime or torch."""
-
-    def __init__(self, path: str | Path = DEFAULT_MODEL, backend: str | None = "onnx", threads: int = 1) -> None:
-        path = Path(path)
-        shipped = path.resolve() == DEFAULT_MODEL
-        backend = backend or ("torch" if path.suffix == ".pt" and not shipped else "onnx")  # None: as the file says
-        if backend not in ("onnx", "torch"):
-            raise ValueError(f"Unknown PilotNet backend {backend!r}; use 'onnx' or 'torch'.")
-        if shipped:  # the shipped pair, not a file the user named
-            path = DEFAULT_MODEL.with_suffix(".onnx" if backend == "onnx" else ".pt")
-        wanted = ".onnx" if backend == "onnx" else ".pt"
-        if path.suffix != wanted:
-            raise ValueError(f"{path}: the {backend} backend runs {wanted} files; give the model's {wanted} file or "
-                             f"the {'torch' if backend == 'onnx' else 'onnx'} backend (--backend).")
-        self.backend = backend
-        if backend == "onnx":
-            import json
-
-            from agent.perception.onnx_runtime import onnx_session
-
-            self.session = onnx_session(path, threads=threads, role="PilotNet")
-            self.conditional = "command" in {i.name for i in self.session.get_inputs()}
-            meta = self.session.get_modelmeta().custom_metadata_map.get("pilotnet_meta")
-            try:
-                self.crop = Crop(**json.loads(meta).get("crop", {})) if meta else Crop()
-            except (ValueError, TypeError, AttributeError):
-                raise ValueError(f"{path}: its pilotnet_meta metadata is not valid; re-export the model.") from None
-        else:
-            import torch
-
-            from agent.training.pilotnet_training import load_model
-
-            self.model, meta = load_model(path)
-            self.conditional = bool(meta["conditional"])
-            self.crop = Crop(**meta.get("crop", {}))
-            torch.set_num_threads(threads)
-
-    def steer(self, rgb: np.ndarray, command: int) -> float:
-        x = to_tensor(preprocess(rgb, self.crop))
-        cmd = np.array([int(command)], np.int64)
-        if self.backend == "onnx":
-            feeds = {"image": x.numpy()}
-            if self.conditional:
-                feeds["command"] = cmd
-            return float(self.session.run(["steer"], feeds)[0][0, 0])
-        import torch
-
-        with torch.no_grad():
-            y = self.model(x, torch.from_numpy(cmd)) if self.conditional else self.model(x)
-        return float(y[0, 0])
 
 
 @register("pilotnet")
@@ -102,8 +48,8 @@ class PilotNetDriver:
         self.dt = 0.05
         self.last_steer = 0.0
 
-    def reset(self, env: DriveEnv) -> None:
-        self.dt = env.config.world.dt_s
+    def reset(self, context: DriverContext | Any) -> None:
+        self.dt = DriverContext.of(context).dt_s
         self.speed_pid.reset()
         self.last_steer = 0.0
 
@@ -118,6 +64,6 @@ class PilotNetDriver:
             steer = min(self.last_steer + step, max(self.last_steer - step, steer))
         self.last_steer = steer
         speed = float(observation["speed"][0])
-        accel = self.speed_pid(self.target_speed_for(steer) - speed, self.dt) * EgoVehicle.MAX_ACCEL_MPS2
-        throttle = accel / EgoVehicle.MAX_ACCEL_MPS2 if accel >= 0 else accel / EgoVehicle.MAX_BRAKE_MPS2
+        accel = self.speed_pid(self.target_speed_for(steer) - speed, self.dt) * VEHICLE.max_accel_mps2
+        throttle = accel / VEHICLE.max_accel_mps2 if accel >= 0 else accel / VEHICLE.max_brake_mps2
         return np.array([steer, float(np.clip(throttle, -1.0, 1.0))], np.float32)

@@ -30,6 +30,7 @@ import gymnasium as gym
 import numpy as np
 
 from agent.autopilot import Autopilot
+from envs.driver_context import DriverContext
 from sim.objects import LightState
 from sim.traffic import crosswalk_gap, path_gap
 from sim.world import EGO_ID
@@ -50,7 +51,7 @@ class StateFeatures:
         self.env: Any = None
 
     def reset(self, env: Any) -> None:
-        self.env = env
+        self.env = DriverContext.of(env, privileged=True).env
         self.planner.reset(env)
 
     def __call__(self, last_action: np.ndarray) -> np.ndarray:

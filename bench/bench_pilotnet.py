@@ -21,8 +21,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.perception.pilotnet import build, preprocess, to_tensor  # noqa: E402
-from agent.pilotnet_driver import DEFAULT_MODEL, PilotNetModel  # noqa: E402
+from agent.perception.pilotnet import DEFAULT_MODEL, PilotNetModel, build, preprocess, to_tensor  # noqa: E402  # noqa: E402
 from agent.training.pilotnet_data import Augmenter, FrameSet, balance_weights  # noqa: E402
 from agent.training.pilotnet_training import _batches  # noqa: E402
 from bench.timing import measure  # noqa: E402

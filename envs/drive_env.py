@@ -39,6 +39,7 @@ from sim.checks import check_number
 from sim.objects import LIGHT_ID_BASE, LightState, SemanticClass
 from sim.render import LIGHTING_PRESETS, CameraConfig, CameraFrame, SceneRenderer
 from sim.render_kernels import object_boxes
+from sim.spec import MIRRORS
 from sim.topdown import TopDownMap
 from sim.town import Command
 from sim.world import TERMINAL_INFRACTIONS, World, WorldConfig, cached_town
@@ -53,9 +54,9 @@ _COMMAND_NAMES = {int(c): c.name.lower() for c in Command}
 # The blind-spot cameras: under each door mirror (1.0 m ahead of the car's centre, 1.0 m out, 1.0 m up), turned
 # 115 degrees from straight ahead with a 120-degree view: they see from 55 degrees off the car's axis (beside the
 # front wheel) round to 175 degrees (the next lane behind), where a forward camera is blind.
-BLIND_SPOT_CAMERA = CameraConfig(hfov_deg=120.0, mount_height_m=1.0, mount_forward_m=0.0, pitch_deg=-10.0, far_m=60.0)
-BLIND_SPOT_MOUNT_M = (1.0, 1.0)  # (ahead of the car's centre, out to the side)
-BLIND_SPOT_YAW_DEG = 115.0
+BLIND_SPOT_CAMERA = MIRRORS.camera  # the rig lives in sim.spec
+BLIND_SPOT_MOUNT_M = (MIRRORS.ahead_m, MIRRORS.out_m)  # (ahead of the car's centre, out to the side)
+BLIND_SPOT_YAW_DEG = MIRRORS.yaw_deg
 
 
 def blind_spot_pose(pose: tuple[float, float, float], side: str) -> tuple[float, float, float]:

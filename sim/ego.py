@@ -6,19 +6,21 @@ import numpy as np
 from highway_env.road.road import Road
 from highway_env.vehicle.kinematics import Vehicle
 
+from sim.spec import VEHICLE
+
 
 class EgoVehicle(Vehicle):
     """Bicycle-model car. Steer maps to the wheel-angle limit; throttle_brake > 0 accelerates up to
     ``MAX_ACCEL_MPS2``, < 0 brakes up to ``MAX_BRAKE_MPS2``. It never reverses."""
 
-    LENGTH = 4.6
-    WIDTH = 1.9
-    HEIGHT = 1.5
-    MAX_STEER_RAD = 0.6
-    MAX_ACCEL_MPS2 = 3.5
-    MAX_BRAKE_MPS2 = 8.0
-    DRAG_MPS2 = 0.15
-    MAX_SPEED = 25.0
+    LENGTH = VEHICLE.length_m  # the car's numbers live in sim.spec (the agent dead-reckons with them too)
+    WIDTH = VEHICLE.width_m
+    HEIGHT = VEHICLE.height_m
+    MAX_STEER_RAD = VEHICLE.max_steer_rad
+    MAX_ACCEL_MPS2 = VEHICLE.max_accel_mps2
+    MAX_BRAKE_MPS2 = VEHICLE.max_brake_mps2
+    DRAG_MPS2 = VEHICLE.drag_mps2
+    MAX_SPEED = VEHICLE.max_speed_mps
 
     def __init__(self, road: Road, position: np.ndarray, heading: float, speed: float = 0.0) -> None:
         super().__init__(road, position, heading, speed)

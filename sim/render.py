@@ -22,7 +22,6 @@ import numpy as np
 import pybullet as p
 
 from sim import render_kernels as kernels
-from sim.checks import check_number
 from sim.objects import LIGHT_ID_BASE, LightState, ObjectSnapshot, SemanticClass
 from sim.scene_meshes import (
     HOUSING_HALF,
@@ -41,6 +40,7 @@ from sim.scene_meshes import (
     world_point,
     yaw_of,
 )
+from sim.spec import IMAGE_PX, CameraConfig, check_image_size  # noqa: F401 (re-exported)
 from sim.town import Town
 
 MAX_LINKS = 8  # links per body the segmentation lookup tables can tell apart
@@ -48,58 +48,9 @@ BOX_CAPACITY = 64  # object ids a frame's boxes are gathered for while shading (
 HIDDEN_Z = -500.0  # where pooled, unused object bodies wait (below the ground, beyond the far plane)
 CALIBRATION_Z = -3000.0  # a grass patch far below the town, rendered once per preset to learn the grass colour
 MESH_FROM_LISTS = False  # True: the old way (pybullet keeps the vertex lists for ever); for comparisons only
-IMAGE_PX = (8, 4096)  # smallest and largest camera width or height, in pixels
-
-
-def check_image_size(name: str, value: object) -> int:
-    """A camera width or height: an integer in ``IMAGE_PX`` (0 pixels would divide by zero in the projection)."""
-    return check_number(name, value, *IMAGE_PX, integer=True)
 
 
 # --------------------------------------------------------------------------- camera
-@dataclass(frozen=True)
-class CameraConfig:
-    """A forward pinhole camera rigidly mounted on the vehicle."""
-
-    width: int = 320
-    height: int = 160
-    hfov_deg: float = 90.0
-    mount_height_m: float = 1.3
-    mount_forward_m: float = 1.0  # ahead of the vehicle centre
-    pitch_deg: float = -4.0  # negative looks down
-    near_m: float = 0.5
-    far_m: float = 250.0
-    stereo: bool = False
-    stereo_baseline_m: float = 0.12  # ZED-like
-
-    def __post_init__(self) -> None:
-        check_image_size("camera width", self.width)
-        check_image_size("camera height", self.height)
-        check_number("camera hfov_deg", self.hfov_deg, 0.0, 179.0, lo_open=True)
-        check_number("camera near_m", self.near_m, 0.0, None, lo_open=True)
-        check_number("camera far_m", self.far_m, self.near_m, 1e5, lo_open=True)
-
-    @property
-    def focal_px(self) -> float:
-        """Square-pixel focal length from the horizontal field of view."""
-        return (self.width / 2) / math.tan(math.radians(self.hfov_deg) / 2)
-
-    @property
-    def vfov_deg(self) -> float:
-        """Vertical field of view implied by hfov and the aspect ratio (what pybullet's projection takes)."""
-        return math.degrees(2 * math.atan((self.height / 2) / self.focal_px))
-
-    def intrinsics(self) -> np.ndarray:
-        """3x3 K so that ``K @ [X, Y, Z]`` (camera frame: x right, y down, z forward) lands on TinyRenderer's pixel.
-
-        TinyRenderer samples pixel column u at viewport x = u (not u + 0.5) and stores rows bottom-up,
-        so image row v samples viewport y = v + 1 from the top: the principal point is (W/2, H/2 - 1).
-        tests/test_env.py checks this against the metric depth of the ground plane.
-        """
-        f = self.focal_px
-        return np.array([[f, 0.0, self.width / 2], [0.0, f, self.height / 2 - 1.0], [0.0, 0.0, 1.0]])
-
-
 @dataclass(frozen=True)
 class CameraFrame:
     """One camera image with its ground truth."""

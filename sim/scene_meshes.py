@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from sim.objects import SemanticClass
+from sim.spec import ROAD
 from sim.town import Town
 
 # Heights (metres). The flat layers are not meshes: TinyRenderer shades ~100 ns per pixel per layer
@@ -35,7 +36,7 @@ WINDOW_LIT_FRACTION = 0.25  # share of window bands that glow at night
 
 POLE_HALF_M = 0.14
 ARM_HALF_M = 0.09
-HOUSING_HALF = (0.3, 0.42, 1.05)  # x (depth), y (width), z (height) of a light's housing
+HOUSING_HALF = (0.3, 0.42, ROAD.signal_housing_height_m / 2)  # x (depth), y (width), z (height) of a light's housing
 LAMP_RADIUS_M = 0.3
 LAMP_SPACING_M = 0.68
 

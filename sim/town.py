@@ -24,6 +24,7 @@ from highway_env.road.road import RoadNetwork
 
 from sim.geometry import right_of, wrap_to_pi
 from sim.path_filter import ROW_SIZE, lane_row, lanes_may_hold
+from sim.spec import ROAD
 
 LaneIndex = tuple[str, str, int]
 LaneLocation = tuple[LaneIndex, float, float]  # lane index, longitudinal s, lateral offset
@@ -76,10 +77,10 @@ class TownConfig:
     blocks_y: int = 3
     block_size_m: float = 95.0
     block_jitter_m: float = 12.0
-    lane_width_m: float = 3.5
+    lane_width_m: float = ROAD.lane_width_m
     sidewalk_width_m: float = 3.5
     bend_radius_m: float = 22.0
-    stop_line_setback_m: float = 12.0
+    stop_line_setback_m: float = ROAD.stop_line_setback_m
     park_probability: float = 0.15
     tree_spacing_m: float = 16.0
     outer_buildings: bool = True
@@ -172,7 +173,7 @@ class Town:
     GRID_CELL_M = 8.0
     POLE_RADIUS_M = 0.15
     TRUNK_RADIUS_M = 0.25
-    LIGHT_HEAD_HEIGHT_M = 5.2
+    LIGHT_HEAD_HEIGHT_M = ROAD.signal_head_height_m
 
     # ----------------------------------------------------------------- lanes
     @property
@@ -467,7 +468,7 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
             travel = -u
             tr = right_of(travel)
             # Stop bar across the incoming lanes, on the approach side of the lane end.
-            near = c + u * (dist + 0.5)
+            near = c + u * (dist + ROAD.stop_bar_depth_m)
             far = c + u * dist
             inner, outer = tr * 0.1, tr * (2 * w - 0.1)
             markings["stop_line"].append(np.array([far + inner, near + inner, near + outer, far + outer]))
@@ -484,7 +485,7 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
             poles.append(pole)
             approach_edge = (_node_name((node[0] + int(u[0]), node[1] + int(u[1])), OPPOSITE[a], "o"),
                              _node_name(node, a, "i"))
-            ap = Approach(len(approaches), node, a, approach_edge, c + u * (dist + 0.5) + tr * w,
+            ap = Approach(len(approaches), node, a, approach_edge, c + u * (dist + ROAD.stop_bar_depth_m) + tr * w,
                           math.atan2(travel[1], travel[0]), pole, head)
             approaches.append(ap)
             crosswalks.append(Crosswalk(len(crosswalks), node, a, mid - r * kerb, mid + r * kerb,

@@ -24,6 +24,7 @@ from highway_env.vehicle.kinematics import Vehicle
 
 from sim.ego import EgoVehicle
 from sim.geometry import wrap_to_pi
+from sim.idm import idm_acceleration as idm
 from sim.objects import LightState, ObjectSnapshot, SemanticClass, snapshot_of
 from sim.path_filter import clearly_nearest_lane, lanes_may_hold, path_candidates, path_rows, zone_holds
 from sim.routes import random_next_edge
@@ -83,12 +84,8 @@ def curve_speed_limit(path: list[tuple[AbstractLane, float]], my_s: float) -> fl
 def idm_acceleration(speed: float, target_speed: float, gap_m: float | None, closing_mps: float,
                      a_max: float = IDMVehicle.COMFORT_ACC_MAX, b: float = -IDMVehicle.COMFORT_ACC_MIN,
                      min_gap_m: float = 2.0, headway_s: float = 1.2, delta: float = IDMVehicle.DELTA) -> float:
-    """Intelligent Driver Model with a bumper-to-bumper gap (highway-env's constants by default)."""
-    acc = a_max * (1.0 - (max(speed, 0.0) / max(target_speed, 0.1)) ** delta)
-    if gap_m is not None:
-        desired = min_gap_m + speed * headway_s + speed * closing_mps / (2.0 * math.sqrt(a_max * b))
-        acc -= a_max * (max(desired, min_gap_m) / max(gap_m, 0.1)) ** 2
-    return acc
+    """Intelligent Driver Model with a bumper-to-bumper gap (``sim.idm``), highway-env's constants by default."""
+    return idm(speed, target_speed, gap_m, closing_mps, a_max, b, min_gap_m, headway_s, delta)
 
 
 def path_gap(path: list[tuple[AbstractLane, float]], my_s: float, my_half: float, agents: Agents, skip_id: int,

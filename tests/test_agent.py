@@ -9,8 +9,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from agent.agent_driver import DEFAULT_DETECTOR, STAGES, BoxGeometry
-from agent.pilotnet_driver import DEFAULT_MODEL
+from agent.agent_driver import DEFAULT_DETECTOR, STAGES
+from agent.perception.box_geometry import BoxGeometry
+from agent.perception.pilotnet import DEFAULT_MODEL
 from sim.render import CameraConfig
 
 needs_models = pytest.mark.skipif(not (DEFAULT_MODEL.is_file() and DEFAULT_DETECTOR.is_file()),
@@ -31,11 +32,18 @@ def test_box_geometry_recovers_distance_and_lateral_position() -> None:
     assert geo.distance((100.0, 60.0, 200.0, cam.height), "car") <= float(geo.birdseye.ground_z_of_row(np.array([cam.height]))[0])
 
 
+def our_light(driver):
+    """The agent's choice of our light among ``driver._lights`` (the latest light detections)."""
+    return driver.stages.light.choose(driver._lights, driver.controller.line, driver.stages.odometry.turned)
+
+
 def light_box(driver, lateral_m: float, z_m: float) -> tuple[float, float, float, float]:
     """The box a signal head (5.2 m high, 2.1 m tall) at camera-frame ``lateral_m``, ``z_m`` would get."""
     import math
 
-    from agent.agent_driver import LIGHT_HEAD_HEIGHT_M, LIGHT_HOUSING_M
+    from sim.spec import ROAD
+
+    LIGHT_HEAD_HEIGHT_M, LIGHT_HOUSING_M = ROAD.signal_head_height_m, ROAD.signal_housing_height_m
 
     cam, k, f = driver.camera, driver.geometry.k, driver.geometry.f
     above_axis = math.atan((LIGHT_HEAD_HEIGHT_M - cam.mount_height_m) / z_m) - math.radians(cam.pitch_deg)
@@ -68,20 +76,20 @@ def test_our_light_is_the_one_across_the_junction_not_the_cross_streets() -> Non
     ours = Detection(light_box(driver, -1.75, line_m + 1.3 + 21.4), red, 0.9)
     theirs = Detection(light_box(driver, 3.4, line_m + 1.3 + 9.5), green, 0.9)
     driver._lights = [ours, theirs]
-    assert driver._light().state == "green"  # stop line not yet seen: the nearest light near the axis wins
+    assert our_light(driver).state == "green"  # stop line not yet seen: the nearest light near the axis wins
     driver.controller.stop_line, driver.controller.stop_line_measured = line_m, True
-    seen = driver._light()
+    seen = our_light(driver)
     assert seen.state == "red" and seen.distance_m == pytest.approx(line_m + 1.3 + 21.4, rel=0.05)
 
     # Turning right before the line: the camera swings, the cross street's head comes over the axis.
     driver.controller.stop_line, driver.controller.stop_line_measured = None, False
-    driver._yaw, driver._approach_yaw = 0.5, 0.0
+    driver.stages.odometry.yaw, driver.stages.odometry.approach_yaw = 0.5, 0.0
     driver._lights = [Detection(light_box(driver, *rotated(-1.75, 24.0, 0.5)), red, 0.9),
                       Detection(light_box(driver, *rotated(9.0, 14.0, 0.5)), green, 0.9)]
     assert abs(rotated(9.0, 14.0, 0.5)[0]) < 2.0  # the distractor is near the camera axis
-    assert driver._light().state == "red"
-    driver._yaw = 0.0  # without the heading change the distractor would be taken
-    assert driver._light().state == "green"
+    assert our_light(driver).state == "red"
+    driver.stages.odometry.yaw = 0.0  # without the heading change the distractor would be taken
+    assert our_light(driver).state == "green"
 
 
 def blind_world_and_agent():
@@ -104,9 +112,9 @@ def test_agent_dead_reckons_its_heading_from_speed_and_steering() -> None:
     for k in range(40):
         steer = 0.4 if k < 20 else -0.2
         env.step(np.array([steer, 0.0], np.float32))
-        driver._odometry(float(world.ego.speed), steer, 2)
-    assert driver._yaw == pytest.approx(world.ego.heading - h0, abs=0.02)
-    assert driver._approach_yaw == 0.0  # a commanded turn under way: the approach heading stays
+        driver.stages.odometry.advance(float(world.ego.speed), steer, 2, driver.dt)
+    assert driver.stages.odometry.yaw == pytest.approx(world.ego.heading - h0, abs=0.02)
+    assert driver.stages.odometry.approach_yaw == 0.0  # a commanded turn under way: the approach heading stays
     env.close()
 
 
@@ -134,17 +142,17 @@ def test_a_car_wholly_beside_the_axis_is_placed_by_its_far_corner_not_nearer() -
     naive = driver.geometry.lateral(box[2], driver.geometry.distance(box, "car"))
     half = driver.controller.config.path_half_width_m
     assert naive > -half  # read at its near face, the car 2.5 m to our left would be in our 1.3 m corridor
-    first = driver._objects([track], 0.0, None)[0]
+    first = driver.stages.objects.update([track], 0.0, None)[0]
     assert first.lateral_right_m == pytest.approx(naive)  # no history yet: it might be moving sideways
     for k in range(1, 8):  # standing still for 0.35 s
-        obj = driver._objects([track], 0.05 * k, None)[0]
+        obj = driver.stages.objects.update([track], 0.05 * k, None)[0]
     assert -2.5 - 0.1 <= obj.lateral_right_m <= -half - 0.3  # clear of the corridor, never beyond the truth
     # the same box drifting sideways towards us keeps the conservative near-face reading
     driver.reset(SimpleNamespace(config=DriveConfig()))
     for k in range(8):
         moving = Track(8, box + np.array([4.0 * k, 0, 4.0 * k, 0]), hits=10, age=10, time_since_update=0,
                        label=CLASSES.index("car"))
-        obj = driver._objects([moving], 0.05 * k, None)[0]
+        obj = driver.stages.objects.update([moving], 0.05 * k, None)[0]
     assert obj.lateral_right_m == pytest.approx(driver.geometry.lateral(moving.box[2], obj.distance_m))
 
 
@@ -161,15 +169,15 @@ def test_a_pedestrian_box_too_small_for_where_it_stands_is_no_person() -> None:
     rows = np.arange(0.0, 160.0, 0.25)
     y1 = float(rows[np.nanargmin(np.abs(g.birdseye.ground_z_of_row(rows) - 5.0))])  # the road's row 5 m ahead
     whole = g.f * 1.75 / 5.0  # a 1.75 m person there is this many pixels tall
-    assert driver._plausible_person(np.array([100.0, y1 - whole, 112.0, y1]))
-    assert not driver._plausible_person(np.array([100.0, y1 - 0.6 * whole, 112.0, y1]))  # too short to stand there
-    assert not driver._plausible_person(np.array([100.0, y1 - 1.5 * whole, 112.0, y1]))  # too tall
-    assert driver._plausible_person(np.array([100.0, 0.0, 130.0, y1]))  # cut at the top: not judged
+    assert driver.stages.objects.plausible_person(np.array([100.0, y1 - whole, 112.0, y1]))
+    assert not driver.stages.objects.plausible_person(np.array([100.0, y1 - 0.6 * whole, 112.0, y1]))  # too short to stand there
+    assert not driver.stages.objects.plausible_person(np.array([100.0, y1 - 1.5 * whole, 112.0, y1]))  # too tall
+    assert driver.stages.objects.plausible_person(np.array([100.0, 0.0, 130.0, y1]))  # cut at the top: not judged
     # Route 517's night junction: the kerb's yellow line at the left border, scored a pedestrian 2.5 m away
     kerb = np.array([2.0, 79.0, 16.0, 149.0])
-    assert not driver._plausible_person(kerb)
+    assert not driver.stages.objects.plausible_person(kerb)
     track = Track(9, kerb, hits=10, age=10, time_since_update=0, label=CLASSES.index("pedestrian"))
-    assert driver._objects([track], 0.0, None) == []
+    assert driver.stages.objects.update([track], 0.0, None) == []
 
 
 @needs_models
@@ -185,12 +193,12 @@ def test_a_person_who_leaves_the_view_at_its_side_edge_is_remembered_and_turns_w
     w = float(driver.camera.width)
     # Last seen 3.5 m ahead, 3.0-3.6 m right, its box cut by the image's right edge; not in our path.
     side = PerceivedObject(5, "pedestrian", 3.5, 3.0, 3.6, 0.0, 0.0, (w - 20.0, 60.0, w - 1.0, 110.0))
-    driver._at_side = {5: side}
-    first = driver._remember([], 0.0)
+    driver.stages.memory.at_side = {5: side}
+    first = driver.stages.memory.recall([], 0.0, driver.stages.odometry.turn, driver.dt)
     assert [o.track_id for o in first] == [5] and first[0].distance_m == 3.5
-    driver._at_side = {}
-    driver._turn = 0.1  # we turned 0.1 rad to the right since: it is now more to our left, and farther ahead
-    ghost = driver._remember([], 0.0)[0]
+    driver.stages.memory.at_side = {}
+    driver.stages.odometry.turn = 0.1  # we turned 0.1 rad to the right since: it is now more to our left, and farther ahead
+    ghost = driver.stages.memory.recall([], 0.0, driver.stages.odometry.turn, driver.dt)[0]
     assert ghost.distance_m == pytest.approx(3.3 * math.sin(0.1) + 3.5 * math.cos(0.1))
     assert 0.5 * (ghost.lateral_left_m + ghost.lateral_right_m) == pytest.approx(3.3 * math.cos(0.1) - 3.5 * math.sin(0.1))
     assert ghost.lateral_right_m - ghost.lateral_left_m == pytest.approx(0.6)
@@ -208,12 +216,12 @@ def test_a_person_lost_near_the_car_stays_where_last_seen_for_a_while() -> None:
     # Last seen 4 m ahead in our path; its sideways "speed" is perspective (the box grows as it nears).
     near = PerceivedObject(3, "pedestrian", 4.0, 0.2, 0.8, 0.0, 1.5, (170.0, 50.0, 200.0, 120.0))
     far = PerceivedObject(4, "pedestrian", 12.0, 0.2, 0.6, 0.0, 1.5, (163.0, 70.0, 168.0, 90.0))
-    driver._in_path = {3: near, 4: far}
+    driver.stages.memory.in_path_seen = {3: near, 4: far}
     seen_at: dict[int, list[float]] = {3: [], 4: []}
     for _ in range(int(5.0 / driver.dt)):
-        for o in driver._remember([], 0.0):
+        for o in driver.stages.memory.recall([], 0.0, driver.stages.odometry.turn, driver.dt):
             seen_at[o.track_id].append(o.lateral_left_m)
-        driver._in_path = {}
+        driver.stages.memory.in_path_seen = {}
     dt = driver.dt
     assert len(seen_at[3]) * dt == pytest.approx(cfg.near_memory_s, abs=2 * dt)
     assert set(seen_at[3]) == {0.2}  # it stays where it was
@@ -228,22 +236,23 @@ def test_straight_through_a_junction_the_agent_holds_the_approach_lane() -> None
     # Before the junction the lane fit says: the lane runs 0.1 rad left of our axis, its centre 0.5 m left.
     z0 = -driver.camera.mount_forward_m
     centre = np.array([0.0, -0.1, -0.5 + 0.1 * z0])  # x = b z + c in the camera's ground frame
-    driver._measure_road(centre, 0.9)
-    assert driver._road_yaw == pytest.approx(-0.1, abs=1e-3) and driver._road_offset == pytest.approx(0.5)
-    assert driver._junction_hold(3) is None  # not in a junction yet
+    odo = driver.stages.odometry
+    odo.measure_road(centre, 0.9, driver.controller.line, z0)
+    assert odo.road_yaw == pytest.approx(-0.1, abs=1e-3) and odo.road_offset == pytest.approx(0.5)
+    assert driver.stages.junction.hold(3) is None  # not in a junction yet
     ctl.ignore_light_m = ctl.config.junction_ignore_m  # the bumper just crossed the stop line
-    driver._measure_road(np.array([0.0, 0.3, 2.0]), 0.9)  # crosswalk stripes: not measured in the junction
-    assert driver._road_yaw == pytest.approx(-0.1, abs=1e-3)
-    assert driver._junction_hold(1) is None  # a commanded turn is PilotNet's
+    odo.measure_road(np.array([0.0, 0.3, 2.0]), 0.9, driver.controller.line, z0)  # crosswalk stripes: not measured
+    assert driver.stages.odometry.road_yaw == pytest.approx(-0.1, abs=1e-3)
+    assert driver.stages.junction.hold(1) is None  # a commanded turn is PilotNet's
     world.ego.speed = 5.0
     h0 = world.ego.heading
     for _ in range(80):  # 4 s, 20 m, on the same bicycle model the world uses
-        steer = driver._junction_hold(3)
+        steer = driver.stages.junction.hold(3)
         assert steer is not None
         env.step(np.array([steer, 0.0], np.float32))
-        driver._odometry(float(world.ego.speed), steer, 3)
+        driver.stages.odometry.advance(float(world.ego.speed), steer, 3, driver.dt)
     assert world.ego.heading - h0 == pytest.approx(-0.1, abs=0.03)  # turned onto the lane's heading
-    assert abs(driver._road_offset) < 0.25  # and back near its centre (dead-reckoned)
+    assert abs(driver.stages.odometry.road_offset) < 0.25  # and back near its centre (dead-reckoned)
     env.close()
 
 
@@ -288,7 +297,7 @@ def test_agent_stops_0_to_2_m_before_the_stop_line_at_a_red_light() -> None:
 
 
 def test_turn_path_is_the_towns_quarter_circle_into_the_same_lane() -> None:
-    from agent.agent_driver import turn_path
+    from agent.decision.junction import turn_path
 
     for command, side in ((2, 1.0), (1, -1.0)):
         path, arc_end = turn_path(command, 12.0, 5.25)
@@ -328,17 +337,17 @@ def test_a_commanded_turn_follows_the_junctions_arc_into_the_same_lane(command: 
     driver.reset(SimpleNamespace(config=env.config))
     ctl = driver.controller
     ctl.stop_line, ctl.stop_line_measured = 9.0, True  # as the stop-line detector reads it
-    driver._road_yaw, driver._road_offset = 0.0, 0.0  # as the lane fit measures the lane
-    driver._note_junction(StopLine(9.0 + ctl.config.camera_to_front_m, 0.5, 0.9, 0))
+    driver.stages.odometry.road_yaw, driver.stages.odometry.road_offset = 0.0, 0.0  # as the lane fit measures the lane
+    driver.stages.junction.note(StopLine(9.0 + ctl.config.camera_to_front_m, 0.5, 0.9, 0))
     h0, steer, worst, guided = world.ego.heading, 0.0, 0.0, 0
     for _ in range(300):  # up to 15 s at about 3 m/s, until 8 m into the road turned into
-        target = driver._turn_steer(int(world.command()), float(world.ego.speed))
+        target = driver.stages.junction.turn_steer(int(world.command()), float(world.ego.speed))
         guided += target is not None
         rate = ctl.config.steer_rate_per_s * driver.dt  # the controller's steering-rate limit
         steer = float(np.clip(target if target is not None else 0.0, steer - rate, steer + rate))
         throttle = float(np.clip(0.5 * (3.0 - world.ego.speed), -1.0, 1.0))
         _, _, terminated, _, info = env.step(np.array([steer, throttle], np.float32))
-        driver._odometry(float(world.ego.speed), steer, int(world.command()))
+        driver.stages.odometry.advance(float(world.ego.speed), steer, int(world.command()), driver.dt)
         worst = max(worst, info["lane_band_offset_m"])
         assert not terminated and not info["infractions"], info["infractions"]
         if world.ego_lane is not None and world.ego_lane[0][:2] == goal and world.ego_lane[1] > 8.0:
@@ -356,11 +365,12 @@ def test_after_an_intervention_the_agent_forgets_what_it_dead_reckoned() -> None
     env, world, driver = blind_world_and_agent()
     ctl = driver.controller
     ctl.stop_line, ctl.stop_line_measured, ctl.light_state = 9.0, True, "red"
-    driver._road_yaw, driver._pos = 0.1, np.array([30.0, 2.0])
-    driver._note_junction(SimpleNamespace(distance_m=10.0))
-    assert driver._junction is not None
+    driver.stages.odometry.road_yaw, driver.stages.odometry.pos = 0.1, np.array([30.0, 2.0])
+    driver.stages.junction.note(SimpleNamespace(distance_m=10.0))
+    assert driver.stages.junction.junction is not None
     driver.on_intervention()
-    assert driver._junction is None and driver._road_yaw is None and not driver._pos.any()
+    odo = driver.stages.odometry  # the stages start afresh
+    assert driver.stages.junction.junction is None and odo.road_yaw is None and not odo.pos.any()
     assert ctl.stop_line is None and ctl.light_state is None
     env.close()
 

@@ -12,7 +12,7 @@ from agent.agent_driver import DEFAULT_DETECTOR, BoxGeometry
 from agent.decision.blind_spot import BlindSpot, BlindSpotConfig, MirrorMount
 from agent.perception.classes import CLASSES
 from agent.perception.detector import Detection
-from agent.pilotnet_driver import DEFAULT_MODEL
+from agent.perception.pilotnet import DEFAULT_MODEL
 from envs.drive_env import BLIND_SPOT_CAMERA, BLIND_SPOT_MOUNT_M, BLIND_SPOT_YAW_DEG, DriveConfig, DriveEnv
 from sim.render import CameraConfig
 

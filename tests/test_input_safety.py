@@ -61,8 +61,7 @@ def test_1_a_crafted_checkpoint_runs_no_code(tmp_path: Path) -> None:
     from agent.perception.checkpoints import load_checkpoint
     from agent.perception.detector import load_detector
     from agent.perception.ped_refiner import load_refiner
-    from agent.pilotnet_driver import PilotNetModel
-    from agent.training.pilotnet_training import load_model
+    from agent.perception.pilotnet import PilotNetModel, load_model
 
     marker = tmp_path / "code_ran"
     evil = tmp_path / "x.pt"
@@ -235,7 +234,7 @@ def test_4_bad_flags_are_one_sentence_and_exit_2(flags: list[str], words: str, c
 # ------------------------------------------------------------------------------------------ 5. ONNX files
 def test_5_corrupt_or_mismatched_onnx_is_one_sentence_naming_the_file(tmp_path: Path) -> None:
     from agent.perception.detector import OnnxDetector
-    from agent.pilotnet_driver import PilotNetModel
+    from agent.perception.pilotnet import PilotNetModel
 
     broken = tmp_path / "broken.onnx"
     broken.write_bytes(b"\x08\x07garbage" * 10)

@@ -22,13 +22,17 @@ alongside caps the speed: a car that follows rather than overtakes is merged in 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
+
+import numpy as np
 
 from agent.perception.detector import Detection
 
 if TYPE_CHECKING:
-    from agent.agent_driver import BoxGeometry
+    from agent.perception.box_geometry import BoxGeometry
+    from agent.perception.lanes import LaneResult
 
 VEHICLES = ("car", "truck")
 
@@ -119,3 +123,25 @@ class BlindSpot:
         near = self.nearest.get(side)
         where = "" if near is None else f" ({-near[0]:.0f} m back when last seen)"
         return f"vehicle in the {side} blind spot{where}: lane change held"
+
+    def check(self, t: float, frame: int, command: int, junction_placed: bool, lanes: LaneResult | None,
+              look: Callable[[str], np.ndarray], detect: Callable[[np.ndarray], list[Detection]]) -> str | None:
+        """Look through a mirror camera when it is time; the side of a pending lane change that is held, else None.
+        Pending: a left or right command, no junction turn placed yet, and no solid line seen on that side last
+        frame (``lanes``; a solid line there is the road's edge or centre line: no lane to go to)."""
+        cfg = self.config
+        side = {1: "left", 2: "right"}.get(command)
+        if side is not None and junction_placed:
+            side = None
+        if side is not None and lanes is not None:
+            line = lanes.left if side == "left" else lanes.right
+            if line is not None and line.style == "solid":
+                side = None
+        looked = None
+        if side is not None and frame % cfg.look_every == 0:
+            looked = side
+        elif side is None and frame % cfg.idle_every == 0:
+            looked = ("left", "right")[(frame // cfg.idle_every) % 2]
+        if looked is not None:
+            self.update(t, looked, detect(look(looked)))
+        return side if self.holding(t, side) else None

@@ -14,12 +14,8 @@ Why it is built this way:
 - **Gentle limits.** Acceleration is capped (and its rise is jerk-limited), braking is capped at a
   comfortable level unless a constraint cannot be met that way (then up to the car's full brake, and the
   reason says "hard brake"), steering changes at most ``steer_rate_per_s`` per second.
-- **Stop lines by odometry.** The camera stops seeing a stop bar about 3 m ahead of it, before the car
-  has stopped; the controller keeps the last measured distance and counts down its own travelled
-  distance (speed x dt), which is exact enough for the last metres. The bar's distance falls back on the
-  light's distance minus where this town's lights stand (across the junction) when no bar has been seen.
-  A bar cannot move away: a reading more than ``line_jump_m`` farther than the tracked line (the zebra
-  beyond it, caught for a frame) is believed only after ``line_jump_frames`` frames in a row that agree.
+- **Stop lines by odometry**: the stop bar ahead is one track (``agent.decision.stop_line_track``), counted
+  down by the car's own travel between readings and shared with the junction guidance.
 - **Lights are debounced** (a state needs ``light_confirm_frames`` frames; a light unseen for
   ``light_memory_s`` is forgotten), and the yellow decision is taken once, when the yellow appears:
   stop if the stop needs no more than the comfortable deceleration, else go on (before a commanded turn,
@@ -51,10 +47,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sim.traffic import idm_acceleration
+from agent.decision.stop_line_track import LIGHT_STATES, StopLineTrack
+from agent.perception.objects import PerceivedObject
+from sim.idm import idm_acceleration
+from sim.spec import CAMERA_TO_FRONT_M, ROAD, VEHICLE
 
 VEHICLE_KINDS = ("car", "truck")
-LIGHT_STATES = ("red", "yellow", "green")
 
 
 @dataclass(frozen=True)
@@ -72,7 +70,7 @@ class ControllerConfig:
     stop_line_min_gap_m: float = 0.3  # IDM s0 before the stop point
     stop_line_target_m: float = 0.8  # the stop point's distance before the line (the car ends 0.8-1.9 m short)
     hold_margin_m: float = 0.8  # within this of the stop point at walking pace, brake to a standstill
-    camera_to_front_m: float = 1.3  # camera 1.0 m ahead of the car's centre, bumper 2.3 m ahead
+    camera_to_front_m: float = CAMERA_TO_FRONT_M  # the rig's camera to the front bumper (sim.spec)
     path_half_width_m: float = 1.3  # half the car (0.95 m) and a margin: an object overlapping this is in our path
     pedestrian_margin_m: float = 0.9  # extra corridor width for people (they step out)
     entering_horizon_s: float = 2.5  # a pedestrian whose motion enters the corridor within this counts
@@ -85,50 +83,25 @@ class ControllerConfig:
     line_unseen_far_m: float = 6.0  #    a real bar in range is found again frame after frame as the car nears it
     light_memory_s: float = 1.0
     red_memory_s: float = 4.0  # a red is kept longer: not seeing the light is no reason to go
-    light_beyond_stop_line_m: float = 21.0  # town design: lights stand across the junction (12.5 + 7 + 1.75 m)
+    light_beyond_stop_line_m: float = ROAD.light_beyond_stop_line_m  # road prior: lights stand across the junction
     light_fallback_margin_m: float = 2.0  # stop this much earlier when the bar was never seen
     red_no_line_speed_mps: float = 4.0  # approach speed under a red light whose stop line is unknown
     junction_turn_speed_mps: float = 3.0  # turning at a junction: the 90-degree camera sees the crosswalk of the
     #                                       arm we turn into only when the car already points at it
     junction_turn_steer: float = 0.25  # |steer| above which a commanded turn counts as under way
     junction_ignore_m: float = 30.0  # after crossing the stop line, the junction's light no longer applies
-    wheelbase_m: float = 4.6  # highway-env's bicycle model: curvature = tan(delta) / length
-    half_width_m: float = 0.95
+    wheelbase_m: float = VEHICLE.length_m  # highway-env's bicycle model: curvature = tan(delta) / length
+    half_width_m: float = VEHICLE.width_m / 2
     sweep_margin_m: float = 0.3  # kept clear of the body's swept ring, beyond a person's box
     sweep_min_steer: float = 0.25  # the body's sweep is checked only in a turn steered at least this hard
     unconfirmed_hold_s: float = 5.0  # longest standstill for objects perception does not confirm (module docstring)
     creep_speed_mps: float = 1.0  # ... after which the car creeps past them at this speed, looking again every frame
     standstill_mps: float = 0.5  # below this the car counts as holding (for unconfirmed_hold_s)
     unconfirmed_reset_s: float = 1.0  # the bounded hold starts afresh once no unconfirmed object is in our path this long
-    max_steer_rad: float = 0.6
+    max_steer_rad: float = VEHICLE.max_steer_rad
     idm_a_mps2: float = 3.0  # IDM a
     idm_b_mps2: float = 2.5  # IDM b (comfortable deceleration in the dynamic term)
     idm_delta: float = 4.0
-
-
-@dataclass
-class PerceivedObject:
-    """One tracked object as perception sees it, in the camera's ground frame."""
-
-    track_id: int
-    kind: str  # "car", "truck", "pedestrian"
-    distance_m: float  # forward, camera to the object's nearest point on the ground
-    lateral_left_m: float  # the object's left edge, right of the camera axis (negative: left)
-    lateral_right_m: float  # its right edge
-    closing_speed_mps: float = 0.0  # how fast the distance shrinks (positive: approaching)
-    lateral_speed_mps: float = 0.0  # positive: moving right
-    box: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
-    unseen_s: float = 0.0  # > 0: no longer detected, remembered where it was last (see agent_driver)
-    confirmed: bool = True  # False: detected, but only in a way that is easy to fake (see agent_driver)
-
-    @property
-    def unconfirmed(self) -> bool:
-        """Whether perception does not confirm the object this frame (remembered, or not confirmed)."""
-        return self.unseen_s > 0 or not self.confirmed
-
-    @property
-    def lateral_m(self) -> float:
-        return 0.5 * (self.lateral_left_m + self.lateral_right_m)
 
 
 @dataclass
@@ -182,34 +155,11 @@ class Decision:
         return np.array([self.steer, self.throttle_brake], np.float32)
 
 
-class _Unconfirmed:
-    """A stop-line reading that disagrees with the tracked one: believed once it has been seen again, frame after
-    frame, where odometry puts it (within a metre)."""
-
-    def __init__(self) -> None:
-        self.clear()
-
-    def clear(self) -> None:
-        self.value: float | None = None
-        self.count = 0
-
-    def travel(self, metres: float) -> None:
-        if self.value is not None:
-            self.value -= metres
-
-    def see(self, reading: float) -> int:
-        """One more disagreeing reading; returns how many frames in a row have agreed with it."""
-        agrees = self.value is not None and abs(reading - self.value) < 1.0
-        self.count = self.count + 1 if agrees else 1
-        self.value = reading
-        return self.count
-
-
 class Controller:
     """The rules (see module docstring). Call ``reset()`` per episode and ``step(scene, steer, dt)`` per frame."""
 
-    def __init__(self, config: ControllerConfig | None = None, max_accel_mps2: float = 3.5,
-                 max_brake_mps2: float = 8.0) -> None:
+    def __init__(self, config: ControllerConfig | None = None, max_accel_mps2: float = VEHICLE.max_accel_mps2,
+                 max_brake_mps2: float = VEHICLE.max_brake_mps2) -> None:
         self.config = config or ControllerConfig()
         self.vehicle_accel = max_accel_mps2  # what throttle 1 gives
         self.vehicle_brake = max_brake_mps2  # what brake 1 (throttle_brake -1) gives
@@ -218,12 +168,7 @@ class Controller:
     def reset(self) -> None:
         self.last_steer = 0.0
         self.last_accel = 0.0
-        self.stop_line: float | None = None  # bumper to the stop line, metres
-        self.stop_line_measured = False  # True once a bar was seen (not only inferred from the light)
-        self._farther = _Unconfirmed()  # a bar reading farther than the tracked line
-        self._line_unseen_s = 0.0  # since the tracked bar was last measured
-        self._odd_light = _Unconfirmed()  # a stop line inferred from a light, far from the tracked one
-        self.ignore_light_m = 0.0  # travel left during which lights are ignored (inside a junction)
+        self.line = StopLineTrack(self.config)  # the stop bar ahead (shared with the junction guidance)
         self.light_state: str | None = None
         self._light_candidate: str | None = None
         self._light_count = 0
@@ -232,6 +177,13 @@ class Controller:
         self.note = ""  # why a seen light does not stop the car (shown as the reason when nothing else acts)
         self.unconfirmed_held_s = 0.0  # standstill so far for unconfirmed objects in our path (module docstring)
         self._no_unconfirmed_s = 0.0  # since an unconfirmed object was last in our path
+
+    # The stop-line track's figures, read and set as the controller's own (tests and overlays use them).
+    stop_line = property(lambda self: self.line.stop_line, lambda self, v: setattr(self.line, "stop_line", v))
+    stop_line_measured = property(lambda self: self.line.stop_line_measured,
+                                  lambda self, v: setattr(self.line, "stop_line_measured", v))
+    ignore_light_m = property(lambda self: self.line.ignore_light_m,
+                              lambda self, v: setattr(self.line, "ignore_light_m", v))
 
     # ------------------------------------------------------------------ geometry
     def path_centre(self, scene: Scene, z_m: float, steer: float) -> float:
@@ -323,51 +275,6 @@ class Controller:
                 self._yellow_go = None  # a new cycle: the next yellow is decided afresh
             self.light_state = seen
 
-    def _update_stop_line(self, scene: Scene, dt: float) -> None:
-        cfg = self.config
-        travelled = scene.speed_mps * dt
-        if self.ignore_light_m > 0:
-            self.ignore_light_m = max(0.0, self.ignore_light_m - travelled)
-        if self.stop_line is not None:
-            self.stop_line -= travelled
-        self._farther.travel(travelled)
-        self._odd_light.travel(travelled)
-        measured = None if scene.stop_line_m is None else scene.stop_line_m - cfg.camera_to_front_m
-        if (measured is not None and self.stop_line_measured and self.stop_line is not None
-                and measured > self.stop_line + cfg.line_jump_m):
-            # A bar cannot move away: a farther "bar" is the zebra beyond it (close in always; farther out
-            # it is believed only when it is seen again where odometry puts it, frame after frame).
-            seen = self._farther.see(measured)
-            if self.stop_line < 5.0 or seen < cfg.line_jump_frames:
-                measured = None
-        else:
-            self._farther.clear()
-        if measured is not None and self.ignore_light_m <= 0:
-            self.stop_line = measured
-            self.stop_line_measured = True
-            self._line_unseen_s = 0.0
-        elif self.stop_line_measured and self.stop_line is not None:
-            self._line_unseen_s += dt
-            if self.stop_line > cfg.line_unseen_far_m and self._line_unseen_s > cfg.line_unseen_forget_s:
-                # A glimpse (a kerb seen across the lane, a patch of headlight) dead-reckoned to the bumper
-                # would put the car "in the junction" and make it ignore the real light ahead.
-                self.stop_line, self.stop_line_measured = None, False
-        elif (not self.stop_line_measured and scene.light_distance_m is not None and self.ignore_light_m <= 0
-              and scene.light in LIGHT_STATES):
-            inferred = scene.light_distance_m - cfg.light_beyond_stop_line_m - cfg.camera_to_front_m \
-                - cfg.light_fallback_margin_m
-            # A reading far from the tracked one, or one that puts the car past a line it never saw (seed 513: a
-            # "light" 12 m ahead for one frame), is believed only when seen again where odometry puts it.
-            if ((self.stop_line is None and inferred >= -1.0)
-                    or (self.stop_line is not None and abs(inferred - self.stop_line) <= cfg.line_jump_m)
-                    or self._odd_light.see(inferred) >= cfg.line_jump_frames):
-                self.stop_line = inferred
-                self._odd_light.clear()
-        if self.stop_line is not None and self.stop_line < -1.0:  # the bumper is past the line: in the junction
-            self.stop_line, self.stop_line_measured = None, False
-            self.ignore_light_m = cfg.junction_ignore_m
-            self.light_state, self._light_candidate, self._yellow_go = None, None, None
-
     def _light_constraint(self, speed: float, turning: bool = False) -> Constraint | None:
         """The stop constraint of a red or yellow light, if it applies; ``self.note`` says why not when it does not."""
         cfg = self.config
@@ -408,7 +315,8 @@ class Controller:
             steer = min(self.last_steer + step, max(self.last_steer - step, steer))
         self.last_steer = steer
         self._update_light(scene, dt)
-        self._update_stop_line(scene, dt)
+        if self.line.update(scene.speed_mps, scene.stop_line_m, scene.light, scene.light_distance_m, dt):
+            self.light_state, self._light_candidate, self._yellow_go = None, None, None  # in the junction
 
         curvature = abs(math.tan(steer * cfg.max_steer_rad)) / cfg.wheelbase_m  # of the arc being steered
         target = min(cfg.speed_limit_mps, math.sqrt(cfg.lateral_accel_mps2 / max(curvature, 1e-6)))

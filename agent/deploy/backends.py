@@ -178,7 +178,7 @@ def model_meta(profile: Profile, model: str) -> dict[str, Any]:
 
     checkpoint = resolve(profile.models[model].checkpoint)
     if model == "pilotnet":
-        from agent.training.pilotnet_training import load_model
+        from agent.perception.pilotnet import load_model
 
         _, meta = load_model(checkpoint)
         return {"conditional": bool(meta["conditional"]), "crop": dict(meta.get("crop", {}))}
@@ -196,7 +196,7 @@ def open_backend(profile: Profile, model: str) -> Backend:
             raise FileNotFoundError(f"{path} not found; write it with: python train.py export --profile {profile.name}")
         return OnnxRuntimeBackend(path, spec.precision, spec.threads, role="PilotNet" if model == "pilotnet" else "detector")
     if model == "pilotnet":
-        from agent.training.pilotnet_training import load_model
+        from agent.perception.pilotnet import load_model
 
         net, meta = load_model(path)
         return TorchBackend(net, ["image", "command"] if meta["conditional"] else ["image"], spec.threads)
@@ -228,7 +228,7 @@ def detector_feeds(rgb: np.ndarray, input_size: tuple[int, int] = (320, 160)) ->
 
 
 class PilotNetRunner:
-    """``steer(rgb, command)`` as ``agent.pilotnet_driver.PilotNetModel`` has it, on any backend."""
+    """``steer(rgb, command)`` as ``agent.perception.pilotnet.PilotNetModel`` has it, on any backend."""
 
     def __init__(self, backend: Backend, conditional: bool, crop: dict[str, float] | None = None) -> None:
         from agent.perception.pilotnet import Crop

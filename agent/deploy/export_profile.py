@@ -107,7 +107,7 @@ def prepare(name: str, checkpoint: Path, input_size: tuple[int, int]) -> ModelEx
     gen = torch.Generator().manual_seed(0)
     w, h = input_size
     if name == "pilotnet":
-        from agent.training.pilotnet_training import load_model
+        from agent.perception.pilotnet import load_model
 
         model, meta = load_model(checkpoint)
         conditional = bool(meta["conditional"])

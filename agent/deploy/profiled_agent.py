@@ -1,6 +1,6 @@
 """The agent as a deployment profile runs it: in the simulator, or on real frames without the simulator.
 
-``ProfiledAgent`` is the ``agent`` driver (``agent.agent_driver.AgentDriver``) with what the profile says:
+``ProfiledAgent`` is the ``agent`` driver (``agent.agent_driver.AgentDriver``) built with what the profile says:
 PilotNet and the detector on the profile's backends and precisions (``agent.deploy.backends``), the detector
 every k frames (SORT predicts in between), lanes and the stop line every k frames (the last result is
 reused in between), stereo every m frames (box geometry gives the distances in between), and stereo
@@ -18,32 +18,57 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 
-from agent.agent_driver import AgentConfig, AgentDriver
+from agent.agent_driver import AgentConfig, AgentDriver, Stages
 from agent.deploy.profiles import Profile, ProfileError
+from envs.driver_context import DriverContext
 
 
 class EveryK:
-    """Call ``fn`` on every k-th call; in between, return its last result (lanes and stop line at a lower rate)."""
+    """A stage run on every k-th frame; in between, its last result is reused (lanes and stop line at a lower rate).
+    Other attributes are the stage's own."""
 
-    def __init__(self, fn: Callable[..., Any], every: int) -> None:
-        self.fn, self.every, self.calls, self.last = fn, max(1, every), 0, None
+    def __init__(self, stage: Any, every: int) -> None:
+        self.stage, self.every, self.calls, self.last = stage, max(1, every), 0, None
 
-    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+    def detect(self, *args: Any, **kwargs: Any) -> Any:
         if self.calls % self.every == 0 or self.last is None:
-            self.last = self.fn(*args, **kwargs)
+            self.last = self.stage.detect(*args, **kwargs)
         self.calls += 1
         return self.last
 
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.stage, name)
 
-class ProfiledAgent(AgentDriver):
-    """The agent driver configured by a profile (see module docstring)."""
+
+class TimedStereo:
+    """Stereo depth with its matching timed apart, so that the profile can hold it to its own budget."""
+
+    def __init__(self, stereo: Any) -> None:
+        self.stereo = stereo
+        self.seconds = 0.0
+
+    def disparity(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+        t0 = time.perf_counter()
+        out = self.stereo.disparity(left, right)
+        self.seconds += time.perf_counter() - t0
+        return out
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.stereo, name)
+
+
+class ProfiledAgent:
+    """The agent driver configured by a profile (see module docstring): an ``AgentDriver`` built from the
+    profile's networks and module rates, by composition."""
+
+    privileged = False
 
     def __init__(self, profile: Profile, **config_overrides: Any) -> None:
         from agent.deploy.backends import open_detector, open_pilotnet
@@ -53,45 +78,43 @@ class ProfiledAgent(AgentDriver):
         self.profile = profile
         config = AgentConfig(detect_every=profile.every("detector"),
                              distance="stereo" if profile.every("stereo") else "geometry", **config_overrides)
-        # The base class opens the shipped models (never a sibling of a file the profile names); the profile's
-        # own files, on its backends, then take their place.
-        super().__init__(config=config, threads=profile.models["pilotnet"].threads)
-        self.net = open_pilotnet(profile)
-        self.detector = open_detector(profile, config.score_threshold)
+        self.agent = AgentDriver(config=config, net=open_pilotnet(profile),
+                                 detect=open_detector(profile, config.score_threshold), stage_hook=self._rates)
         self.name = f"agent[{profile.name}]"
-        self._stereo_s = 0.0
 
-    def reset(self, env: Any) -> None:
-        super().reset(env)
-        self.lanes.detect = EveryK(self.lanes.detect, self.profile.every("lanes") or 1)  # type: ignore[method-assign]
-        self.stop.detect = EveryK(self.stop.detect, self.profile.every("stop_line") or 1)  # type: ignore[method-assign]
-        if self.stereo is not None:
-            disparity = self.stereo.disparity
+    def _rates(self, stages: Stages) -> Stages:
+        """The profile's module rates and the stereo timer around the stages the agent built."""
+        return replace(stages, lanes=EveryK(stages.lanes, self.profile.every("lanes") or 1),
+                       stop=EveryK(stages.stop, self.profile.every("stop_line") or 1),
+                       stereo=TimedStereo(stages.stereo) if stages.stereo is not None else None)
 
-            def timed(left: np.ndarray, right: np.ndarray) -> np.ndarray:
-                t0 = time.perf_counter()
-                out = disparity(left, right)
-                self._stereo_s += time.perf_counter() - t0
-                return out
-
-            self.stereo.disparity = timed  # type: ignore[method-assign]
+    def reset(self, context: Any) -> None:
+        self.agent.reset(context)
 
     def act(self, observation: dict[str, Any]) -> np.ndarray:
         m = self.profile.every("stereo")
-        if "stereo" in observation and (not m or self._frame % m):
+        if "stereo" in observation and (not m or self.agent._frame % m):
             observation = {k: v for k, v in observation.items() if k != "stereo"}  # geometry on this frame
-        self._stereo_s = 0.0
-        action = super().act(observation)
-        t = self.timings[-1]
-        t["stereo"] = self._stereo_s * 1000.0
+        stereo = self.agent.stereo
+        if stereo is not None:
+            stereo.seconds = 0.0
+        action = self.agent.act(observation)
+        t = self.agent.timings[-1]
+        t["stereo"] = (stereo.seconds if stereo is not None else 0.0) * 1000.0
         if "distance" in t:
             t["distance"] = max(0.0, t["distance"] - t["stereo"])
         return action
 
+    def on_intervention(self) -> None:
+        self.agent.on_intervention()
 
-def frame_env(camera: Any, dt_s: float, stereo: bool) -> Any:
-    """What ``AgentDriver.reset`` reads of an environment (its configuration only), for frames from a real camera."""
-    return SimpleNamespace(config=SimpleNamespace(camera=camera, world=SimpleNamespace(dt_s=dt_s), observe_stereo=stereo))
+    def __getattr__(self, name: str) -> Any:  # timings, view, overlay, adas_summary, reason, ...
+        return getattr(self.agent, name)
+
+
+def frame_env(camera: Any, dt_s: float, stereo: bool) -> DriverContext:
+    """What ``AgentDriver.reset`` takes (the sensor rig and time step), for frames from a real camera."""
+    return DriverContext(camera=camera, dt_s=dt_s, stereo=stereo)
 
 
 def budget_report(timings: list[dict[str, float]], budgets: dict[str, float]) -> dict[str, dict[str, float | None]]:

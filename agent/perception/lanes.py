@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from sim.render import CameraConfig
+from sim.spec import CameraConfig
 
 
 # --------------------------------------------------------------------------- geometry
@@ -630,3 +630,21 @@ def draw_birdseye(result: LaneResult, birdseye: BirdsEye) -> np.ndarray:
         pts = np.stack([u, np.arange(h)], 1)
         cv2.polylines(out, [np.round(pts).astype(np.int32)], False, color, 2)
     return out
+
+
+def lane_centre_of(lanes: LaneResult, z0: float) -> np.ndarray | None:
+    """The lane centre (a, b, c) holding the car: the detected lane, or its neighbour when the car is over a line."""
+    if not lanes.detected:
+        return None
+    w = lanes.lane_width_m
+    if lanes.left is not None and lanes.right is not None:
+        centre = 0.5 * (lanes.left.coeffs + lanes.right.coeffs)
+    elif lanes.left is not None:
+        centre = lanes.left.coeffs + np.array([0.0, 0.0, w / 2])
+    else:
+        assert lanes.right is not None
+        centre = lanes.right.coeffs - np.array([0.0, 0.0, w / 2])
+    centre = np.asarray(centre, float).copy()
+    at_car = float(np.polyval(centre, z0))
+    centre[2] -= round(at_car / w) * w
+    return centre

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from agent.perception.lanes import BirdsEye, BirdsEyeConfig, LaneLine, LaneResult, ThresholdConfig, lane_masks
-from sim.render import CameraConfig
+from sim.spec import CameraConfig
 
 
 @dataclass(frozen=True)

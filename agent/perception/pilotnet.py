@@ -17,11 +17,18 @@ convert RGB to YUV.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 import torch
 from torch import nn
+
+from agent.perception.checkpoints import load_checkpoint
+from agent.shipped import PILOTNET
+
+DEFAULT_MODEL = PILOTNET  # the shipped pair: pilotnet.pt and pilotnet.onnx
 
 INPUT_HEIGHT = 66
 INPUT_WIDTH = 200
@@ -127,3 +134,69 @@ def build(conditional: bool) -> nn.Module:
 
 def parameter_count(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters())
+
+
+def load_model(path: str | Path) -> tuple[torch.nn.Module, dict[str, Any]]:
+    """A PilotNet checkpoint (ours): the model in eval mode and its metadata. Errors name the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"PilotNet model {path} not found; train one with: python train.py pilotnet")
+    ckpt = load_checkpoint(path, "PilotNet")
+    try:
+        model = build(bool(ckpt["conditional"]))
+        model.load_state_dict(ckpt["state_dict"])
+    except (KeyError, RuntimeError, ValueError, TypeError) as exc:
+        # a wrong shape, a truncated file, or not ours at all
+        raise ValueError(f"{path} is not a PilotNet checkpoint of this version ({exc}); retrain it with train.py.") from exc
+    return model.eval(), {k: v for k, v in ckpt.items() if k not in ("state_dict", "optimizer")}
+
+
+class PilotNetModel:
+    """A trained PilotNet behind one call, ``steer(rgb, command)``, on ONNX Runtime or torch."""
+
+    def __init__(self, path: str | Path = DEFAULT_MODEL, backend: str | None = "onnx", threads: int = 1) -> None:
+        path = Path(path)
+        shipped = path.resolve() == DEFAULT_MODEL
+        backend = backend or ("torch" if path.suffix == ".pt" and not shipped else "onnx")  # None: as the file says
+        if backend not in ("onnx", "torch"):
+            raise ValueError(f"Unknown PilotNet backend {backend!r}; use 'onnx' or 'torch'.")
+        if shipped:  # the shipped pair, not a file the user named
+            path = DEFAULT_MODEL.with_suffix(".onnx" if backend == "onnx" else ".pt")
+        wanted = ".onnx" if backend == "onnx" else ".pt"
+        if path.suffix != wanted:
+            raise ValueError(f"{path}: the {backend} backend runs {wanted} files; give the model's {wanted} file or "
+                             f"the {'torch' if backend == 'onnx' else 'onnx'} backend (--backend).")
+        self.backend = backend
+        if backend == "onnx":
+            import json
+
+            from agent.perception.onnx_runtime import onnx_session
+
+            self.session = onnx_session(path, threads=threads, role="PilotNet")
+            self.conditional = "command" in {i.name for i in self.session.get_inputs()}
+            meta = self.session.get_modelmeta().custom_metadata_map.get("pilotnet_meta")
+            try:
+                self.crop = Crop(**json.loads(meta).get("crop", {})) if meta else Crop()
+            except (ValueError, TypeError, AttributeError):
+                raise ValueError(f"{path}: its pilotnet_meta metadata is not valid; re-export the model.") from None
+        else:
+            import torch
+
+            self.model, meta = load_model(path)
+            self.conditional = bool(meta["conditional"])
+            self.crop = Crop(**meta.get("crop", {}))
+            torch.set_num_threads(threads)
+
+    def steer(self, rgb: np.ndarray, command: int) -> float:
+        x = to_tensor(preprocess(rgb, self.crop))
+        cmd = np.array([int(command)], np.int64)
+        if self.backend == "onnx":
+            feeds = {"image": x.numpy()}
+            if self.conditional:
+                feeds["command"] = cmd
+            return float(self.session.run(["steer"], feeds)[0][0, 0])
+        import torch
+
+        with torch.no_grad():
+            y = self.model(x, torch.from_numpy(cmd)) if self.conditional else self.model(x)
+        return float(y[0, 0])

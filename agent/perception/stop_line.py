@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from agent.perception.lanes import BirdsEye, BirdsEyeConfig, LaneResult
-from sim.render import CameraConfig
+from sim.spec import CameraConfig
 
 
 @dataclass(frozen=True)

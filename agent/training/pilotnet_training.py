@@ -29,7 +29,16 @@ import torch
 from tqdm import tqdm
 
 from agent.perception.checkpoints import load_checkpoint
-from agent.perception.pilotnet import DEFAULT_CROP, INPUT_HEIGHT, INPUT_WIDTH, Crop, build, parameter_count, to_tensor
+from agent.perception.pilotnet import (
+    DEFAULT_CROP,
+    INPUT_HEIGHT,
+    INPUT_WIDTH,
+    Crop,
+    build,
+    load_model,  # noqa: F401 (re-exported)
+    parameter_count,
+    to_tensor,
+)
 from agent.training.pilotnet_data import Augment, Augmenter, FrameSet, balance_weights, load_frames, split_by_episode
 from data.episodes import EpisodeError
 from sim.render import CameraConfig
@@ -68,23 +77,6 @@ def save_checkpoint(path: Path, model: torch.nn.Module, extra: dict[str, Any]) -
     from agent.perception.checkpoints import save_checkpoint as save
 
     save(path, {"state_dict": model.state_dict(), **extra})
-
-
-def load_model(path: str | Path) -> tuple[torch.nn.Module, dict[str, Any]]:
-    """A PilotNet checkpoint (ours): the model in eval mode and its metadata. Errors name the file."""
-    from agent.perception.checkpoints import load_checkpoint
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"PilotNet model {path} not found; train one with: python train.py pilotnet")
-    ckpt = load_checkpoint(path, "PilotNet")
-    try:
-        model = build(bool(ckpt["conditional"]))
-        model.load_state_dict(ckpt["state_dict"])
-    except (KeyError, RuntimeError, ValueError, TypeError) as exc:
-        # a wrong shape, a truncated file, or not ours at all
-        raise ValueError(f"{path} is not a PilotNet checkpoint of this version ({exc}); retrain it with train.py.") from exc
-    return model.eval(), {k: v for k, v in ckpt.items() if k not in ("state_dict", "optimizer")}
 
 
 def export(model: torch.nn.Module, meta: dict[str, Any], pt_path: Path) -> float:

@@ -1,0 +1,63 @@
+"""Dead reckoning from the car's own speed and steering, and the approach lane measured before a junction.
+
+Why: inside a junction there are no lines to steer or judge lights by. The car integrates its heading and
+position with highway-env's bicycle model (the car of ``sim.spec``), keeps the heading it had while it last
+drove along its lane (lights are judged in that frame once a commanded turn begins), and keeps the approach
+lane's heading and its own offset from that lane's centre, measured from a confident lane fit well before the
+stop line and dead-reckoned since.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from agent.decision.stop_line_track import StopLineTrack
+from sim.spec import VEHICLE
+
+
+class Odometry:
+    """The car's pose in its own episode frame (x ahead at yaw 0, y right; yaw positive to the right)."""
+
+    def __init__(self, straight_steer: float = 0.08, road_min_confidence: float = 0.25, road_clear_m: float = 8.0) -> None:
+        self.straight_steer = straight_steer  # below this |steer| the car drives along its lane
+        self.road_min_confidence = road_min_confidence  # a lane fit this sure measures the approach lane
+        self.road_clear_m = road_clear_m  # ... only while the stop line is farther than this
+        self.reset()
+
+    def reset(self) -> None:
+        self.turn = 0.0  # the heading change of the last frame (rad)
+        self.yaw = 0.0  # dead-reckoned heading (rad)
+        self.road_yaw: float | None = None  # the approach lane's heading in the same frame, from the lane fit
+        self.road_offset = 0.0  # metres right of the approach lane's centre (measured, then dead-reckoned)
+        self.approach_yaw = 0.0  # the heading the car had while it last drove along its lane
+        self.pos = np.zeros(2)  # dead-reckoned position of the car's centre
+
+    @property
+    def turned(self) -> float:
+        """The heading change since the car last drove along its lane (rad)."""
+        return self.yaw - self.approach_yaw
+
+    def advance(self, speed: float, steer: float, command: int, dt: float) -> None:
+        """Integrate the heading from the speed and the steering just sent. While the car follows its lane, the
+        approach heading follows it; once it steers into a commanded turn, the approach heading stays."""
+        beta = math.atan(0.5 * math.tan(steer * VEHICLE.max_steer_rad))
+        self.pos += speed * dt * np.array([math.cos(self.yaw + beta), math.sin(self.yaw + beta)])
+        self.turn = speed * math.sin(beta) / (VEHICLE.length_m / 2) * dt
+        self.yaw += self.turn
+        if self.road_yaw is not None:
+            self.road_offset += speed * math.sin(self.yaw + beta - self.road_yaw) * dt
+        if command not in (1, 2) or abs(steer) < self.straight_steer:
+            self.approach_yaw = self.yaw
+
+    def measure_road(self, centre: np.ndarray | None, confidence: float, line: StopLineTrack, z0: float) -> None:
+        """Keep the approach lane's heading and our offset from its centre (``centre``: the lane-centre polynomial
+        in the camera's ground frame, evaluated at ``z0``, the car's centre), from a confident lane fit taken well
+        before the stop line."""
+        if (centre is None or confidence < self.road_min_confidence or line.ignore_light_m > 0
+                or (line.stop_line is not None and line.stop_line < self.road_clear_m)):
+            return
+        heading = self.yaw + math.atan(float(np.polyval(np.polyder(centre), z0)))
+        self.road_yaw = heading if self.road_yaw is None else self.road_yaw + 0.2 * (heading - self.road_yaw)
+        self.road_offset = -float(np.polyval(centre, z0))

@@ -1,0 +1,111 @@
+"""The stop bar ahead, tracked: one distance that the controller stops at and the junction guidance places turns by.
+
+Why a track: the camera stops seeing a stop bar about 3 m ahead of it, before the car has stopped, so the last
+measured distance is counted down by the car's own travel (speed x dt), exact enough for the last metres. A bar
+cannot move away: a reading more than ``line_jump_m`` farther than the tracked one (the zebra beyond it, caught
+for a frame) is believed only after ``line_jump_frames`` frames in a row that agree. With no bar seen, the
+distance falls back on the light's distance minus where the road design puts lights (across the junction).
+Once the bumper is past the bar, the junction's light is ignored for ``junction_ignore_m`` metres.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from agent.decision.controller import ControllerConfig
+
+LIGHT_STATES = ("red", "yellow", "green")
+
+
+class Unconfirmed:
+    """A stop-line reading that disagrees with the tracked one: believed once it has been seen again, frame after
+    frame, where odometry puts it (within a metre)."""
+
+    def __init__(self) -> None:
+        self.clear()
+
+    def clear(self) -> None:
+        self.value: float | None = None
+        self.count = 0
+
+    def travel(self, metres: float) -> None:
+        if self.value is not None:
+            self.value -= metres
+
+    def see(self, reading: float) -> int:
+        """One more disagreeing reading; returns how many frames in a row have agreed with it."""
+        agrees = self.value is not None and abs(reading - self.value) < 1.0
+        self.count = self.count + 1 if agrees else 1
+        self.value = reading
+        return self.count
+
+
+class StopLineTrack:
+    """Bumper to the stop bar ahead (odometry between readings), and the travel left inside a junction."""
+
+    def __init__(self, config: ControllerConfig) -> None:
+        self.config = config
+        self.reset()
+
+    def reset(self) -> None:
+        self.stop_line: float | None = None  # bumper to the stop line, metres
+        self.stop_line_measured = False  # True once a bar was seen (not only inferred from the light)
+        self._farther = Unconfirmed()  # a bar reading farther than the tracked line
+        self._line_unseen_s = 0.0  # since the tracked bar was last measured
+        self._odd_light = Unconfirmed()  # a stop line inferred from a light, far from the tracked one
+        self.ignore_light_m = 0.0  # travel left during which lights are ignored (inside a junction)
+
+    @property
+    def in_junction(self) -> bool:
+        """Whether the bumper crossed a stop line within the last ``junction_ignore_m`` metres."""
+        return self.ignore_light_m > 0
+
+    def update(self, speed_mps: float, stop_line_m: float | None, light: str | None, light_distance_m: float | None,
+               dt: float) -> bool:
+        """One frame: the car travelled ``speed_mps x dt``; ``stop_line_m`` is the camera-to-bar reading (None when no bar
+        is seen), ``light`` and ``light_distance_m`` our light. Returns whether the bumper just entered a junction."""
+        cfg = self.config
+        travelled = speed_mps * dt
+        if self.ignore_light_m > 0:
+            self.ignore_light_m = max(0.0, self.ignore_light_m - travelled)
+        if self.stop_line is not None:
+            self.stop_line -= travelled
+        self._farther.travel(travelled)
+        self._odd_light.travel(travelled)
+        measured = None if stop_line_m is None else stop_line_m - cfg.camera_to_front_m
+        if (measured is not None and self.stop_line_measured and self.stop_line is not None
+                and measured > self.stop_line + cfg.line_jump_m):
+            # A bar cannot move away: a farther "bar" is the zebra beyond it (close in always; farther out
+            # it is believed only when it is seen again where odometry puts it, frame after frame).
+            seen = self._farther.see(measured)
+            if self.stop_line < 5.0 or seen < cfg.line_jump_frames:
+                measured = None
+        else:
+            self._farther.clear()
+        if measured is not None and self.ignore_light_m <= 0:
+            self.stop_line = measured
+            self.stop_line_measured = True
+            self._line_unseen_s = 0.0
+        elif self.stop_line_measured and self.stop_line is not None:
+            self._line_unseen_s += dt
+            if self.stop_line > cfg.line_unseen_far_m and self._line_unseen_s > cfg.line_unseen_forget_s:
+                # A glimpse (a kerb seen across the lane, a patch of headlight) dead-reckoned to the bumper
+                # would put the car "in the junction" and make it ignore the real light ahead.
+                self.stop_line, self.stop_line_measured = None, False
+        elif (not self.stop_line_measured and light_distance_m is not None and self.ignore_light_m <= 0
+              and light in LIGHT_STATES):
+            inferred = light_distance_m - cfg.light_beyond_stop_line_m - cfg.camera_to_front_m \
+                - cfg.light_fallback_margin_m
+            # A reading far from the tracked one, or one that puts the car past a line it never saw (seed 513: a
+            # "light" 12 m ahead for one frame), is believed only when seen again where odometry puts it.
+            if ((self.stop_line is None and inferred >= -1.0)
+                    or (self.stop_line is not None and abs(inferred - self.stop_line) <= cfg.line_jump_m)
+                    or self._odd_light.see(inferred) >= cfg.line_jump_frames):
+                self.stop_line = inferred
+                self._odd_light.clear()
+        if self.stop_line is not None and self.stop_line < -1.0:  # the bumper is past the line: in the junction
+            self.stop_line, self.stop_line_measured = None, False
+            self.ignore_light_m = cfg.junction_ignore_m
+            return True
+        return False

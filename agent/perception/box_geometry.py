@@ -1,0 +1,80 @@
+"""Where a detection box's object stands, from the pinhole camera model and the flat road.
+
+Distance is the ground-plane distance of the box's bottom row through the camera intrinsics and mounting (exact
+for things standing on the road, but one image row is ``z^2 / (f h)`` metres of road: 4 m at 30 m), fused with the
+distance a known height gives (``f H / h_px``: a few per cent at any range, but wrong for an unusual size), each
+weighted by its variance.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from agent.perception.lanes import BirdsEye
+from sim.spec import CameraConfig
+
+# Size priors (metres): typical heights, which unlike widths do not change with the viewing angle.
+HEIGHT_PRIOR_M = {"car": 1.5, "truck": 2.8, "pedestrian": 1.75}
+# The least depth a vehicle shows, whatever its yaw: its width (depth = L|sin| + W|cos| >= W). A vehicle wholly
+# to one side of the camera axis draws its inner box edge from its far side, not from its near face.
+DEPTH_PRIOR_M = {"car": 1.9, "truck": 2.3}
+
+
+def at_side_edge(box: tuple[float, float, float, float] | np.ndarray, width_px: int, margin_px: float = 0.5) -> bool:
+    """Whether a box touches the image's left or right edge, within ``margin_px`` (the object is leaving the view
+    sideways, or is cut by its edge)."""
+    return float(box[0]) <= margin_px or float(box[2]) >= width_px - 1.0 - margin_px
+
+
+class BoxGeometry:
+    """Where a box's object stands, from the pinhole camera model and the flat road (see module docstring)."""
+
+    def __init__(self, camera: CameraConfig, row_sigma_px: float = 1.0, prior_sigma: float = 0.12) -> None:
+        self.camera = camera
+        self.k = camera.intrinsics()
+        self.f = float(self.k[0, 0])
+        self.birdseye = BirdsEye(camera)
+        self.row_sigma = row_sigma_px
+        self.prior_sigma = prior_sigma
+
+    def cut(self, box: np.ndarray | tuple[float, ...]) -> tuple[bool, bool]:
+        """Whether the box is cut off by the image's top edge (its height says nothing) and by its bottom edge
+        (its bottom row is not where the object meets the road)."""
+        return float(box[1]) <= 0.5, float(box[3]) >= self.camera.height - 1.5
+
+    def distance(self, box: np.ndarray | tuple[float, ...], kind: str) -> float:
+        """Forward ground distance (m) from the camera to the object's near face."""
+        x0, y0, x1, y1 = (float(v) for v in box)
+        z_ground = float(self.birdseye.ground_z_of_row(np.array([y1]))[0])
+        height_px = y1 - y0
+        z_size = self.f * HEIGHT_PRIOR_M.get(kind, 1.5) / height_px if height_px >= 2 else math.nan
+        cut_top, cut_bottom = self.cut(box)
+        if cut_top:
+            z_size = math.nan
+        if cut_bottom and math.isfinite(z_ground):  # nearer than the last row
+            return min(z_size, z_ground) if math.isfinite(z_size) else z_ground
+        if not math.isfinite(z_ground) or z_ground <= 0:
+            return z_size
+        if not math.isfinite(z_size):
+            return z_ground
+        var_g = (z_ground ** 2 / (self.f * self.camera.mount_height_m) * self.row_sigma) ** 2
+        var_s = (z_size * self.row_sigma / height_px) ** 2 + (self.prior_sigma * z_size) ** 2
+        return (z_ground / var_g + z_size / var_s) / (1.0 / var_g + 1.0 / var_s)
+
+    def height_ratio(self, box: np.ndarray | tuple[float, ...], kind: str) -> float:
+        """The box's height over the height the kind's prior height would have where its bottom row meets the
+        road: about 1 for a whole object standing there; nan when the box is cut at the top or bottom, or its
+        bottom row is not on the road."""
+        if any(self.cut(box)):
+            return math.nan
+        y0, y1 = float(box[1]), float(box[3])
+        z = float(self.birdseye.ground_z_of_row(np.array([y1]))[0])
+        if not math.isfinite(z) or z <= 0:
+            return math.nan
+        return z * (y1 - y0) / (self.f * HEIGHT_PRIOR_M.get(kind, 1.5))
+
+    def lateral(self, u_px: float, z_m: float) -> float:
+        """Metres right of the camera axis of image column ``u_px`` at forward distance ``z_m``."""
+        return (u_px - float(self.k[0, 2])) * z_m / self.f

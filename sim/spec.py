@@ -1,0 +1,116 @@
+"""The facts the simulator and the agent both rely on: the sensor rig, the car, and the road-design priors.
+
+Why one module: the simulator renders from the camera the agent computes with, moves the car whose size and
+steering the agent dead-reckons with, and builds towns to the design the agent expects (lane width, where a
+stop bar and a signal head stand). Each of these numbers lives here once; the simulator builds from them and
+the agent reads them, and a deployment profile can override the road priors for a real road.
+
+This module imports nothing of the simulator (no pybullet, no highway-env), so the car's runtime code may use it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim.checks import check_number
+
+IMAGE_PX = (8, 4096)  # smallest and largest camera width or height, in pixels
+
+
+def check_image_size(name: str, value: object) -> int:
+    """A camera width or height: an integer in ``IMAGE_PX`` (0 pixels would divide by zero in the projection)."""
+    return check_number(name, value, *IMAGE_PX, integer=True)
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """A forward pinhole camera rigidly mounted on the vehicle."""
+
+    width: int = 320
+    height: int = 160
+    hfov_deg: float = 90.0
+    mount_height_m: float = 1.3
+    mount_forward_m: float = 1.0  # ahead of the vehicle centre
+    pitch_deg: float = -4.0  # negative looks down
+    near_m: float = 0.5
+    far_m: float = 250.0
+    stereo: bool = False
+    stereo_baseline_m: float = 0.12  # ZED-like
+
+    def __post_init__(self) -> None:
+        check_image_size("camera width", self.width)
+        check_image_size("camera height", self.height)
+        check_number("camera hfov_deg", self.hfov_deg, 0.0, 179.0, lo_open=True)
+        check_number("camera near_m", self.near_m, 0.0, None, lo_open=True)
+        check_number("camera far_m", self.far_m, self.near_m, 1e5, lo_open=True)
+
+    @property
+    def focal_px(self) -> float:
+        """Square-pixel focal length from the horizontal field of view."""
+        return (self.width / 2) / math.tan(math.radians(self.hfov_deg) / 2)
+
+    @property
+    def vfov_deg(self) -> float:
+        """Vertical field of view implied by hfov and the aspect ratio (what pybullet's projection takes)."""
+        return math.degrees(2 * math.atan((self.height / 2) / self.focal_px))
+
+    def intrinsics(self) -> np.ndarray:
+        """3x3 K so that ``K @ [X, Y, Z]`` (camera frame: x right, y down, z forward) lands on TinyRenderer's pixel.
+
+        TinyRenderer samples pixel column u at viewport x = u (not u + 0.5) and stores rows bottom-up,
+        so image row v samples viewport y = v + 1 from the top: the principal point is (W/2, H/2 - 1).
+        tests/test_env.py checks this against the metric depth of the ground plane.
+        """
+        f = self.focal_px
+        return np.array([[f, 0.0, self.width / 2], [0.0, f, self.height / 2 - 1.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class MirrorRig:
+    """The blind-spot cameras under each door mirror: where they sit on the car and where they look.
+
+    Turned 115 degrees from straight ahead with a 120-degree view, they see from 55 degrees off the car's axis
+    (beside the front wheel) round to 175 degrees (the next lane behind), where a forward camera is blind."""
+
+    camera: CameraConfig = CameraConfig(hfov_deg=120.0, mount_height_m=1.0, mount_forward_m=0.0, pitch_deg=-10.0,
+                                        far_m=60.0)
+    ahead_m: float = 1.0  # ahead of the car's centre
+    out_m: float = 1.0  # out to the side
+    yaw_deg: float = 115.0  # from straight ahead, towards the side
+
+
+@dataclass(frozen=True)
+class VehicleSpec:
+    """The ego car: highway-env's kinematic bicycle model with these dimensions and limits."""
+
+    length_m: float = 4.6  # also the bicycle model's wheelbase: curvature = tan(delta) / length
+    width_m: float = 1.9
+    height_m: float = 1.5
+    max_steer_rad: float = 0.6  # steer 1 turns the wheels this far
+    max_accel_mps2: float = 3.5  # what throttle 1 gives
+    max_brake_mps2: float = 8.0  # what brake 1 (throttle_brake -1) gives
+    drag_mps2: float = 0.15
+    max_speed_mps: float = 25.0
+
+
+@dataclass(frozen=True)
+class RoadDesign:
+    """How the default towns are built, and so what the agent assumes of a road it has not measured."""
+
+    lane_width_m: float = 3.5
+    stop_line_setback_m: float = 12.0  # junction centre to a stop bar's far edge, where the connectors start
+    stop_bar_depth_m: float = 0.5  # the painted bar's depth along the lane
+    signal_head_height_m: float = 5.2  # signal heads hang this high above the road on mast arms
+    signal_housing_height_m: float = 2.1  # a three-lamp head's housing
+    light_beyond_stop_line_m: float = 21.0  # our light stands across the junction (measured 21.4 m beyond the bar)
+
+
+CAMERA = CameraConfig()
+MIRRORS = MirrorRig()
+VEHICLE = VehicleSpec()
+ROAD = RoadDesign()
+# The forward camera to the front bumper along the car's axis (1.3 m with the default rig).
+CAMERA_TO_FRONT_M = round(VEHICLE.length_m / 2 - CAMERA.mount_forward_m, 6)
