@@ -38,7 +38,6 @@ from agent.decision.controller import Controller, ControllerConfig, Decision, Sc
 from agent.decision.junction import JunctionGuidance, JunctionRules
 from agent.decision.odometry import Odometry
 from agent.decision.our_light import LightRules, LightSeen, OurLight
-from agent.drivers import register
 from agent.perception.box_geometry import BoxGeometry
 from agent.perception.classes import LIGHT_CLASSES
 from agent.perception.detector import Detection, OnnxDetector
@@ -143,7 +142,6 @@ class Stages:
     stereo: Any = None  # agent.perception.stereo.StereoDepth with distance="stereo"
 
 
-@register("agent")
 class AgentDriver:
     """PilotNet + perception + rule-based controller (see module docstring). Not privileged.
 

@@ -22,7 +22,6 @@ import numpy as np
 from highway_env.road.lane import AbstractLane
 
 from agent.decision.pid import PID, STEER_RATE_PER_S  # noqa: F401 (re-exported)
-from agent.drivers import register
 from envs.driver_context import DriverContext
 from sim.objects import LightState
 from sim.town import Command, lanes_for
@@ -38,7 +37,6 @@ STOP_GAP_M = 0.3  # ... and to the stop point before a stop line
 HOLD_MARGIN_M = 0.8  # within this of the stopping point at walking pace, brake to a standstill
 
 
-@register("autopilot")
 class Autopilot:
     """Privileged expert driver (see module docstring)."""
 

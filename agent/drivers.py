@@ -1,20 +1,22 @@
 """The driver interface and the registry that finds drivers by name.
 
-A driver is handed the environment once per episode (``reset(env)``) and then asked for an action
-for each observation (``act(observation)``). A driver that reads ground truth (``env.world``) is
-*privileged* and says so with ``privileged = True``; the others use only the observation (camera
-frames, speed, route command), as a real car would.
+A driver is started once per episode (``reset(context)``) and then asked for an action for each observation
+(``act(observation)``). The context (``envs.driver_context.DriverContext``) carries the sensor rig and time step;
+a driver that reads ground truth is *privileged*, says so with ``privileged = True`` and finds the world in the
+context. The others use only the observation (camera frames, speed, route command), as a real car would. Every
+built-in driver also accepts the env itself (with or without Gymnasium wrappers) in place of the context.
 """
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 
 if TYPE_CHECKING:
-    from envs.drive_env import DriveEnv
+    from envs.driver_context import DriverContext
 
 
 @runtime_checkable
@@ -24,8 +26,8 @@ class Driver(Protocol):
     name: str
     privileged: bool
 
-    def reset(self, env: DriveEnv) -> None:
-        """Start an episode in ``env`` (already reset)."""
+    def reset(self, context: DriverContext) -> None:
+        """Start an episode (the env is already reset)."""
 
     def act(self, observation: dict[str, Any]) -> np.ndarray:
         """``[steer, throttle_brake]`` in [-1, 1] for this observation."""
@@ -55,10 +57,28 @@ def make_driver(name: str, **kwargs: Any) -> Driver:
     return _REGISTRY[name](**kwargs)
 
 
+# The built-in drivers, by the module and class that make them: imported only when asked for (pygame, torch and
+# stable-baselines3 load only for the drivers that need them), and without the drivers importing this registry.
+BUILTIN = {
+    "agent": "agent.agent_driver:AgentDriver",
+    "autopilot": "agent.autopilot:Autopilot",
+    "gamepad": "agent.human:GamepadDriver",
+    "keyboard": "agent.human:KeyboardDriver",
+    "pilotnet": "agent.pilotnet_driver:PilotNetDriver",
+    "rl": "agent.rl_driver:RLDriver",
+}
+
+
 def _load_builtin() -> None:
-    """Import the modules whose drivers register themselves (lazily: pygame loads only when asked for)."""
-    import agent.agent_driver  # noqa: F401
-    import agent.autopilot  # noqa: F401
-    import agent.human  # noqa: F401
-    import agent.pilotnet_driver  # noqa: F401
-    import agent.rl_driver  # noqa: F401
+    """Put the built-in drivers' factories into the registry (each imported on first use)."""
+    for name, target in BUILTIN.items():
+        if name not in _REGISTRY:
+            _REGISTRY[name] = _lazy(target)
+
+
+def _lazy(target: str) -> Callable[..., Driver]:
+    def make(**kwargs: Any) -> Driver:
+        module, _, cls = target.partition(":")
+        return getattr(importlib.import_module(module), cls)(**kwargs)
+
+    return make

@@ -24,8 +24,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from agent.drivers import register
-
 if TYPE_CHECKING:
     from envs.drive_env import DriveEnv
 
@@ -280,7 +278,6 @@ class _HumanDriver:
         self.window.close()
 
 
-@register("keyboard")
 class KeyboardDriver(_HumanDriver):
     """Arrows or WASD. Steering and pedals ramp at the given rates (per second) and return to zero faster."""
 
@@ -319,7 +316,6 @@ class KeyboardDriver(_HumanDriver):
         return np.array([self.steer, self.throttle_brake], np.float32)
 
 
-@register("gamepad")
 class GamepadDriver(_HumanDriver):
     """The first pygame joystick: left stick x steers, right trigger accelerates, left trigger brakes.
 

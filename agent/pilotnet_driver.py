@@ -21,7 +21,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from agent.decision.pid import PID, STEER_RATE_PER_S
-from agent.drivers import register
 from agent.perception.pilotnet import DEFAULT_MODEL, PilotNetModel
 from envs.driver_context import DriverContext
 from sim.spec import VEHICLE
@@ -31,7 +30,6 @@ if TYPE_CHECKING:
 
 
 
-@register("pilotnet")
 class PilotNetDriver:
     """PilotNet steering plus a PID speed loop (see module docstring)."""
 

@@ -16,7 +16,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from agent.drivers import register
 from agent.rl_features import StateFeatures
 from agent.shipped import RL_POLICY
 
@@ -26,7 +25,6 @@ if TYPE_CHECKING:
 DEFAULT_MODEL = RL_POLICY
 
 
-@register("rl")
 class RLDriver:
     name = "rl"
     privileged = True

@@ -27,7 +27,7 @@ import torch
 from torch import nn
 
 from agent.perception.classes import CLASSES
-from agent.perception.tracking import iou_matrix as box_iou  # one IoU for NMS, evaluation and tracking
+from agent.perception.detections import Detection, box_iou, nms_numpy  # noqa: F401 (re-exported)
 
 if TYPE_CHECKING:
     from agent.perception.ped_refiner import Refine
@@ -174,17 +174,6 @@ class DecodedDetector(nn.Module):
 
 
 # --------------------------------------------------------------------------- post-processing
-@dataclass(frozen=True)
-class Detection:
-    box: tuple[float, float, float, float]  # x0, y0, x1, y1 in pixels
-    cls: int
-    score: float
-
-    @property
-    def name(self) -> str:
-        return CLASSES[self.cls]
-
-
 def postprocess(pred: np.ndarray, score_threshold: float = 0.3, iou_threshold: float = 0.5,
                 max_detections: int = 100) -> list[Detection]:
     """One image's decoded cells (cells x (4 + 1 + C)) -> detections after per-group NMS (OpenCV)."""
@@ -207,19 +196,6 @@ def postprocess(pred: np.ndarray, score_threshold: float = 0.3, iou_threshold: f
     idx = np.asarray(idx, dtype=np.int64).reshape(-1)
     idx = idx[np.argsort(-score[keep][idx])][:max_detections]
     return [Detection(tuple(float(v) for v in boxes[i]), int(cls[keep][i]), float(score[keep][i])) for i in idx]
-
-
-def nms_numpy(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float) -> np.ndarray:
-    """Greedy NMS in numpy (the reference the OpenCV path is tested against); returns kept indices."""
-    order = np.argsort(-scores)
-    keep = []
-    while len(order):
-        i = order[0]
-        keep.append(i)
-        rest = order[1:]
-        iou = box_iou(boxes[i:i + 1], boxes[rest])[0]
-        order = rest[iou <= iou_threshold]
-    return np.array(keep, dtype=np.int64)
 
 
 def to_input(rgb: np.ndarray) -> np.ndarray:

@@ -26,7 +26,7 @@ import torch
 from torch import nn
 
 from agent.perception.classes import CLASSES
-from agent.perception.detector import Detection, nms_numpy
+from agent.perception.detections import Detection, nms_numpy
 
 PEDESTRIAN = CLASSES.index("pedestrian")
 DEFAULT_REFINER_ONNX = "data/models/ped_refiner.onnx"

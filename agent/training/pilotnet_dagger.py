@@ -11,6 +11,7 @@ lane when it leaves it, as in evaluation. Rounds are recorded as ordinary episod
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -79,9 +80,10 @@ def collect(model: torch.nn.Module, folder: Path, episodes: int, seed: int, town
 
 
 def dagger(model: torch.nn.Module, meta: dict[str, Any], frames: FrameSet, args: argparse.Namespace,
-           out: Path) -> tuple[torch.nn.Module, dict[str, Any]]:
-    """``args.dagger`` rounds of collect + fine-tune; returns the best model and its metadata."""
-    from agent.training.pilotnet_training import fit, load_model
+           out: Path, fit: Callable[..., Any]) -> tuple[torch.nn.Module, dict[str, Any]]:
+    """``args.dagger`` rounds of collect + fine-tune with ``fit`` (the training loop's); returns the best model and
+    its metadata."""
+    from agent.perception.pilotnet import load_model
 
     train, val = split_by_episode(frames, args.validation, args.seed)
     towns = sorted({int(_attr_town(p)) for p in frames.episode_paths}) or [1]

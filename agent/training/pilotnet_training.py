@@ -251,7 +251,7 @@ def run(args: argparse.Namespace) -> int:
     if args.dagger:
         from agent.training.pilotnet_dagger import dagger
 
-        best_model, best_meta = dagger(best_model, best_meta, frames, args, out)
+        best_model, best_meta = dagger(best_model, best_meta, frames, args, out, fit)
     diff = export(best_model, best_meta, args.model)
     shutil.copy(out / "log.csv", args.model.with_suffix(".log.csv"))
     summary = {"model": str(args.model), "onnx": str(args.model.with_suffix(".onnx")), "onnx_max_abs_diff": diff,
