@@ -76,10 +76,10 @@ class AgentConfig:
     whole_margin_px: float = 3.0  # a box this near the image's side edge may be cut: it does not show the whole
     still_lateral_mps: float = 0.3  # a vehicle moving sideways slower than this gets the depth prior
     # A whole person's box (cut neither at the top nor at the bottom) whose bottom row puts them at z is about
-    # f x 1.75 m / z tall: height x z / (f x 1.75) fell in 0.83-1.12 for every true detection on the detector's
-    # test split (1,545, within 40 m). Outside this range it is no person standing there (a kerb's edge line
-    # at the image border was one, and held the car in a junction for 90 s). People in this world are all
-    # 1.75 m tall; a world with children needs a lower bound.
+    # f x 1.75 m / z tall: outside this range of height x z / (f x 1.75) it is no person standing there (a
+    # kerb's edge line at the image border can pass for one and hold the car), and true detections lie well
+    # inside it (docs/agent_rules.md). People in this world are all 1.75 m tall; a world with children needs
+    # a lower bound.
     person_height_ratio: tuple[float, float] = (0.7, 1.4)
     junction_hold_m: float = 20.0  # going straight, this far past the stop line the car holds the approach
     #                                lane's heading and offset (no lines to steer by inside the junction)

@@ -1,22 +1,22 @@
 """The look over the shoulder before a lane change, through the door-mirror cameras.
 
 Why: the forward camera sees 45 degrees either side of the axis, so a car overtaking in the next lane is
-invisible from a few metres behind our rear bumper until it is well past our front. PilotNet moves into the
-lane a turn needs as soon as the route announces the turn, and on two evaluation routes it moved into such a
-car. The agent looks through the blind-spot cameras (``DriveEnv.blind_spot_frame``), left and right in turn
-every few frames, and more often on the side of a pending lane change (a left or right command, no turn under
-way yet, no solid line on that side), and runs the detector on the picture. A vehicle seen in the zone beside
-and up to 6 m behind holds a lane change towards it (PilotNet is asked to follow its lane): for ``memory_s``
-after it was last seen alongside, and the car eases off so the other one passes (a car right beside fills the
-mirror camera's picture and is not detected, but it crossed the zone behind first, and the route may announce
-the turn only when it is already alongside); for ``behind_memory_s`` after it was last seen behind.
+invisible from a few metres behind our rear bumper until it is well past our front, and PilotNet moves into the
+lane a turn needs as soon as the route announces the turn, whether that lane is free or not. The agent looks
+through the blind-spot cameras (``DriveEnv.blind_spot_frame``), left and right in turn every few frames, and
+more often on the side of a pending lane change (a left or right command, no turn under way yet, no solid line
+on that side), and runs the detector on the picture. A vehicle seen in the zone beside and up to 6 m behind
+holds a lane change towards it (PilotNet is asked to follow its lane): for ``memory_s`` after it was last seen
+alongside, and the car eases off so the other one passes (a car right beside fills the mirror camera's picture
+and is not detected, but it crossed the zone behind first, and the route may announce the turn only when it is
+already alongside); for ``behind_memory_s`` after it was last seen behind.
 
-On by default (``BlindSpotConfig(enabled=False)`` turns it off). It passes the ``overtaken_before_turn``
-scenario, which the agent fails without it, and removed the blind lane changes of the 20-route tables. Its first
-version held a change for any vehicle up to 20 m behind and capped the speed while holding: it held a change
-behind a truck that slowed for the junction as the car did, and the turn then taken from the inner lane hit the
-truck. Now the zone ends 6 m behind, a vehicle last seen behind holds the change for 1 s only, and only one
-alongside caps the speed: a car that follows rather than overtakes is merged in front of (it brakes for us).
+On by default (``BlindSpotConfig(enabled=False)`` turns it off); without it the agent fails the
+``overtaken_before_turn`` scenario. The zone ends close behind, a vehicle last seen behind holds the change only
+briefly, and only one alongside caps the speed: a car that follows rather than overtakes is merged in front of
+(it brakes for us). Waiting for every follower, and easing off for it, keeps the car beside traffic that slows
+for the same junction, and the turn is then taken from the wrong lane, across that traffic. What went wrong
+without these rules: ``docs/agent_rules.md``.
 """
 
 from __future__ import annotations

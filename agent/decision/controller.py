@@ -34,7 +34,8 @@ Why it is built this way:
   half a person, and nothing the camera sees can refute it while the car stands), is stopped for like any
   other, but the car stands for such an object at most ``unconfirmed_hold_s`` (summed over whichever
   unconfirmed objects hold it); then it creeps on at ``creep_speed_mps``, so the view changes and perception
-  looks again every frame, and a person the detector confirms stops it as always.
+  looks again every frame, and a person the detector confirms stops it as always (what went wrong without
+  it: ``docs/agent_rules.md``).
 
 Distances in ``Scene`` are measured from the camera along the ground; the controller converts them to
 the gap ahead of the front bumper with ``camera_to_front_m``.

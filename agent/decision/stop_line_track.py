@@ -97,8 +97,9 @@ class StopLineTrack:
               and light in LIGHT_STATES):
             inferred = light_distance_m - cfg.light_beyond_stop_line_m - cfg.camera_to_front_m \
                 - cfg.light_fallback_margin_m
-            # A reading far from the tracked one, or one that puts the car past a line it never saw (seed 513: a
-            # "light" 12 m ahead for one frame), is believed only when seen again where odometry puts it.
+            # A reading far from the tracked one, or one that puts the car past a line it never saw, is believed
+            # only when seen again where odometry puts it: a light misread for one frame would otherwise put the
+            # car "in the junction" short of the real line, ignoring its light (docs/agent_rules.md).
             if ((self.stop_line is None and inferred >= -1.0)
                     or (self.stop_line is not None and abs(inferred - self.stop_line) <= cfg.line_jump_m)
                     or self._odd_light.see(inferred) >= cfg.line_jump_frames):

@@ -11,7 +11,7 @@ detector missed this frame (SORT coasting), and a person seen only at the image'
 the edge walked there through the picture, so a person at the side edge is confirmed only while the same track
 was seen whole (clear of the side edges) within ``edge_confirm_s``. Why: at night a lit facade, a pole or the
 kerb's line where it meets the side edge scores as half a person, and with the car standing in a turn it stays
-there frame after frame (``docs/agent.md``).
+there frame after frame (``docs/agent_rules.md``).
 """
 
 from __future__ import annotations
@@ -151,8 +151,8 @@ class ObjectEstimator:
 
     def plausible_person(self, box: np.ndarray) -> bool:
         """Whether a pedestrian box's size agrees with where its bottom row meets the road (a box cut by the
-        image's top or bottom edge is not judged). People in this world are all 1.75 m tall; the ratio of box
-        height to the prior's fell in 0.83-1.12 for every true detection on the detector's test split."""
+        image's top or bottom edge is not judged). People in this world are all 1.75 m tall, and the ratio of
+        box height to the prior's stays near 1 for true detections (``docs/agent_rules.md``)."""
         ratio = self.geometry.height_ratio(box, "pedestrian")
         lo, hi = self.rules.person_height_ratio
         return not math.isfinite(ratio) or lo <= ratio <= hi

@@ -79,8 +79,8 @@ class StopLineDetector:
         have_lane = lanes is not None and lanes.detected
         if have_lane and lanes is not None and not self._holds_car(lanes):
             # Not the lane the car is in: at night the lane detector can lock onto the oncoming lane across the
-            # centre line (seed 509), where no bar of ours is painted and the zebra beyond the junction's near
-            # side, which spans the road, fills the corridor enough to pass for one (2.4 m too far).
+            # centre line, where no bar of ours is painted and the zebra beyond the junction's near side, which
+            # spans the road, fills the corridor enough to pass for a bar beyond ours (docs/agent_rules.md).
             lanes, have_lane = None, False
         following = self._track_m is not None and self._unseen <= cfg.track_frames
         # A new bar needs both lines of the lane (a lone line is often a kerb or a zebra's edge in a turn).
