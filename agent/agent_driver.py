@@ -49,7 +49,7 @@ from agent.perception.stop_line import StopLine, StopLineDetector
 from agent.perception.tracking import Sort, SortConfig, Track
 from agent.shipped import DETECTOR_ONNX, REFINER_ONNX
 from envs.driver_context import DriverContext
-from sim.spec import CAMERA, MIRRORS, ROAD, VEHICLE, CameraConfig
+from sim.spec import CAMERA, MIRRORS, ROAD, VEHICLE, CameraConfig, RoadDesign
 
 DEFAULT_DETECTOR = DETECTOR_ONNX
 DEFAULT_REFINER = REFINER_ONNX
@@ -87,8 +87,6 @@ class AgentConfig:
     hold_offset_gain: float = 0.3  # steer per metre of dead-reckoned offset from the approach lane's centre
     hold_max_steer: float = 0.3
     turn_guidance: bool = True  # commanded turns inside a junction follow the road design's turn arc
-    junction_setback_m: float = ROAD.stop_line_setback_m  # road priors (sim.spec): connectors start this far from
-    lane_width_m: float = ROAD.lane_width_m  #               the junction centre, at the stop bar's far edge
     turn_lookahead_m: float = 3.5  # pure pursuit of the arc from the rear axle (as the autopilot follows lanes):
     turn_lookahead_s: float = 0.4  # lookahead = this + turn_lookahead_s x speed
     turn_bar_seen_m: float = 12.0  # a turn is placed only by a stop bar seen this near
@@ -100,6 +98,7 @@ class AgentConfig:
     light_box_pad_px: float = 1.0  # light boxes come out about a pixel taller than the housing (measured)
     row_sigma_px: float = 1.0  # box-edge uncertainty, for the geometry fusion
     prior_sigma: float = 0.12  # relative spread of the height prior
+    road: RoadDesign = ROAD  # road-design priors (sim.spec): a deployment profile may set a real road's
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     blind_spot: BlindSpotConfig = field(default_factory=BlindSpotConfig)
     adas: AdasConfig = field(default_factory=AdasConfig)
@@ -172,7 +171,8 @@ class AgentDriver:
                                         "`python train.py detector train` and `python train.py detector export`.")
             detect = OnnxDetector(detector, self.config.score_threshold, threads=threads, refiner=refiner)
         self.detector = detect
-        self.controller = Controller(self.config.controller, VEHICLE.max_accel_mps2, VEHICLE.max_brake_mps2)
+        self.controller = Controller(self.config.controller, VEHICLE.max_accel_mps2, VEHICLE.max_brake_mps2,
+                                     self.config.road)
         self.adas = Adas(self.config.adas)
         self.sort = Sort(self.config.sort)
         self.timings: list[dict[str, float]] = []
@@ -194,8 +194,8 @@ class AgentDriver:
         odometry = Odometry(cfg.straight_steer, cfg.road_min_confidence, cfg.road_clear_m)
         junction = JunctionGuidance(JunctionRules(
             cfg.junction_hold_m, cfg.hold_heading_gain, cfg.hold_offset_gain, cfg.hold_max_steer, cfg.turn_guidance,
-            cfg.junction_setback_m, cfg.lane_width_m, cfg.turn_lookahead_m, cfg.turn_lookahead_s, cfg.turn_bar_seen_m),
-            self.controller.line, odometry, camera.mount_forward_m)
+            cfg.turn_lookahead_m, cfg.turn_lookahead_s, cfg.turn_bar_seen_m),
+            self.controller.line, odometry, camera.mount_forward_m, cfg.road)
         mirror = BoxGeometry(self._mirror_camera, cfg.row_sigma_px, cfg.prior_sigma)
         return Stages(
             lanes=LaneDetector(camera), stop=StopLineDetector(camera), geometry=geometry,
@@ -205,7 +205,7 @@ class AgentDriver:
             memory=ObjectMemory(geometry, MemoryRules(cfg.lost_memory_s, cfg.lost_memory_m, cfg.near_memory_s,
                                                       cfg.near_memory_m)),
             light=OurLight(geometry, LightRules(cfg.light_score_threshold, cfg.light_max_lateral_m,
-                                                cfg.light_line_tolerance_m, cfg.light_box_pad_px)),
+                                                cfg.light_line_tolerance_m, cfg.light_box_pad_px), cfg.road),
             odometry=odometry, junction=junction,
             blind_spot=BlindSpot(mirror, MirrorMount(MIRRORS.ahead_m, MIRRORS.out_m, MIRRORS.yaw_deg), cfg.blind_spot),
             stereo=stereo)

@@ -107,6 +107,14 @@ class RoadDesign:
     signal_housing_height_m: float = 2.1  # a three-lamp head's housing
     light_beyond_stop_line_m: float = 21.0  # our light stands across the junction (measured 21.4 m beyond the bar)
 
+    def __post_init__(self) -> None:  # real roads lie well inside these ranges
+        check_number("road lane_width_m", self.lane_width_m, 2.0, 6.0)
+        check_number("road stop_line_setback_m", self.stop_line_setback_m, 3.0, 60.0)
+        check_number("road stop_bar_depth_m", self.stop_bar_depth_m, 0.1, 2.0)
+        check_number("road signal_head_height_m", self.signal_head_height_m, 2.0, 12.0)
+        check_number("road signal_housing_height_m", self.signal_housing_height_m, 0.3, 3.0)
+        check_number("road light_beyond_stop_line_m", self.light_beyond_stop_line_m, 0.0, 80.0)
+
 
 CAMERA = CameraConfig()
 MIRRORS = MirrorRig()

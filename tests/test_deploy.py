@@ -627,3 +627,23 @@ def test_drive_py_profile_on_a_video_and_its_errors(sim_video: Path, tmp_path: P
         assert drive.main(argv) == 2
         err = capsys.readouterr().err
         assert words in err and err.count("\n") == 1
+
+
+def test_a_profile_sets_the_road_priors_the_agent_assumes(tmp_path) -> None:
+    """A deployment profile overrides the road-design priors (sim.spec) for a real road; the agent's stages use them."""
+    from agent.agent_driver import AgentDriver
+    from agent.deploy.profiles import ProfileError, profile_from_dict
+    from sim.spec import ROAD
+
+    profile = profile_from_dict({"road": {"lane_width_m": 3.0, "signal_head_height_m": 6.0}}, "road.yaml")
+    assert profile.road.lane_width_m == 3.0 and profile.road.stop_line_setback_m == ROAD.stop_line_setback_m
+    shipped = AgentDriver()
+    local = AgentDriver(road=profile.road)
+    assert local.stages.junction.road.lane_width_m == 3.0
+    box = (150.0, 20.0, 158.0, 40.0)
+    assert local.light_distance(box) > shipped.light_distance(box)  # a higher head seen at the same angle is farther
+    with pytest.raises(ProfileError, match="road.yaml: road lane_width_m must be"):
+        profile_from_dict({"road": {"lane_width_m": 30.0}}, "road.yaml")
+    with pytest.raises(ProfileError, match="unknown key 'road.lanes'"):
+        profile_from_dict({"road": {"lanes": 3}}, "road.yaml")
+

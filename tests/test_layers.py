@@ -153,11 +153,13 @@ def cycles(graph: dict[str, set[str]], prefix: str = "agent") -> list[list[str]]
 
 
 def test_no_layer_is_reached_up_or_across() -> None:
-    assert violations(project_imports()) == []
+    found = violations(project_imports())
+    assert not found, "\n".join(found)
 
 
 def test_no_import_cycle_inside_agent() -> None:
-    assert cycles(project_imports()) == []
+    found = cycles(project_imports())
+    assert not found, "\n".join(" -> ".join(c) for c in found)
 
 
 def test_sim_spec_is_dependency_free() -> None:

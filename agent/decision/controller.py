@@ -51,7 +51,7 @@ import numpy as np
 from agent.decision.stop_line_track import LIGHT_STATES, StopLineTrack
 from agent.perception.objects import PerceivedObject
 from sim.idm import idm_acceleration
-from sim.spec import CAMERA_TO_FRONT_M, ROAD, VEHICLE
+from sim.spec import CAMERA_TO_FRONT_M, ROAD, VEHICLE, RoadDesign
 
 VEHICLE_KINDS = ("car", "truck")
 
@@ -84,7 +84,6 @@ class ControllerConfig:
     line_unseen_far_m: float = 6.0  #    a real bar in range is found again frame after frame as the car nears it
     light_memory_s: float = 1.0
     red_memory_s: float = 4.0  # a red is kept longer: not seeing the light is no reason to go
-    light_beyond_stop_line_m: float = ROAD.light_beyond_stop_line_m  # road prior: lights stand across the junction
     light_fallback_margin_m: float = 2.0  # stop this much earlier when the bar was never seen
     red_no_line_speed_mps: float = 4.0  # approach speed under a red light whose stop line is unknown
     junction_turn_speed_mps: float = 3.0  # turning at a junction: the 90-degree camera sees the crosswalk of the
@@ -160,8 +159,9 @@ class Controller:
     """The rules (see module docstring). Call ``reset()`` per episode and ``step(scene, steer, dt)`` per frame."""
 
     def __init__(self, config: ControllerConfig | None = None, max_accel_mps2: float = VEHICLE.max_accel_mps2,
-                 max_brake_mps2: float = VEHICLE.max_brake_mps2) -> None:
+                 max_brake_mps2: float = VEHICLE.max_brake_mps2, road: RoadDesign = ROAD) -> None:
         self.config = config or ControllerConfig()
+        self.road = road  # the road-design priors (where lights stand beyond the stop line)
         self.vehicle_accel = max_accel_mps2  # what throttle 1 gives
         self.vehicle_brake = max_brake_mps2  # what brake 1 (throttle_brake -1) gives
         self.reset()
@@ -169,7 +169,7 @@ class Controller:
     def reset(self) -> None:
         self.last_steer = 0.0
         self.last_accel = 0.0
-        self.line = StopLineTrack(self.config)  # the stop bar ahead (shared with the junction guidance)
+        self.line = StopLineTrack(self.config, self.road)  # the stop bar ahead (shared with the junction guidance)
         self.light_state: str | None = None
         self._light_candidate: str | None = None
         self._light_count = 0

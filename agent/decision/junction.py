@@ -18,20 +18,21 @@ import numpy as np
 from agent.decision.odometry import Odometry
 from agent.decision.stop_line_track import StopLineTrack
 from agent.perception.stop_line import StopLine
-from sim.spec import ROAD, VEHICLE
+from sim.spec import ROAD, VEHICLE, RoadDesign
 
 
 @lru_cache(maxsize=16)
-def turn_path(command: int, setback_m: float, lane_offset_m: float, step_m: float = 0.2) -> tuple[np.ndarray, float]:
+def turn_path(command: int, setback_m: float, lane_offset_m: float, bar_depth_m: float = ROAD.stop_bar_depth_m,
+              step_m: float = 0.2) -> tuple[np.ndarray, float]:
     """A junction turn in the approach frame (x along the approach lane from its stop bar's near edge, y to the
-    right): 30 m of approach, the town's quarter circle from the bar's far edge (0.5 m on) into the same lane of
+    right): 30 m of approach, the design's quarter circle from the bar's far edge (``bar_depth_m`` on) into the same lane of
     the road turned into, then 30 m of that road; and the path length at which the arc ends. The lane's centre
     is ``lane_offset_m`` right of the road's centre line, so a right turn's radius is ``setback - offset`` and a
     left turn's ``setback + offset`` (``sim/town.py``, junction connectors)."""
     right = command == 2
     radius = setback_m - lane_offset_m if right else setback_m + lane_offset_m
     side = 1.0 if right else -1.0
-    x0 = ROAD.stop_bar_depth_m
+    x0 = bar_depth_m
     before = np.arange(x0 - 30.0, x0, step_m)
     approach = np.stack([before, np.zeros(len(before))], axis=1)
     theta = np.arange(0.0, math.pi / 2, step_m / radius)
@@ -51,8 +52,6 @@ class JunctionRules:
     hold_offset_gain: float = 0.3  # steer per metre of dead-reckoned offset from the approach lane's centre
     hold_max_steer: float = 0.3
     turn_guidance: bool = True  # commanded turns inside a junction follow the turn arc
-    junction_setback_m: float = ROAD.stop_line_setback_m  # connectors start this far from the junction centre
-    lane_width_m: float = ROAD.lane_width_m
     turn_lookahead_m: float = 3.5  # pure pursuit of the arc from the rear axle: lookahead = this + s x speed
     turn_lookahead_s: float = 0.4
     turn_bar_seen_m: float = 12.0  # a turn is placed only by a stop bar seen this near
@@ -61,8 +60,10 @@ class JunctionRules:
 class JunctionGuidance:
     """The straight hold and the turn arc (module docstring); ``placed`` once a stop bar ahead is located."""
 
-    def __init__(self, rules: JunctionRules, line: StopLineTrack, odometry: Odometry, camera_to_centre_m: float) -> None:
+    def __init__(self, rules: JunctionRules, line: StopLineTrack, odometry: Odometry, camera_to_centre_m: float,
+                 road: RoadDesign = ROAD) -> None:
         self.rules = rules
+        self.road = road  # lane width, stop-bar setback and depth: where the turn arc runs
         self.line = line
         self.odo = odometry
         self.camera_to_centre_m = camera_to_centre_m  # the camera's mount ahead of the car's centre
@@ -126,9 +127,10 @@ class JunctionGuidance:
         # car's heading on a curve of curvature tan(delta) / length
         here = np.array([float(rel @ u) - half * math.cos(heading), float(rel[0] * -u[1] + rel[1] * u[0])
                          - half * math.sin(heading)])
-        path, arc_end = turn_path(command, cfg.junction_setback_m, (k + 0.5) * cfg.lane_width_m)
+        path, arc_end = turn_path(command, self.road.stop_line_setback_m, (k + 0.5) * self.road.lane_width_m,
+                                   self.road.stop_bar_depth_m)
         lookahead = cfg.turn_lookahead_m + cfg.turn_lookahead_s * speed
-        if here[0] < ROAD.stop_bar_depth_m - lookahead:  # not yet: the lookahead point is still before the arc
+        if here[0] < self.road.stop_bar_depth_m - lookahead:  # not yet: the lookahead point is still before the arc
             return None
         step = float(np.hypot(*(path[1] - path[0])))
         nearest = int(np.argmin(np.sum((path - here) ** 2, axis=1)))

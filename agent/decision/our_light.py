@@ -3,7 +3,7 @@
 Positions are turned back into the frame of the approach lane (by the heading change since the car began to
 turn): as the camera swings into a turn before the stop line, the cross street's light (green while ours is red)
 comes to hang over the camera axis, but not over the lane we came along. Once the stop line has been measured,
-ours must also hang where the road design puts it (``sim.spec.ROAD.light_beyond_stop_line_m`` beyond the line):
+ours must also hang where the road design puts it (``RoadDesign.light_beyond_stop_line_m`` beyond the line):
 the cross street's head on the near right corner hangs over our lane's edge, 12 m nearer, lit green while ours is
 red. A box cut by the top of the image is a light beside the car (the cross street's, seen edge-on at night):
 never ours, which stands across the junction, well inside the picture.
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from agent.decision.stop_line_track import StopLineTrack
 from agent.perception.box_geometry import BoxGeometry
 from agent.perception.detector import Detection
-from sim.spec import ROAD
+from sim.spec import ROAD, RoadDesign
 
 
 @dataclass
@@ -39,9 +39,10 @@ class LightRules:
 class OurLight:
     """Chooses our light among the frame's light detections (module docstring)."""
 
-    def __init__(self, geometry: BoxGeometry, rules: LightRules) -> None:
+    def __init__(self, geometry: BoxGeometry, rules: LightRules, road: RoadDesign = ROAD) -> None:
         self.geometry = geometry
         self.rules = rules
+        self.road = road  # where signal heads hang (height, housing, distance beyond the stop line)
 
     def distance(self, box: tuple[float, float, float, float]) -> float:
         """Ground distance (m) to a signal head from how far above the horizon its box's centre is (the head
@@ -51,8 +52,8 @@ class OurLight:
         above_axis = math.atan((float(k[1, 2]) - 0.5 * (y0 + y1)) / self.geometry.f)
         elevation = above_axis + math.radians(camera.pitch_deg)
         if elevation > math.radians(2.0):
-            return (ROAD.signal_head_height_m - camera.mount_height_m) / math.tan(elevation)
-        return self.geometry.f * ROAD.signal_housing_height_m / max(y1 - y0 - self.rules.light_box_pad_px, 1.0)
+            return (self.road.signal_head_height_m - camera.mount_height_m) / math.tan(elevation)
+        return self.geometry.f * self.road.signal_housing_height_m / max(y1 - y0 - self.rules.light_box_pad_px, 1.0)
 
     def choose(self, lights: list[Detection], line: StopLineTrack, turned_rad: float) -> LightSeen | None:
         """Our light among ``lights``, given the tracked stop line and the heading change ``turned_rad`` since the
@@ -61,7 +62,7 @@ class OurLight:
         rules = self.rules
         expected = None
         if line.stop_line_measured and line.stop_line is not None:
-            expected = line.stop_line + line.config.camera_to_front_m + line.config.light_beyond_stop_line_m
+            expected = line.stop_line + line.config.camera_to_front_m + self.road.light_beyond_stop_line_m
         cos_t, sin_t = math.cos(turned_rad), math.sin(turned_rad)
         for d in lights:
             x0, y0, x1, y1 = d.box

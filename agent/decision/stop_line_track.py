@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from sim.spec import ROAD, RoadDesign
+
 if TYPE_CHECKING:
     from agent.decision.controller import ControllerConfig
 
@@ -44,8 +46,9 @@ class Unconfirmed:
 class StopLineTrack:
     """Bumper to the stop bar ahead (odometry between readings), and the travel left inside a junction."""
 
-    def __init__(self, config: ControllerConfig) -> None:
+    def __init__(self, config: ControllerConfig, road: RoadDesign = ROAD) -> None:
         self.config = config
+        self.road = road
         self.reset()
 
     def reset(self) -> None:
@@ -95,7 +98,7 @@ class StopLineTrack:
                 self.stop_line, self.stop_line_measured = None, False
         elif (not self.stop_line_measured and light_distance_m is not None and self.ignore_light_m <= 0
               and light in LIGHT_STATES):
-            inferred = light_distance_m - cfg.light_beyond_stop_line_m - cfg.camera_to_front_m \
+            inferred = light_distance_m - self.road.light_beyond_stop_line_m - cfg.camera_to_front_m \
                 - cfg.light_fallback_margin_m
             # A reading far from the tracked one, or one that puts the car past a line it never saw, is believed
             # only when seen again where odometry puts it: a light misread for one frame would otherwise put the

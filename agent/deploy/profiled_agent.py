@@ -77,7 +77,8 @@ class ProfiledAgent:
             raise ProfileError(f"{profile.source_file}: the agent needs its detector; set modules.detector.enabled: true.")
         self.profile = profile
         config = AgentConfig(detect_every=profile.every("detector"),
-                             distance="stereo" if profile.every("stereo") else "geometry", **config_overrides)
+                             distance="stereo" if profile.every("stereo") else "geometry", road=profile.road,
+                             **config_overrides)
         self.agent = AgentDriver(config=config, net=open_pilotnet(profile),
                                  detect=open_detector(profile, config.score_threshold), stage_hook=self._rates)
         self.name = f"agent[{profile.name}]"

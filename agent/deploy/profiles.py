@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any, get_type_hints
 
 from agent.shipped import ROOT
+from sim.spec import ROAD, RoadDesign
 
 PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
 
@@ -121,6 +122,7 @@ class Profile:
     budgets_ms: dict[str, float] = field(default_factory=dict)
     camera: CameraProfile = field(default_factory=CameraProfile)
     alerts: AlertProfile = field(default_factory=AlertProfile)
+    road: RoadDesign = ROAD  # the road-design priors the agent assumes (sim.spec): a country's roads may differ
     source_file: str = "<defaults>"
 
     # ------------------------------------------------------------------ queries the agent uses
@@ -283,10 +285,16 @@ def profile_from_dict(data: Any, source: str = "<dict>", default_name: str = "cp
         budgets[stage] = _value(float, ms, source, f"budgets_ms.{stage}")
     camera = _build(CameraProfile, data.pop("camera", {}), source, "camera", CameraProfile())
     alerts = _build(AlertProfile, data.pop("alerts", {}), source, "alerts", AlertProfile())
+    try:
+        road = _build(RoadDesign, data.pop("road", {}), source, "road", ROAD)
+    except ProfileError:
+        raise
+    except ValueError as exc:  # a prior outside real roads' range (RoadDesign checks its own)
+        raise ProfileError(f"{source}: {exc}") from None
     data.setdefault("name", default_name)
-    top = _build(Profile, data, source, "", Profile(), skip=("models", "modules", "budgets_ms", "camera", "alerts",
+    top = _build(Profile, data, source, "", Profile(), skip=("models", "modules", "budgets_ms", "camera", "alerts", "road",
                                                             "source_file"))
-    profile = replace(top, models=models, modules=modules, budgets_ms=budgets, camera=camera, alerts=alerts,
+    profile = replace(top, models=models, modules=modules, budgets_ms=budgets, camera=camera, alerts=alerts, road=road,
                       source_file=source)
     profile.validate()
     return profile
