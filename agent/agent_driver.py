@@ -32,24 +32,24 @@ from typing import Any
 
 import numpy as np
 
-from agent.decision.adas import Adas, AdasConfig
-from agent.decision.blind_spot import BlindSpot, BlindSpotConfig, MirrorMount
-from agent.decision.controller import Controller, ControllerConfig, Decision, Scene
-from agent.decision.junction import JunctionGuidance, JunctionRules
-from agent.decision.odometry import Odometry
-from agent.decision.our_light import LightRules, LightSeen, OurLight
-from agent.perception.box_geometry import BoxGeometry
-from agent.perception.classes import LIGHT_CLASSES
-from agent.perception.detector import Detection, OnnxDetector
-from agent.perception.lanes import LaneDetector, LaneResult, lane_centre_of
-from agent.perception.object_memory import MemoryRules, ObjectMemory
-from agent.perception.objects import TRACKED, ObjectEstimator, ObjectRules, PerceivedObject
-from agent.perception.pilotnet import DEFAULT_MODEL, PilotNetModel
-from agent.perception.stop_line import StopLine, StopLineDetector
-from agent.perception.tracking import Sort, SortConfig, Track
-from agent.shipped import DETECTOR_ONNX, REFINER_ONNX
-from envs.driver_context import DriverContext
-from sim.spec import CAMERA, MIRRORS, ROAD, VEHICLE, CameraConfig, RoadDesign
+from towndrive.agent.decision.adas import Adas, AdasConfig
+from towndrive.agent.decision.blind_spot import BlindSpot, BlindSpotConfig, MirrorMount
+from towndrive.agent.decision.controller import Controller, ControllerConfig, Decision, Scene
+from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
+from towndrive.agent.decision.odometry import Odometry
+from towndrive.agent.decision.our_light import LightRules, LightSeen, OurLight
+from towndrive.agent.perception.box_geometry import BoxGeometry
+from towndrive.agent.perception.classes import LIGHT_CLASSES
+from towndrive.agent.perception.detector import Detection, OnnxDetector
+from towndrive.agent.perception.lanes import LaneDetector, LaneResult, lane_centre_of
+from towndrive.agent.perception.object_memory import MemoryRules, ObjectMemory
+from towndrive.agent.perception.objects import TRACKED, ObjectEstimator, ObjectRules, PerceivedObject
+from towndrive.agent.perception.pilotnet import DEFAULT_MODEL, PilotNetModel
+from towndrive.agent.perception.stop_line import StopLine, StopLineDetector
+from towndrive.agent.perception.tracking import Sort, SortConfig, Track
+from towndrive.agent.shipped import DETECTOR_ONNX, REFINER_ONNX
+from towndrive.envs.driver_context import DriverContext
+from towndrive.sim.spec import CAMERA, MIRRORS, ROAD, VEHICLE, CameraConfig, RoadDesign
 
 DEFAULT_DETECTOR = DETECTOR_ONNX
 DEFAULT_REFINER = REFINER_ONNX
@@ -188,7 +188,7 @@ class AgentDriver:
         geometry = BoxGeometry(camera, cfg.row_sigma_px, cfg.prior_sigma)
         stereo = None
         if cfg.distance == "stereo":
-            from agent.perception.stereo import StereoDepth
+            from towndrive.agent.perception.stereo import StereoDepth
 
             stereo = StereoDepth(camera)
         odometry = Odometry(cfg.straight_steer, cfg.road_min_confidence, cfg.road_clear_m)
@@ -373,6 +373,6 @@ class AgentDriver:
         """The last frame with the agent's overlay (``agent.agent_overlay.draw_agent``), or None before the first."""
         if self.view is None:
             return None
-        from agent.agent_overlay import draw_agent
+        from towndrive.agent.agent_overlay import draw_agent
 
         return draw_agent(self.view, self.lanes.birdseye, scale)

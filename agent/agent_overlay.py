@@ -13,13 +13,13 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from agent.overlays import draw_detections
-from agent.perception.classes import CLASSES
-from agent.perception.detector import Detection
-from agent.perception.lanes import BirdsEye
+from towndrive.agent.overlays import draw_detections
+from towndrive.agent.perception.classes import CLASSES
+from towndrive.agent.perception.detector import Detection
+from towndrive.agent.perception.lanes import BirdsEye
 
 if TYPE_CHECKING:
-    from agent.agent_driver import AgentView
+    from towndrive.agent.agent_driver import AgentView
 
 LANE_FREE = (60, 220, 90)
 LANE_BLOCKED = (235, 40, 40)
@@ -41,7 +41,7 @@ def lane_polygon(view: AgentView, birdseye: BirdsEye) -> np.ndarray | None:
         half = view.lane_width_m / 2
     else:  # no lane: the corridor the current steering drives (as the controller assumes)
         ctrl = view.decision
-        from agent.decision.controller import ControllerConfig
+        from towndrive.agent.decision.controller import ControllerConfig
 
         c = ControllerConfig()
         curvature = np.tan(ctrl.steer * c.max_steer_rad) / c.wheelbase_m
@@ -102,7 +102,13 @@ def draw_agent(view: AgentView, birdseye: BirdsEye, scale: int = 2) -> np.ndarra
     cv2.circle(out, (cx, cy), 14, (30, 30, 30), -1, cv2.LINE_AA)
     if state is not None:
         cv2.circle(out, (cx, cy), 11, LIGHT_RGB[state], -1, cv2.LINE_AA)
-    _text(out, state or "no light", (w - 40 - 8 * len(state or "no light"), 27), (255, 255, 255), 0.4)
+    if state is not None:
+        label = f"our light: {state}"
+    elif view.light is not None:  # seen this frame, not yet confirmed (or ignored inside the junction)
+        label = f"our light: {view.light.state}?"
+    else:
+        label = "no light for our lane"
+    _text(out, label, (w - 44 - int(6.2 * len(label)), 27), (255, 255, 255), 0.4)
     # Steering: PilotNet's proposal (thin white) and the applied command (thick yellow).
     bar_y, bar_half = h - 14, w // 4
     cv2.line(out, (w // 2 - bar_half, bar_y), (w // 2 + bar_half, bar_y), (200, 200, 200), 1, cv2.LINE_AA)

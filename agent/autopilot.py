@@ -21,15 +21,15 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from highway_env.road.lane import AbstractLane
 
-from agent.decision.pid import PID, STEER_RATE_PER_S  # noqa: F401 (re-exported)
-from envs.driver_context import DriverContext
-from sim.objects import LightState
-from sim.town import Command, lanes_for
-from sim.traffic import Agents, crosswalk_gap, curve_speed_limit, idm_acceleration, oncoming_conflict, path_gap
-from sim.world import EGO_ID, World
+from towndrive.agent.decision.pid import PID, STEER_RATE_PER_S  # noqa: F401 (re-exported)
+from towndrive.envs.driver_context import DriverContext
+from towndrive.sim.objects import LightState
+from towndrive.sim.town import Command, lanes_for
+from towndrive.sim.traffic import Agents, crosswalk_gap, curve_speed_limit, idm_acceleration, oncoming_conflict, path_gap
+from towndrive.sim.world import EGO_ID, World
 
 if TYPE_CHECKING:
-    from envs.drive_env import DriveEnv
+    from towndrive.envs.drive_env import DriveEnv
 
 
 LEAD_GAP_M = 2.5  # bumper gap kept to a stopped vehicle or pedestrian ahead

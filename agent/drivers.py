@@ -9,14 +9,13 @@ built-in driver also accepts the env itself (with or without Gymnasium wrappers)
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 
 if TYPE_CHECKING:
-    from envs.driver_context import DriverContext
+    from towndrive.envs.driver_context import DriverContext
 
 
 @runtime_checkable
@@ -60,12 +59,12 @@ def make_driver(name: str, **kwargs: Any) -> Driver:
 # The built-in drivers, by the module and class that make them: imported only when asked for (pygame, torch and
 # stable-baselines3 load only for the drivers that need them), and without the drivers importing this registry.
 BUILTIN = {
-    "agent": "agent.agent_driver:AgentDriver",
-    "autopilot": "agent.autopilot:Autopilot",
-    "gamepad": "agent.human:GamepadDriver",
-    "keyboard": "agent.human:KeyboardDriver",
-    "pilotnet": "agent.pilotnet_driver:PilotNetDriver",
-    "rl": "agent.rl_driver:RLDriver",
+    "agent": "towndrive.agent.agent_driver:AgentDriver",
+    "autopilot": "towndrive.agent.autopilot:Autopilot",
+    "gamepad": "towndrive.agent.human:GamepadDriver",
+    "keyboard": "towndrive.agent.human:KeyboardDriver",
+    "pilotnet": "towndrive.agent.pilotnet_driver:PilotNetDriver",
+    "rl": "towndrive.agent.rl_driver:RLDriver",
 }
 
 
@@ -78,7 +77,9 @@ def _load_builtin() -> None:
 
 def _lazy(target: str) -> Callable[..., Driver]:
     def make(**kwargs: Any) -> Driver:
+        from towndrive.extras import import_for
+
         module, _, cls = target.partition(":")
-        return getattr(importlib.import_module(module), cls)(**kwargs)
+        return getattr(import_for(module, f"The {cls} driver"), cls)(**kwargs)
 
     return make

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from envs.drive_env import DriveEnv
+    from towndrive.envs.drive_env import DriveEnv
 
 HUD_HEIGHT = 64
 LIGHT_COLOURS = {"green": (40, 200, 70), "yellow": (240, 200, 30), "red": (230, 40, 40)}

@@ -12,7 +12,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from agent.perception.detector import Detection
+from towndrive.agent.perception.detector import Detection
 
 # RGB per class: vehicles blue-ish, people orange, lights in their own colour.
 CLASS_COLORS: dict[str, tuple[int, int, int]] = {

@@ -20,10 +20,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from agent.decision.pid import PID, STEER_RATE_PER_S
-from agent.perception.pilotnet import DEFAULT_MODEL, PilotNetModel
-from envs.driver_context import DriverContext
-from sim.spec import VEHICLE
+from towndrive.agent.decision.pid import PID, STEER_RATE_PER_S
+from towndrive.agent.perception.pilotnet import DEFAULT_MODEL, PilotNetModel
+from towndrive.envs.driver_context import DriverContext
+from towndrive.sim.spec import VEHICLE
 
 if TYPE_CHECKING:
     pass

@@ -16,11 +16,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from agent.rl_features import StateFeatures
-from agent.shipped import RL_POLICY
+from towndrive.agent.rl_features import StateFeatures
+from towndrive.agent.shipped import RL_POLICY
 
 if TYPE_CHECKING:
-    from envs.drive_env import DriveEnv
+    from towndrive.envs.drive_env import DriveEnv
 
 DEFAULT_MODEL = RL_POLICY
 
@@ -54,7 +54,7 @@ def load_policy(path: Path) -> Any:
     from stable_baselines3 import PPO, SAC
     from stable_baselines3.common.save_util import load_from_zip_file
 
-    from agent.rl_features import N_FEATURES
+    from towndrive.agent.rl_features import N_FEATURES
 
     if not path.is_file():
         raise FileNotFoundError(f"RL model {path} not found; train one with: python train.py rl")

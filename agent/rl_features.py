@@ -29,11 +29,11 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from agent.autopilot import Autopilot
-from envs.driver_context import DriverContext
-from sim.objects import LightState
-from sim.traffic import crosswalk_gap, path_gap
-from sim.world import EGO_ID
+from towndrive.agent.autopilot import Autopilot
+from towndrive.envs.driver_context import DriverContext
+from towndrive.sim.objects import LightState
+from towndrive.sim.traffic import crosswalk_gap, path_gap
+from towndrive.sim.world import EGO_ID
 
 N_FEATURES = 24
 PREVIEW_M = (5.0, 10.0, 20.0)

@@ -24,12 +24,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.drivers import make_driver  # noqa: E402
-from envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
-from envs.evaluation import run_episode  # noqa: E402
-from envs.metrics import episode_metrics  # noqa: E402
-from sim.render import LIGHTING_PRESETS  # noqa: E402
-from sim.world import WorldConfig  # noqa: E402
+from towndrive.agent.drivers import make_driver  # noqa: E402
+from towndrive.envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
+from towndrive.envs.evaluation import run_episode  # noqa: E402
+from towndrive.envs.metrics import episode_metrics  # noqa: E402
+from towndrive.sim.render import LIGHTING_PRESETS  # noqa: E402
+from towndrive.sim.world import WorldConfig  # noqa: E402
 
 
 class HashingDriver:

@@ -25,12 +25,12 @@ import cv2
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.agent_driver import STAGES  # noqa: E402
-from agent.decision.blind_spot import BlindSpotConfig  # noqa: E402
-from agent.drivers import make_driver  # noqa: E402
 from bench.timing import latency_of  # noqa: E402
-from envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
-from sim.render import CameraConfig  # noqa: E402
+from towndrive.agent.agent_driver import STAGES  # noqa: E402
+from towndrive.agent.decision.blind_spot import BlindSpotConfig  # noqa: E402
+from towndrive.agent.drivers import make_driver  # noqa: E402
+from towndrive.envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
+from towndrive.sim.render import CameraConfig  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

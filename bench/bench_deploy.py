@@ -36,13 +36,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.deploy.backends import open_detector, open_pilotnet  # noqa: E402
-from agent.deploy.profiles import load_profile, profile_from_dict  # noqa: E402
-from agent.perception.lanes import LaneDetector  # noqa: E402
-from agent.perception.stop_line import StopLineDetector  # noqa: E402
-from agent.perception.tracking import Sort, SortConfig  # noqa: E402
 from bench.eval_tracking import evaluate, record  # noqa: E402
 from bench.timing import latency_of  # noqa: E402
+from towndrive.agent.deploy.backends import open_detector, open_pilotnet  # noqa: E402
+from towndrive.agent.deploy.profiles import load_profile, profile_from_dict  # noqa: E402
+from towndrive.agent.perception.lanes import LaneDetector  # noqa: E402
+from towndrive.agent.perception.stop_line import StopLineDetector  # noqa: E402
+from towndrive.agent.perception.tracking import Sort, SortConfig  # noqa: E402
 
 STAGES = ("pilotnet", "detector", "tracking", "lanes", "stop_line")
 MOVERS = ("car", "truck", "pedestrian")
@@ -118,8 +118,8 @@ def run_loop(profile: object, sequences: list, every: int, clock: Callable[[], f
 def agent_section(args: argparse.Namespace, report: dict) -> None:
     """The whole ``agent`` driver (agent.deploy.profiled_agent.ProfiledAgent) replayed on a recorded episode, per backend."""
     try:
-        from agent.deploy.camera_sources import EpisodeSource
-        from agent.deploy.profiled_agent import ProfiledAgent, budget_report, frame_env
+        from towndrive.agent.deploy.camera_sources import EpisodeSource
+        from towndrive.agent.deploy.profiled_agent import ProfiledAgent, budget_report, frame_env
     except ImportError as exc:
         print(f"\nthe agent driver: not available ({exc}); skipped")
         return

@@ -31,8 +31,8 @@ def drive_frames(town_seed: int, weather: str, seed: int, every: int, steps: int
     """Camera frames every ``every`` steps of an autopilot drive through a town with traffic."""
     import numpy as np
 
-    from agent.drivers import make_driver
-    from envs.drive_env import DriveConfig, DriveEnv
+    from towndrive.agent.drivers import make_driver
+    from towndrive.envs.drive_env import DriveConfig, DriveEnv
 
     env = DriveEnv(DriveConfig(town_seed=town_seed, weather=weather))
     obs, _ = env.reset(seed=seed, options={"traffic_density": 1.5})
@@ -67,8 +67,8 @@ def sample_frames(count: int) -> list:
 
 def pedestrian_candidates(raw, lowest: float) -> int:
     """How many pedestrian boxes the refiner gets from the detector's raw output at score >= ``lowest``."""
-    from agent.perception.detector import postprocess
-    from agent.perception.ped_refiner import PEDESTRIAN
+    from towndrive.agent.perception.detector import postprocess
+    from towndrive.agent.perception.ped_refiner import PEDESTRIAN
 
     return sum(d.cls == PEDESTRIAN for d in postprocess(raw, lowest))
 
@@ -86,8 +86,8 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
     import torch
 
-    from agent.perception.detector import OnnxDetector, TorchDetector, to_input
     from bench.timing import measure
+    from towndrive.agent.perception.detector import OnnxDetector, TorchDetector, to_input
 
     torch.set_num_threads(args.threads)
     frame = sample_frame()

@@ -20,9 +20,9 @@ import pybullet as p
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.autopilot import Autopilot
-from envs.drive_env import DriveConfig, DriveEnv
-from sim.render import CameraConfig, _projection
+from towndrive.agent.autopilot import Autopilot
+from towndrive.envs.drive_env import DriveConfig, DriveEnv
+from towndrive.sim.render import CameraConfig, _projection
 
 TARGETS = {(200, 66): 150.0, (320, 160): 60.0}
 

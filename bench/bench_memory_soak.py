@@ -19,7 +19,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
+from towndrive.envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
 
 
 def rss_mb() -> float:

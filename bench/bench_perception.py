@@ -19,15 +19,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.autopilot import Autopilot  # noqa: E402
-from agent.perception.lanes import LaneDetector, lane_masks  # noqa: E402
-from agent.perception.lanes_hough import HoughLaneDetector  # noqa: E402
-from agent.perception.stereo import StereoDepth  # noqa: E402
-from agent.perception.stop_line import StopLineDetector  # noqa: E402
-from agent.perception.tracking import Sort  # noqa: E402
 from bench.timing import measure  # noqa: E402
-from envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
-from envs.perception_truth import object_boxes  # noqa: E402
+from towndrive.agent.autopilot import Autopilot  # noqa: E402
+from towndrive.agent.perception.lanes import LaneDetector, lane_masks  # noqa: E402
+from towndrive.agent.perception.lanes_hough import HoughLaneDetector  # noqa: E402
+from towndrive.agent.perception.stereo import StereoDepth  # noqa: E402
+from towndrive.agent.perception.stop_line import StopLineDetector  # noqa: E402
+from towndrive.agent.perception.tracking import Sort  # noqa: E402
+from towndrive.envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
+from towndrive.envs.perception_truth import object_boxes  # noqa: E402
 
 
 def main() -> None:

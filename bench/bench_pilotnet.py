@@ -21,17 +21,17 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.perception.pilotnet import DEFAULT_MODEL, PilotNetModel, build, preprocess, to_tensor  # noqa: E402  # noqa: E402
-from agent.training.pilotnet_data import Augmenter, FrameSet, balance_weights  # noqa: E402
-from agent.training.pilotnet_training import _batches  # noqa: E402
 from bench.timing import measure  # noqa: E402
-from envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
-from sim.render import CameraConfig  # noqa: E402
+from towndrive.agent.perception.pilotnet import DEFAULT_MODEL, PilotNetModel, build, preprocess, to_tensor  # noqa: E402  # noqa: E402
+from towndrive.agent.training.pilotnet_data import Augmenter, FrameSet, balance_weights  # noqa: E402
+from towndrive.agent.training.pilotnet_training import _batches  # noqa: E402
+from towndrive.envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
+from towndrive.sim.render import CameraConfig  # noqa: E402
 
 
 def sim_frames(n: int) -> list[np.ndarray]:
     """Camera frames from a short autopilot drive (real pictures, not noise)."""
-    from agent.autopilot import Autopilot
+    from towndrive.agent.autopilot import Autopilot
 
     env = DriveEnv(DriveConfig())
     obs, _ = env.reset(seed=4)

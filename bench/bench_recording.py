@@ -22,11 +22,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.autopilot import Autopilot  # noqa: E402
-from data.episodes import EpisodeWriter  # noqa: E402
-from envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
-from envs.evaluation import run_episode  # noqa: E402
-from sim.render import CameraConfig  # noqa: E402
+from towndrive.agent.autopilot import Autopilot  # noqa: E402
+from towndrive.data.episodes import EpisodeWriter  # noqa: E402
+from towndrive.envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
+from towndrive.envs.evaluation import run_episode  # noqa: E402
+from towndrive.sim.render import CameraConfig  # noqa: E402
 
 
 def record_frames(camera: CameraConfig, steps: int, folder: Path) -> tuple[float, float, float]:

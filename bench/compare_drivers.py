@@ -22,12 +22,12 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.drivers import make_driver  # noqa: E402
-from envs.drive_env import DriveConfig  # noqa: E402
-from envs.evaluation import evaluate  # noqa: E402
-from envs.rules_cli import add_rule_arguments, rules_from_arguments  # noqa: E402
-from sim.render import LIGHTING_PRESETS  # noqa: E402
-from sim.world import WorldConfig  # noqa: E402
+from towndrive.agent.drivers import make_driver  # noqa: E402
+from towndrive.envs.drive_env import DriveConfig  # noqa: E402
+from towndrive.envs.evaluation import evaluate  # noqa: E402
+from towndrive.envs.rules_cli import add_rule_arguments, rules_from_arguments  # noqa: E402
+from towndrive.sim.render import LIGHTING_PRESETS  # noqa: E402
+from towndrive.sim.world import WorldConfig  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

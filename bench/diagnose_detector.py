@@ -26,10 +26,10 @@ def main(argv: list[str] | None = None) -> int:
     import numpy as np
     import torch
 
-    from agent.perception.classes import CLASSES
-    from agent.perception.detector import DecodedDetector, box_iou, load_detector, postprocess
-    from agent.training.detector_eval import class_ap, load_split
-    from agent.training.detector_train_loop import load_images
+    from towndrive.agent.perception.classes import CLASSES
+    from towndrive.agent.perception.detector import DecodedDetector, box_iou, load_detector, postprocess
+    from towndrive.agent.training.detector_eval import class_ap, load_split
+    from towndrive.agent.training.detector_train_loop import load_images
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", default="data/models/detector.pt")
@@ -42,11 +42,11 @@ def main(argv: list[str] | None = None) -> int:
     samples = load_split(args.data, args.split)
     images = load_images(samples, args.split)
     dets = []
-    from agent.training.detector_eval import resolve_refiner
+    from towndrive.agent.training.detector_eval import resolve_refiner
 
     refiner = resolve_refiner(args.refiner, args.model)
     if args.model.endswith(".onnx") or refiner:
-        from agent.perception.detector import OnnxDetector, TorchDetector
+        from towndrive.agent.perception.detector import OnnxDetector, TorchDetector
 
         make = OnnxDetector if args.model.endswith(".onnx") else TorchDetector
         model = make(args.model, score_threshold=0.01, refiner=refiner)
@@ -111,8 +111,8 @@ def slices_within_40m(samples: list, dets: list, cls: int) -> None:
     """AP@0.5 within 40 m and recall at IoU 0.5 (any score; score >= 0.3) by height bin and by weather."""
     import numpy as np
 
-    from agent.perception.detector import box_iou
-    from agent.training.detector_eval import class_ap
+    from towndrive.agent.perception.detector import box_iou
+    from towndrive.agent.training.detector_eval import class_ap
 
     def row(name: str, sub: list, sub_dets: list) -> None:
         a = class_ap(sub, sub_dets, cls, np.array([0.5]), 40.0)

@@ -31,13 +31,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.autopilot import Autopilot  # noqa: E402
-from agent.perception.lanes import BirdsEye, LaneDetector, LaneResult, draw_birdseye, draw_lanes  # noqa: E402
-from agent.perception.lanes_hough import HoughLaneDetector  # noqa: E402
-from agent.perception.stop_line import StopLine, StopLineDetector  # noqa: E402
-from envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
-from envs.perception_truth import camera_pose, lane_truth, lane_z_range_rows, stop_line_truth, tusimple_frame  # noqa: E402
-from sim.scene_meshes import to_world  # noqa: E402
+from towndrive.agent.autopilot import Autopilot  # noqa: E402
+from towndrive.agent.perception.lanes import BirdsEye, LaneDetector, LaneResult, draw_birdseye, draw_lanes  # noqa: E402
+from towndrive.agent.perception.lanes_hough import HoughLaneDetector  # noqa: E402
+from towndrive.agent.perception.stop_line import StopLine, StopLineDetector  # noqa: E402
+from towndrive.envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
+from towndrive.envs.perception_truth import camera_pose, lane_truth, lane_z_range_rows, stop_line_truth, tusimple_frame  # noqa: E402
+from towndrive.sim.scene_meshes import to_world  # noqa: E402
 
 PRESETS = ("noon", "dusk", "overcast", "night")
 STOP_BINS = ((3.0, 10.0), (10.0, 15.0), (15.0, 20.0))

@@ -29,10 +29,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.autopilot import Autopilot  # noqa: E402
-from agent.perception.stereo import StereoConfig, StereoDepth, colorize, fill_invalid  # noqa: E402
-from envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
-from envs.perception_truth import boxes_from_segmentation, d1_all, stereo_truth  # noqa: E402
+from towndrive.agent.autopilot import Autopilot  # noqa: E402
+from towndrive.agent.perception.stereo import StereoConfig, StereoDepth, colorize, fill_invalid  # noqa: E402
+from towndrive.envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
+from towndrive.envs.perception_truth import boxes_from_segmentation, d1_all, stereo_truth  # noqa: E402
 
 PRESETS = ("noon", "dusk", "overcast", "night")
 RANGES = ((0.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, 40.0))

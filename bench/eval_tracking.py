@@ -26,10 +26,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.autopilot import Autopilot  # noqa: E402
-from agent.perception.tracking import SkipTracker, Sort, SortConfig, Track, iou_matrix  # noqa: E402
-from envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
-from envs.perception_truth import object_boxes  # noqa: E402
+from towndrive.agent.autopilot import Autopilot  # noqa: E402
+from towndrive.agent.perception.tracking import SkipTracker, Sort, SortConfig, Track, iou_matrix  # noqa: E402
+from towndrive.envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
+from towndrive.envs.perception_truth import object_boxes  # noqa: E402
 
 
 def noisy(boxes: np.ndarray, rng: np.random.Generator, noise: float, dropout: float, false_rate: float,
@@ -232,14 +232,14 @@ def _with_detector(path: Path, sequences, config: SortConfig, mh) -> None:
     """MOTA with the trained detector's car, truck and pedestrian boxes (agent/perception/detector.py's TorchDetector),
     followed by the pedestrian refiner as the agent runs it when the shipped one is there."""
     try:
-        from agent.perception.detector import TorchDetector
-        from agent.training.detector_eval import resolve_refiner
+        from towndrive.agent.perception.detector import TorchDetector
+        from towndrive.agent.training.detector_eval import resolve_refiner
         refiner = resolve_refiner("auto", str(path))
         model = TorchDetector(path, refiner=refiner)
     except Exception as exc:  # the detector is someone else's work; say why it could not be used
         print(f"trained detector: cannot load {path} ({exc}); skipped")
         return
-    from agent.perception.checkpoints import load_checkpoint
+    from towndrive.agent.perception.checkpoints import load_checkpoint
 
     # The checkpoint's own record: a log file beside it may belong to an earlier run of the same name.
     meta = load_checkpoint(path, "detector")

@@ -10,8 +10,8 @@ import sys
 from pathlib import Path
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m data", description="Inspect and convert recorded episodes.")
+def main(argv: list[str] | None = None, prog: str = "towndrive data") -> int:
+    parser = argparse.ArgumentParser(prog=prog, description="Inspect and convert recorded episodes.")
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("summary", help="episodes, frames, hours, drivers, commands and steering of a dataset folder")
     p.add_argument("folder", type=Path)
@@ -28,14 +28,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("src", type=Path, help="dataset folder or one episode_*.h5 file")
     p.add_argument("dst", type=Path, help="empty output folder")
     args = parser.parse_args(argv)
-    from data.stopping import Stopped, StopSignals, describe_os_error
+    from towndrive.data.stopping import Stopped, StopSignals, describe_os_error
 
     signals = StopSignals()
     if args.command != "summary":  # writers stop between frames; summary writes nothing, so Ctrl-C stops it at once
         signals.__enter__()
     try:
         if args.command == "summary":
-            from data.summary import format_summary, summarize, write_histogram_png
+            from towndrive.data.summary import format_summary, summarize, write_histogram_png
 
             summary = summarize(args.folder, progress=True, check_frames=not args.quick)
             print(json.dumps(summary, indent=2) if args.json else format_summary(summary))
@@ -46,14 +46,14 @@ def main(argv: list[str] | None = None) -> int:
             if args.png:
                 print(f"histogram written to {write_histogram_png(summary, args.png)}", file=sys.stderr)
         elif args.command == "import-udacity":
-            from data.udacity import import_udacity
+            from towndrive.data.udacity import import_udacity
 
             if args.dt <= 0:
                 raise ValueError(f"--dt must be positive, got {args.dt}.")
             paths = import_udacity(args.src, args.dst, dt_s=args.dt, progress=True, stop=signals.check)
             print(f"imported {len(paths)} episode(s) into {args.dst}: {', '.join(p.name for p in paths)}")
         elif args.command == "export-udacity":
-            from data.udacity import export_udacity
+            from towndrive.data.udacity import export_udacity
 
             frames = export_udacity(args.src, args.dst, progress=True, stop=signals.check)
             print(f"exported {frames} frame(s) to {args.dst}")

@@ -16,7 +16,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from data.episodes import EpisodeError, list_episodes, list_partials, read_episode
+from towndrive.data.episodes import EpisodeError, list_episodes, list_partials, read_episode
 
 DEFAULT_DT_S = 0.05
 STEER_BINS = 21

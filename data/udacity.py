@@ -33,8 +33,8 @@ import cv2
 import h5py
 import numpy as np
 
-from data.episodes import EPISODE_GLOB, EpisodeError, EpisodeWriter, list_episodes, next_episode_path, read_episode
-from sim.checks import check_number
+from towndrive.data.episodes import EPISODE_GLOB, EpisodeError, EpisodeWriter, list_episodes, next_episode_path, read_episode
+from towndrive.sim.checks import check_number
 
 MPH_TO_MPS = 0.44704
 LOG_NAME = "driving_log.csv"

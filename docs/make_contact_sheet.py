@@ -13,9 +13,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from envs.drive_env import DriveConfig, DriveEnv
-from sim.objects import LightState, SemanticClass
-from sim.topdown import TopDownMap
+from towndrive.envs.drive_env import DriveConfig, DriveEnv
+from towndrive.sim.objects import LightState, SemanticClass
+from towndrive.sim.topdown import TopDownMap
 
 TILE = (320, 160)
 
@@ -57,7 +57,7 @@ def main() -> int:
         cw = town.crosswalks[ap.index]
         place(e, lane_index, lane.length - 11.0)
         e.world.lights.force(ap.index, LightState.RED, until_s=99.0)
-        from sim.pedestrians import PedestrianCrowd
+        from towndrive.sim.pedestrians import PedestrianCrowd
 
         e.world.crowd = PedestrianCrowd(town, 2, np.random.default_rng(1), 1000)
         for k, ped in enumerate(e.world.crowd.peds):

@@ -30,9 +30,9 @@ from typing import Any
 
 import numpy as np
 
-from sim.objects import LightState
-from sim.town import Town
-from sim.world import World
+from towndrive.sim.objects import LightState
+from towndrive.sim.town import Town
+from towndrive.sim.world import World
 
 AUDITED = ("red_light", "collision_vehicle", "collision_pedestrian", "collision_static", "off_road", "wrong_way")
 MATCH_S = 0.5  # a reported and a recomputed infraction of the same kind and party this close in time agree

@@ -33,16 +33,16 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from envs.options import MAX_TOWN_SEED, check_reset_options, episode_seconds, goal_edge, start_lane
-from envs.options import town_seed as check_town_seed
-from sim.checks import check_number
-from sim.objects import LIGHT_ID_BASE, LightState, SemanticClass
-from sim.render import LIGHTING_PRESETS, CameraConfig, CameraFrame, SceneRenderer
-from sim.render_kernels import object_boxes
-from sim.spec import MIRRORS
-from sim.topdown import TopDownMap
-from sim.town import Command
-from sim.world import TERMINAL_INFRACTIONS, World, WorldConfig, cached_town
+from towndrive.envs.options import MAX_TOWN_SEED, check_reset_options, episode_seconds, goal_edge, start_lane
+from towndrive.envs.options import town_seed as check_town_seed
+from towndrive.sim.checks import check_number
+from towndrive.sim.objects import LIGHT_ID_BASE, LightState, SemanticClass
+from towndrive.sim.render import LIGHTING_PRESETS, CameraConfig, CameraFrame, SceneRenderer
+from towndrive.sim.render_kernels import object_boxes
+from towndrive.sim.spec import EPISODE_S, MIRRORS
+from towndrive.sim.topdown import TopDownMap
+from towndrive.sim.town import Command
+from towndrive.sim.world import TERMINAL_INFRACTIONS, World, WorldConfig, cached_town
 
 INFRACTION_REWARD = {"red_light": -5.0, "wrong_way": -2.0, "route_deviation": -2.0}
 # Lower-case names by value, one table per enum (IntEnum members of different enums compare equal as ints).
@@ -86,7 +86,7 @@ class DriveConfig:
     observe_side_cameras: bool = False
     side_camera_offset_m: float = 0.6
     blind_spot_camera: CameraConfig = field(default_factory=lambda: BLIND_SPOT_CAMERA)
-    max_time_s: float = 180.0
+    max_time_s: float = EPISODE_S
     max_distance_m: float = 3000.0
     terminate_on_route_deviation: bool = True
     terminate_on_infraction: bool = True  # False: collisions and leaving the road are penalised but the episode

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from sim.spec import CAMERA, CameraConfig
+from towndrive.sim.spec import CAMERA, CameraConfig
 
 
 @dataclass(frozen=True)

@@ -22,9 +22,9 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from envs.audit import AuditTrace, audit_episode
-from envs.drive_env import DriveConfig, DriveEnv
-from envs.metrics import (
+from towndrive.envs.audit import AuditTrace, audit_episode
+from towndrive.envs.drive_env import DriveConfig, DriveEnv
+from towndrive.envs.metrics import (
     BLOCKED_SPEED_MPS,
     INTERVENTION_INFRACTIONS,
     MIN_SPEED_RADIUS_M,
@@ -35,11 +35,11 @@ from envs.metrics import (
     markdown_table,
     needs_intervention,
 )
-from envs.standing import STANDING_SPEED_MPS, standing_reason
+from towndrive.envs.standing import STANDING_SPEED_MPS, standing_reason
 
 if TYPE_CHECKING:
-    from agent.drivers import Driver
-    from sim.world import World
+    from towndrive.agent.drivers import Driver
+    from towndrive.sim.world import World
 
 LIGHT_BGR = {"green": (60, 200, 60), "yellow": (40, 210, 240), "red": (50, 50, 230)}
 
@@ -54,8 +54,8 @@ def video_writer(path: Path, fps: int) -> Any:
 def draw_hud(image: np.ndarray, info: dict[str, Any], driver: str, extra: str = "") -> np.ndarray:
     """Speed, command, next light, route completion and infractions over an RGB frame (returns a copy)."""
     img = image.copy()
-    lines = [f"{driver}  {info['ego']['speed_mps'] * 3.6:5.1f} km/h  cmd {info['command']}",
-             f"route {100 * info['route']['completion']:5.1f}%  t {info['time_s']:6.1f}s {extra}"]
+    lines = [f"{driver} | {info['ego']['speed_mps'] * 3.6:.1f} km/h | command {info['command']}",
+             f"route {100 * info['route']['completion']:.1f} % | t {info['time_s']:.1f} s {extra}".rstrip()]
     light = info.get("next_light")
     if light:
         lines.append(f"light {light['state']} in {light['distance_m']:.0f} m")
@@ -63,27 +63,58 @@ def draw_hud(image: np.ndarray, info: dict[str, Any], driver: str, extra: str = 
     if counts:
         lines.append(" ".join(f"{k}:{v}" for k, v in sorted(counts.items())))
     for k, text in enumerate(lines):
-        y = 14 + 14 * k
-        cv2.putText(img, text, (5, y), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (0, 0, 0), 3, cv2.LINE_AA)
-        cv2.putText(img, text, (5, y), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (255, 255, 255), 1, cv2.LINE_AA)
+        _label(img, text, 5, 15 + 15 * k, 0.38)
     if light:
         bgr = LIGHT_BGR[light["state"]]
         cv2.circle(img, (img.shape[1] - 12, 12), 7, bgr[::-1], -1, cv2.LINE_AA)
     return img
 
 
+def _label(img: np.ndarray, text: str, x: int, y: int, scale: float = 0.4) -> None:
+    """White text with a dark outline, readable on any background. The outline is the thin text drawn at the eight
+    neighbouring offsets: OpenCV's advance grows with the stroke's thickness, so a thick dark copy drifts right."""
+    for dx, dy in ((-1, -1), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)):
+        cv2.putText(img, text, (x + dx, y + dy), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(img, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
+
+
+def truth_panel(info: dict[str, Any], driver: str, width: int, height: int, extra: str = "") -> np.ndarray:
+    """The simulator's ground truth as text: speed, command, route, time, the next light and infractions."""
+    img = np.full((height, width, 3), 24, np.uint8)
+    light = info.get("next_light")
+    counts = info.get("infraction_counts") or {}
+    lines = ["ground truth (simulator)",
+             f"driver: {driver}",
+             f"speed: {info['ego']['speed_mps'] * 3.6:.1f} km/h",
+             f"route command: {info['command']}",
+             f"route: {100 * info['route']['completion']:.1f} % done   time: {info['time_s']:.1f} s",
+             f"next light: {light['state']}, {light['distance_m']:.0f} m ahead" if light else "next light: none ahead",
+             "infractions: " + (", ".join(f"{k} {v}" for k, v in sorted(counts.items())) if counts else "none")]
+    if extra:
+        lines.append(extra)
+    step = max(14, (height - 12) // len(lines))
+    for k, text in enumerate(lines):
+        _label(img, text, 8, 16 + step * k, 0.45 if k == 0 else 0.4)
+    return img
+
+
 def video_frame(env: DriveEnv, driver: Driver, info: dict[str, Any], extra: str = "") -> np.ndarray:
     """The HUD picture (camera beside the map); a driver with an ``overlay()`` (the agent) gets its own
-    perception overlay on top, so its videos show what it saw and why it acted."""
-    hud = draw_hud(env.composite(), info, driver.name, extra)
+    perception overlay on top, labelled as such, above the map and the ground truth, so its videos show what it
+    saw and why it acted next to what was really there."""
     overlay = getattr(driver, "overlay", None)
     picture = overlay() if callable(overlay) else None
     if picture is None:
-        return hud
+        return draw_hud(env.composite(), info, driver.name, extra)
+    picture = picture.copy()
+    _label(picture, "camera + the agent's perception", picture.shape[1] // 2 - 110, 14)
+    composite = env.composite()
+    side = composite.shape[0]
     width = picture.shape[1]
-    below = np.zeros((hud.shape[0], width, 3), np.uint8)
-    below[:, :min(width, hud.shape[1])] = hud[:, :width]
-    return np.concatenate([picture, below], axis=0)
+    tile = composite[:, -side:].copy()  # the top-down map around the car
+    _label(tile, "map (ground truth)", 4, side - 6, 0.35)
+    row = np.concatenate([tile, truth_panel(info, driver.name, max(width - side, 1), side, extra)], axis=1)
+    return np.concatenate([picture, row[:, :width]], axis=0)
 
 
 class ClipWriter:
@@ -270,7 +301,7 @@ def plot_traces(env: DriveEnv, traces: list[EpisodeTrace], out: Path) -> list[st
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sim.topdown import TopDownMap
+    from towndrive.sim.topdown import TopDownMap
 
     assert env.world is not None
     out.mkdir(parents=True, exist_ok=True)

@@ -131,6 +131,14 @@ def infraction_multiplier(infraction: dict[str, Any]) -> float:
     return float(infraction.get("penalty", PENALTY.get(infraction["kind"], 1.0)))
 
 
+def penalty_of_counts(counts: dict[str, int]) -> float:
+    """The infraction penalty (the driving score's multiplier) of infractions counted by kind, at their weights."""
+    penalty = 1.0
+    for kind, n in counts.items():
+        penalty *= PENALTY.get(kind, 1.0) ** n
+    return penalty
+
+
 def episode_metrics(trace: EpisodeTrace) -> dict[str, Any]:
     counts: dict[str, int] = {}
     penalty = 1.0
@@ -190,7 +198,7 @@ def aggregate(per_episode: list[dict[str, Any]]) -> dict[str, Any]:
     mean["longest_clear_hold_s"] = max((e.get("longest_clear_hold_s", 0.0) for e in per_episode), default=0.0)
     audits = [e["audit"] for e in per_episode if "audit" in e]
     if audits:
-        from envs.audit import merge
+        from towndrive.envs.audit import merge
 
         mean["audit"] = merge(audits)
     mean["distance_km"] = round(total_km, 4)

@@ -10,9 +10,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from sim.checks import check_number
-from sim.render import LIGHTING_PRESETS
-from sim.town import Town
+from towndrive.sim.checks import check_number
+from towndrive.sim.render import LIGHTING_PRESETS
+from towndrive.sim.town import Town
 
 RESET_OPTIONS = ("town_seed", "weather", "traffic_density", "start", "goal", "world")
 MAX_TOWN_SEED = 2**32 - 1  # NumPy's seeds are non-negative
@@ -88,7 +88,7 @@ def check_reset_options(options: dict[str, Any] | None) -> dict[str, Any]:
     if "weather" in options:
         options["weather"] = weather(options["weather"])
     if "world" in options:
-        from sim.world import World
+        from towndrive.sim.world import World
 
         if not isinstance(options["world"], World):
             raise ValueError(f"world must be a sim.world.World; got {type(options['world']).__name__}.")

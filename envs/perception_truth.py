@@ -25,12 +25,12 @@ from functools import lru_cache
 
 import numpy as np
 
-from sim.ego import EgoVehicle
-from sim.objects import SemanticClass
-from sim.render import CameraConfig, SceneRenderer
-from sim.scene_meshes import GroundMap, Surface, to_world
-from sim.town import LaneIndex, Town
-from sim.world import World
+from towndrive.sim.ego import EgoVehicle
+from towndrive.sim.objects import SemanticClass
+from towndrive.sim.render import CameraConfig, SceneRenderer
+from towndrive.sim.scene_meshes import GroundMap, Surface, to_world
+from towndrive.sim.town import LaneIndex, Town
+from towndrive.sim.world import World
 
 OBJECT_CLASSES = ("car", "truck", "pedestrian")
 

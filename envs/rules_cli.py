@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from envs.metrics import EvaluationRules
+from towndrive.envs.metrics import EvaluationRules
 
 
 def add_rule_arguments(parser: argparse.ArgumentParser, prefix: str = "") -> None:

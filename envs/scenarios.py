@@ -16,14 +16,14 @@ from typing import Any
 
 import numpy as np
 
-from envs.drive_env import DriveConfig, DriveEnv
-from sim.ego import EgoVehicle
-from sim.objects import LightState, SemanticClass
-from sim.pedestrians import PedestrianCrowd
-from sim.routes import shortest_route
-from sim.town import OPPOSITE, Approach, Arm, Command, Edge, Town
-from sim.traffic import TownVehicle
-from sim.world import World, cached_town
+from towndrive.envs.drive_env import DriveConfig, DriveEnv
+from towndrive.sim.ego import EgoVehicle
+from towndrive.sim.objects import LightState, SemanticClass
+from towndrive.sim.pedestrians import PedestrianCrowd
+from towndrive.sim.routes import shortest_route
+from towndrive.sim.town import OPPOSITE, Approach, Arm, Command, Edge, Town
+from towndrive.sim.traffic import TownVehicle
+from towndrive.sim.world import World, cached_town
 
 START_BEFORE_STOP_M = 55.0
 APPROACH_NODE = (1, 1)
@@ -293,7 +293,7 @@ def run_scenario(name: str, driver: Any, config: DriveConfig, out: Path | None =
     env = DriveEnv(config, render_mode="rgb_array")
     writer = None
     if video and out is not None:
-        from envs.evaluation import video_writer
+        from towndrive.envs.evaluation import video_writer
 
         out.mkdir(parents=True, exist_ok=True)
         writer = video_writer(out / f"{name}.mp4", env.metadata["render_fps"])
@@ -317,7 +317,7 @@ def run_scenario(name: str, driver: Any, config: DriveConfig, out: Path | None =
             log.infractions += [inf["kind"] for inf in info["infractions"]]
             log.edges.append(tuple(info["lane_index"][:2]) if info["lane_index"] else ("", ""))
             if writer is not None:
-                from envs.evaluation import video_frame
+                from towndrive.envs.evaluation import video_frame
 
                 writer.append_data(video_frame(env, driver, info, name))
     finally:

@@ -14,10 +14,10 @@ would call a reason.
 
 from __future__ import annotations
 
-from sim.objects import LightState
-from sim.town import Approach, Command
-from sim.traffic import crosswalk_gap, oncoming_conflict, path_gap
-from sim.world import EGO_ID, World
+from towndrive.sim.objects import LightState
+from towndrive.sim.town import Approach, Command
+from towndrive.sim.traffic import crosswalk_gap, oncoming_conflict, path_gap
+from towndrive.sim.world import EGO_ID, World
 
 STANDING_SPEED_MPS = 0.1  # below this the car stands
 STANDING_LOOKAHEAD_M = 12.0  # an agent or an occupied zebra this far ahead of the bumper is a reason to stand

@@ -6,7 +6,7 @@ import numpy as np
 from highway_env.road.road import Road
 from highway_env.vehicle.kinematics import Vehicle
 
-from sim.spec import VEHICLE
+from towndrive.sim.spec import VEHICLE
 
 
 class EgoVehicle(Vehicle):

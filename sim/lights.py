@@ -11,8 +11,8 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from sim.objects import LightState
-from sim.town import Arm, Town
+from towndrive.sim.objects import LightState
+from towndrive.sim.town import Arm, Town
 
 _GREEN, _YELLOW, _RED = int(LightState.GREEN), int(LightState.YELLOW), int(LightState.RED)  # the kernel's constants
 

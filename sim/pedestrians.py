@@ -14,9 +14,9 @@ from dataclasses import dataclass, field
 import numba as nb
 import numpy as np
 
-from sim.lights import TrafficLights
-from sim.objects import ObjectSnapshot, SemanticClass, snapshot_of
-from sim.town import ARM_VEC, Crosswalk, Town
+from towndrive.sim.lights import TrafficLights
+from towndrive.sim.objects import ObjectSnapshot, SemanticClass, snapshot_of
+from towndrive.sim.town import ARM_VEC, Crosswalk, Town
 
 STEP_AHEAD_M = 0.7  # how far ahead a pedestrian looks for a standing car's body
 BODY_MARGIN_M = 0.5  # ... kept clear of it (the pedestrian's radius is 0.3 m)

@@ -16,14 +16,14 @@ import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
+from typing import Any
 
 import cv2
 import numpy as np
-import pybullet as p
 
-from sim import render_kernels as kernels
-from sim.objects import LIGHT_ID_BASE, LightState, ObjectSnapshot, SemanticClass
-from sim.scene_meshes import (
+from towndrive.sim import render_kernels as kernels
+from towndrive.sim.objects import LIGHT_ID_BASE, LightState, ObjectSnapshot, SemanticClass
+from towndrive.sim.scene_meshes import (
     HOUSING_HALF,
     LAMP_SPACING_M,
     SURFACE_CLASS,
@@ -40,8 +40,35 @@ from sim.scene_meshes import (
     world_point,
     yaw_of,
 )
-from sim.spec import IMAGE_PX, CameraConfig, check_image_size  # noqa: F401 (re-exported)
-from sim.town import Town
+from towndrive.sim.spec import IMAGE_PX, WEATHERS, CameraConfig, check_image_size  # noqa: F401 (re-exported)
+from towndrive.sim.town import Town
+
+
+def _import_pybullet() -> Any:
+    """pybullet, imported without the "pybullet build time" line its C module prints (on stderr): every command
+    would print it, ``--help`` included."""
+    import ctypes
+    import sys
+
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = os.dup(1), os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 1)
+            os.dup2(null.fileno(), 2)
+            import pybullet
+
+            with contextlib.suppress(OSError, AttributeError):
+                ctypes.CDLL(None).fflush(None)  # what the C library still holds goes to /dev/null too
+    finally:
+        for fd, copy in zip((1, 2), saved, strict=True):
+            os.dup2(copy, fd)
+            os.close(copy)
+    return pybullet
+
+
+p = _import_pybullet()
 
 MAX_LINKS = 8  # links per body the segmentation lookup tables can tell apart
 BOX_CAPACITY = 64  # object ids a frame's boxes are gathered for while shading (more: object_boxes afterwards)
@@ -100,6 +127,7 @@ LIGHTING_PRESETS: dict[str, LightingPreset] = {
                             gain=(0.55, 0.62, 0.85), fog_distance_m=0.0, headlights=True, headlight_ambient=0.22,
                             headlight_gain=2.6, emissive_windows=True, glow=1.0),
 }
+assert tuple(sorted(LIGHTING_PRESETS)) == WEATHERS, "sim.spec.WEATHERS names the presets"
 
 
 # --------------------------------------------------------------------------- lamps and vehicles

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from sim.town import Command, Edge, Town
+from towndrive.sim.town import Command, Edge, Town
 
 
 def edge_length(town: Town, edge: Edge) -> float:

@@ -16,9 +16,9 @@ from enum import IntEnum
 import cv2
 import numpy as np
 
-from sim.objects import SemanticClass
-from sim.spec import ROAD
-from sim.town import Town
+from towndrive.sim.objects import SemanticClass
+from towndrive.sim.spec import ROAD
+from towndrive.sim.town import Town
 
 # Heights (metres). The flat layers are not meshes: TinyRenderer shades ~100 ns per pixel per layer
 # and tests every pixel of each triangle's bounding box, so ground meshes cost more than the rest of

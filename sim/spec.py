@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.checks import check_number
+from towndrive.sim.checks import check_number
 
 IMAGE_PX = (8, 4096)  # smallest and largest camera width or height, in pixels
 
@@ -116,6 +116,9 @@ class RoadDesign:
         check_number("road light_beyond_stop_line_m", self.light_beyond_stop_line_m, 0.0, 80.0)
 
 
+WEATHERS = ("dusk", "night", "noon", "overcast")  # the lighting presets (sim.render.LIGHTING_PRESETS), sorted
+STEP_S = 0.05  # the simulation's time step (WorldConfig.dt_s)
+EPISODE_S = 180.0  # an episode's time limit (DriveConfig.max_time_s)
 CAMERA = CameraConfig()
 MIRRORS = MirrorRig()
 VEHICLE = VehicleSpec()

@@ -11,11 +11,11 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from sim.geometry import rect_corners
-from sim.town import Town
+from towndrive.sim.geometry import rect_corners
+from towndrive.sim.town import Town
 
 if TYPE_CHECKING:
-    from sim.world import World
+    from towndrive.sim.world import World
 
 LIGHT_BGR = {0: (60, 200, 60), 1: (40, 210, 240), 2: (50, 50, 230)}  # green, yellow, red (BGR)
 MARKING_RGB = {"dashed_white": (235, 235, 235), "solid_white": (235, 235, 235),

@@ -22,9 +22,9 @@ import numpy as np
 from highway_env.road.lane import AbstractLane, CircularLane, LineType, StraightLane
 from highway_env.road.road import RoadNetwork
 
-from sim.geometry import right_of, wrap_to_pi
-from sim.path_filter import ROW_SIZE, lane_row, lanes_may_hold
-from sim.spec import ROAD
+from towndrive.sim.geometry import right_of, wrap_to_pi
+from towndrive.sim.path_filter import ROW_SIZE, lane_row, lanes_may_hold
+from towndrive.sim.spec import ROAD
 
 LaneIndex = tuple[str, str, int]
 LaneLocation = tuple[LaneIndex, float, float]  # lane index, longitudinal s, lateral offset

@@ -22,13 +22,13 @@ from highway_env.utils import wrap_to_pi as hwe_wrap_to_pi
 from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
-from sim.ego import EgoVehicle
-from sim.geometry import wrap_to_pi
-from sim.idm import idm_acceleration as idm
-from sim.objects import LightState, ObjectSnapshot, SemanticClass, snapshot_of
-from sim.path_filter import clearly_nearest_lane, lanes_may_hold, path_candidates, path_rows, zone_holds
-from sim.routes import random_next_edge
-from sim.town import OPPOSITE, Approach, Command, Town, lanes_for
+from towndrive.sim.ego import EgoVehicle
+from towndrive.sim.geometry import wrap_to_pi
+from towndrive.sim.idm import idm_acceleration as idm
+from towndrive.sim.objects import LightState, ObjectSnapshot, SemanticClass, snapshot_of
+from towndrive.sim.path_filter import clearly_nearest_lane, lanes_may_hold, path_candidates, path_rows, zone_holds
+from towndrive.sim.routes import random_next_edge
+from towndrive.sim.town import OPPOSITE, Approach, Command, Town, lanes_for
 
 CAR_COLORS = [
     (0.75, 0.08, 0.08), (0.08, 0.20, 0.60), (0.92, 0.92, 0.90), (0.10, 0.10, 0.11), (0.55, 0.56, 0.58),

@@ -15,15 +15,16 @@ from functools import lru_cache
 import numpy as np
 from highway_env.road.road import Road
 
-from sim.ego import EgoVehicle
-from sim.geometry import circle_polygon_intersect, polygons_intersect, rect_corners, wrap_to_pi
-from sim.lights import LightTiming, TrafficLights
-from sim.objects import LightState, ObjectSnapshot, SemanticClass
-from sim.path_filter import points_within
-from sim.pedestrians import PedestrianCrowd
-from sim.routes import command_at, edge_length, random_route, route_length, shortest_route
-from sim.town import Approach, Command, Edge, LaneLocation, Town, TownConfig, generate_town
-from sim.traffic import CAR_COLORS, Agents, TownVehicle, step_vehicles
+from towndrive.sim.ego import EgoVehicle
+from towndrive.sim.geometry import circle_polygon_intersect, polygons_intersect, rect_corners, wrap_to_pi
+from towndrive.sim.lights import LightTiming, TrafficLights
+from towndrive.sim.objects import LightState, ObjectSnapshot, SemanticClass
+from towndrive.sim.path_filter import points_within
+from towndrive.sim.pedestrians import PedestrianCrowd
+from towndrive.sim.routes import command_at, edge_length, random_route, route_length, shortest_route
+from towndrive.sim.spec import STEP_S
+from towndrive.sim.town import Approach, Command, Edge, LaneLocation, Town, TownConfig, generate_town
+from towndrive.sim.traffic import CAR_COLORS, Agents, TownVehicle, step_vehicles
 
 PEDESTRIAN_ID_BASE = 1000
 EGO_ID = 999
@@ -41,7 +42,7 @@ class WorldConfig:
     pedestrian_count: int = 24
     jaywalk_probability: float = 0.0  # per pedestrian per second of waiting
     enable_lane_change: bool = True
-    dt_s: float = 0.05
+    dt_s: float = STEP_S
     npc_decision_every: int = 2  # NPCs decide at 10 Hz (staggered), integrate at 20 Hz, as highway-env does
     npc_far_decision_every: int = 4  # beyond npc_near_radius_m of the ego they decide at 5 Hz (cf. CARLA's hybrid mode)
     npc_near_radius_m: float = 60.0

@@ -11,6 +11,6 @@ os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 
 @pytest.fixture(scope="session")
 def town():
-    from sim.world import WorldConfig, cached_town
+    from towndrive.sim.world import WorldConfig, cached_town
 
     return cached_town(WorldConfig().town, 0)

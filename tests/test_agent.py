@@ -9,10 +9,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from agent.agent_driver import DEFAULT_DETECTOR, STAGES
-from agent.perception.box_geometry import BoxGeometry
-from agent.perception.pilotnet import DEFAULT_MODEL
-from sim.render import CameraConfig
+from towndrive.agent.agent_driver import DEFAULT_DETECTOR, STAGES
+from towndrive.agent.perception.box_geometry import BoxGeometry
+from towndrive.agent.perception.pilotnet import DEFAULT_MODEL
+from towndrive.sim.render import CameraConfig
 
 needs_models = pytest.mark.skipif(not (DEFAULT_MODEL.is_file() and DEFAULT_DETECTOR.is_file()),
                                   reason="the shipped PilotNet and detector models are not in data/models")
@@ -41,7 +41,7 @@ def light_box(driver, lateral_m: float, z_m: float) -> tuple[float, float, float
     """The box a signal head (5.2 m high, 2.1 m tall) at camera-frame ``lateral_m``, ``z_m`` would get."""
     import math
 
-    from sim.spec import ROAD
+    from towndrive.sim.spec import ROAD
 
     LIGHT_HEAD_HEIGHT_M, LIGHT_HOUSING_M = ROAD.signal_head_height_m, ROAD.signal_housing_height_m
 
@@ -62,10 +62,10 @@ def rotated(lateral_m: float, z_m: float, turned_rad: float) -> tuple[float, flo
 
 @needs_models
 def test_our_light_is_the_one_across_the_junction_not_the_cross_streets() -> None:
-    from agent.drivers import make_driver
-    from agent.perception.classes import CLASSES
-    from agent.perception.detector import Detection
-    from envs.drive_env import DriveConfig
+    from towndrive.agent.drivers import make_driver
+    from towndrive.agent.perception.classes import CLASSES
+    from towndrive.agent.perception.detector import Detection
+    from towndrive.envs.drive_env import DriveConfig
 
     driver = make_driver("agent")
     driver.reset(SimpleNamespace(config=DriveConfig()))
@@ -94,8 +94,8 @@ def test_our_light_is_the_one_across_the_junction_not_the_cross_streets() -> Non
 
 def blind_world_and_agent():
     """A camera-less env (its world moves the car by the same bicycle model) and an agent set up for it."""
-    from agent.drivers import make_driver
-    from envs.drive_env import DriveConfig, DriveEnv
+    from towndrive.agent.drivers import make_driver
+    from towndrive.envs.drive_env import DriveConfig, DriveEnv
 
     env = DriveEnv(DriveConfig(render_camera=False))
     env.reset(seed=1)
@@ -130,10 +130,10 @@ def car_beside_box(geo: BoxGeometry, inner_m: float, near_m: float, length_m: fl
 
 @needs_models
 def test_a_car_wholly_beside_the_axis_is_placed_by_its_far_corner_not_nearer() -> None:
-    from agent.drivers import make_driver
-    from agent.perception.classes import CLASSES
-    from agent.perception.tracking import Track
-    from envs.drive_env import DriveConfig
+    from towndrive.agent.drivers import make_driver
+    from towndrive.agent.perception.classes import CLASSES
+    from towndrive.agent.perception.tracking import Track
+    from towndrive.envs.drive_env import DriveConfig
 
     driver = make_driver("agent")
     driver.reset(SimpleNamespace(config=DriveConfig()))
@@ -158,10 +158,10 @@ def test_a_car_wholly_beside_the_axis_is_placed_by_its_far_corner_not_nearer() -
 
 @needs_models
 def test_a_pedestrian_box_too_small_for_where_it_stands_is_no_person() -> None:
-    from agent.drivers import make_driver
-    from agent.perception.classes import CLASSES
-    from agent.perception.tracking import Track
-    from envs.drive_env import DriveConfig
+    from towndrive.agent.drivers import make_driver
+    from towndrive.agent.perception.classes import CLASSES
+    from towndrive.agent.perception.tracking import Track
+    from towndrive.envs.drive_env import DriveConfig
 
     driver = make_driver("agent")
     driver.reset(SimpleNamespace(config=DriveConfig()))
@@ -184,9 +184,9 @@ def test_a_pedestrian_box_too_small_for_where_it_stands_is_no_person() -> None:
 def test_a_person_who_leaves_the_view_at_its_side_edge_is_remembered_and_turns_with_us() -> None:
     import math
 
-    from agent.decision.controller import PerceivedObject
-    from agent.drivers import make_driver
-    from envs.drive_env import DriveConfig
+    from towndrive.agent.decision.controller import PerceivedObject
+    from towndrive.agent.drivers import make_driver
+    from towndrive.envs.drive_env import DriveConfig
 
     driver = make_driver("agent")
     driver.reset(SimpleNamespace(config=DriveConfig()))
@@ -206,9 +206,9 @@ def test_a_person_who_leaves_the_view_at_its_side_edge_is_remembered_and_turns_w
 
 @needs_models
 def test_a_person_lost_near_the_car_stays_where_last_seen_for_a_while() -> None:
-    from agent.decision.controller import PerceivedObject
-    from agent.drivers import make_driver
-    from envs.drive_env import DriveConfig
+    from towndrive.agent.decision.controller import PerceivedObject
+    from towndrive.agent.drivers import make_driver
+    from towndrive.envs.drive_env import DriveConfig
 
     driver = make_driver("agent")
     driver.reset(SimpleNamespace(config=DriveConfig()))
@@ -258,8 +258,8 @@ def test_straight_through_a_junction_the_agent_holds_the_approach_lane() -> None
 
 @needs_models
 def test_agent_drives_from_observations_only_and_times_every_stage() -> None:
-    from agent.drivers import make_driver
-    from envs.drive_env import DriveConfig, DriveEnv
+    from towndrive.agent.drivers import make_driver
+    from towndrive.envs.drive_env import DriveConfig, DriveEnv
 
     env = DriveEnv(DriveConfig(), render_mode="rgb_array")
     try:
@@ -285,9 +285,9 @@ def test_agent_drives_from_observations_only_and_times_every_stage() -> None:
 
 @needs_models
 def test_agent_stops_0_to_2_m_before_the_stop_line_at_a_red_light() -> None:
-    from agent.drivers import make_driver
-    from envs.drive_env import DriveConfig
-    from envs.scenarios import run_scenario
+    from towndrive.agent.drivers import make_driver
+    from towndrive.envs.drive_env import DriveConfig
+    from towndrive.envs.scenarios import run_scenario
 
     driver = make_driver("agent")
     result = run_scenario("red_light", driver, DriveConfig())
@@ -297,7 +297,7 @@ def test_agent_stops_0_to_2_m_before_the_stop_line_at_a_red_light() -> None:
 
 
 def test_turn_path_is_the_towns_quarter_circle_into_the_same_lane() -> None:
-    from agent.decision.junction import turn_path
+    from towndrive.agent.decision.junction import turn_path
 
     for command, side in ((2, 1.0), (1, -1.0)):
         path, arc_end = turn_path(command, 12.0, 5.25)
@@ -314,13 +314,13 @@ def test_turn_path_is_the_towns_quarter_circle_into_the_same_lane() -> None:
 def test_a_commanded_turn_follows_the_junctions_arc_into_the_same_lane(command: int) -> None:
     """The agent's turn, dead-reckoned from a stop bar seen 10 m ahead of the camera, on the world's own bicycle model and
     connectors: the car stays within the band of its lanes and comes out on the road it turned into."""
-    from agent.drivers import make_driver
-    from agent.perception.stop_line import StopLine
-    from envs.drive_env import DriveConfig, DriveEnv
-    from envs.scenarios import APPROACH_ARM, APPROACH_NODE, exit_edge
-    from sim.routes import shortest_route
-    from sim.town import Arm
-    from sim.world import World, cached_town
+    from towndrive.agent.drivers import make_driver
+    from towndrive.agent.perception.stop_line import StopLine
+    from towndrive.envs.drive_env import DriveConfig, DriveEnv
+    from towndrive.envs.scenarios import APPROACH_ARM, APPROACH_NODE, exit_edge
+    from towndrive.sim.routes import shortest_route
+    from towndrive.sim.town import Arm
+    from towndrive.sim.world import World, cached_town
 
     config = DriveConfig(render_camera=False)
     town = cached_town(config.world.town, config.town_seed)
@@ -379,7 +379,7 @@ def _stand_in_a_left_turn(driver, detections, seconds: float) -> list[tuple[floa
     """Drive ``act()`` on a black frame, PilotNet steering hard left (a junction's left turn, no lane lines),
     the detector returning ``detections(frame)``; the car's speed follows its own acceleration. Returns the
     (speed, reason) of every frame."""
-    from envs.drive_env import DriveConfig
+    from towndrive.envs.drive_env import DriveConfig
 
     cfg = DriveConfig()
     driver.reset(SimpleNamespace(config=cfg))
@@ -406,9 +406,9 @@ def test_a_person_box_only_at_the_left_edge_holds_a_turning_car_for_a_bounded_ti
     sweep of a left turn; the car stood for it for good. The detector reports it every frame, or on and off
     (each time a new track, remembered when it goes), but never whole: the car stands at most the bounded
     time, then creeps on slowly, looking again every frame."""
-    from agent.drivers import make_driver
-    from agent.perception.classes import CLASSES
-    from agent.perception.detector import Detection
+    from towndrive.agent.drivers import make_driver
+    from towndrive.agent.perception.classes import CLASSES
+    from towndrive.agent.perception.detector import Detection
 
     driver = make_driver("agent")
     ped = CLASSES.index("pedestrian")
@@ -437,9 +437,9 @@ def test_a_person_box_only_at_the_left_edge_holds_a_turning_car_for_a_bounded_ti
 
 @needs_models
 def test_a_person_seen_whole_in_the_turn_s_sweep_holds_the_car_as_long_as_they_stand_there() -> None:
-    from agent.drivers import make_driver
-    from agent.perception.classes import CLASSES
-    from agent.perception.detector import Detection
+    from towndrive.agent.drivers import make_driver
+    from towndrive.agent.perception.classes import CLASSES
+    from towndrive.agent.perception.detector import Detection
 
     driver = make_driver("agent")
     g = driver.geometry

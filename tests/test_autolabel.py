@@ -7,10 +7,17 @@ import math
 import numpy as np
 import pytest
 
-from agent.training.autolabel import CLASSES, CameraPose, box_corners, in_view_fraction, projected_hull, render_and_label
-from sim.objects import SemanticClass
-from sim.render import CameraConfig, SceneRenderer
-from sim.world import World, WorldConfig
+from towndrive.agent.training.autolabel import (
+    CLASSES,
+    CameraPose,
+    box_corners,
+    in_view_fraction,
+    projected_hull,
+    render_and_label,
+)
+from towndrive.sim.objects import SemanticClass
+from towndrive.sim.render import CameraConfig, SceneRenderer
+from towndrive.sim.world import World, WorldConfig
 
 
 def scene(town, ahead_m: tuple[float, ...], kinds: tuple[SemanticClass, ...]):

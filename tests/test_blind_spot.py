@@ -8,13 +8,13 @@ import math
 import numpy as np
 import pytest
 
-from agent.agent_driver import DEFAULT_DETECTOR, BoxGeometry
-from agent.decision.blind_spot import BlindSpot, BlindSpotConfig, MirrorMount
-from agent.perception.classes import CLASSES
-from agent.perception.detector import Detection
-from agent.perception.pilotnet import DEFAULT_MODEL
-from envs.drive_env import BLIND_SPOT_CAMERA, BLIND_SPOT_MOUNT_M, BLIND_SPOT_YAW_DEG, DriveConfig, DriveEnv
-from sim.render import CameraConfig
+from towndrive.agent.agent_driver import DEFAULT_DETECTOR, BoxGeometry
+from towndrive.agent.decision.blind_spot import BlindSpot, BlindSpotConfig, MirrorMount
+from towndrive.agent.perception.classes import CLASSES
+from towndrive.agent.perception.detector import Detection
+from towndrive.agent.perception.pilotnet import DEFAULT_MODEL
+from towndrive.envs.drive_env import BLIND_SPOT_CAMERA, BLIND_SPOT_MOUNT_M, BLIND_SPOT_YAW_DEG, DriveConfig, DriveEnv
+from towndrive.sim.render import CameraConfig
 
 MOUNT = MirrorMount(*BLIND_SPOT_MOUNT_M, BLIND_SPOT_YAW_DEG)
 
@@ -96,8 +96,8 @@ def test_looking_through_the_mirror_camera_leaves_the_env_frames_unchanged() -> 
 def test_agent_looks_in_the_mirrors_and_the_overlay_lights_the_side() -> None:
     from dataclasses import replace
 
-    from agent.agent_overlay import BLIND_SPOT_RGB, draw_agent
-    from agent.drivers import make_driver
+    from towndrive.agent.agent_overlay import BLIND_SPOT_RGB, draw_agent
+    from towndrive.agent.drivers import make_driver
 
     env = DriveEnv(DriveConfig())
     try:
@@ -122,8 +122,8 @@ def test_agent_looks_in_the_mirrors_and_the_overlay_lights_the_side() -> None:
 
 @pytest.mark.skipif(not (DEFAULT_MODEL.is_file() and DEFAULT_DETECTOR.is_file()), reason="shipped models missing")
 def test_with_the_mirror_look_the_agent_lets_the_overtaking_car_pass_before_its_turn() -> None:
-    from agent.drivers import make_driver
-    from envs.scenarios import run_scenario
+    from towndrive.agent.drivers import make_driver
+    from towndrive.envs.scenarios import run_scenario
 
     # Without the look, PilotNet moves into the car beside (measured: a collision in this scenario).
     driver = make_driver("agent", blind_spot=BlindSpotConfig(enabled=True))

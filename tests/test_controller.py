@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from agent.decision.controller import Controller, ControllerConfig, Decision, PerceivedObject, Scene
+from towndrive.agent.decision.controller import Controller, ControllerConfig, Decision, PerceivedObject, Scene
 
 DT = 0.05
 CFG = ControllerConfig()

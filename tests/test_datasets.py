@@ -11,9 +11,9 @@ import cv2
 import numpy as np
 import pytest
 
-from data.episodes import EpisodeError, EpisodeWriter, read_episode
-from data.summary import STEER_BINS, format_summary, summarize, write_histogram_png
-from data.udacity import MPH_TO_MPS, UdacityError, export_udacity, import_udacity
+from towndrive.data.episodes import EpisodeError, EpisodeWriter, read_episode
+from towndrive.data.summary import STEER_BINS, format_summary, summarize, write_histogram_png
+from towndrive.data.udacity import MPH_TO_MPS, UdacityError, export_udacity, import_udacity
 
 ROOT = Path(__file__).resolve().parents[1]
 H, W = 66, 200
@@ -169,7 +169,7 @@ def test_missing_image_and_bad_numbers_name_file_and_line(tmp_path: Path) -> Non
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.run([sys.executable, "-m", "data", *args], capture_output=True, text=True, cwd=ROOT, env=env,
+    return subprocess.run([sys.executable, "-m", "towndrive.data", *args], capture_output=True, text=True, cwd=ROOT, env=env,
                           timeout=60)
 
 

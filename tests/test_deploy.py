@@ -19,9 +19,16 @@ import onnx
 import pytest
 import torch
 
-from agent.deploy.alerts import AlertFrame, JsonlAlerts, SerialAlerts, parse_line
-from agent.deploy.backends import BackendUnavailable, DetectorRunner, PilotNetRunner, open_backend, open_detector, open_pilotnet
-from agent.deploy.camera_sources import (
+from towndrive.agent.deploy.alerts import AlertFrame, JsonlAlerts, SerialAlerts, parse_line
+from towndrive.agent.deploy.backends import (
+    BackendUnavailable,
+    DetectorRunner,
+    PilotNetRunner,
+    open_backend,
+    open_detector,
+    open_pilotnet,
+)
+from towndrive.agent.deploy.camera_sources import (
     EpisodeSource,
     csi_pipeline,
     fit_frame,
@@ -29,8 +36,8 @@ from agent.deploy.camera_sources import (
     split_side_by_side,
     video_source,
 )
-from agent.deploy.export_profile import FP16_ATOL, FP16_RTOL, export_profile, fp16_check
-from agent.deploy.profiles import ProfileError, available_profiles, load_profile, profile_from_dict
+from towndrive.agent.deploy.export_profile import FP16_ATOL, FP16_RTOL, export_profile, fp16_check
+from towndrive.agent.deploy.profiles import ProfileError, available_profiles, load_profile, profile_from_dict
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -39,10 +46,10 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")
 def tiny_models(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """A conditional PilotNet and a narrow detector with seeded random weights, in the checkpoint formats."""
-    from agent.perception.classes import CLASSES
-    from agent.perception.detector import Detector, DetectorConfig
-    from agent.perception.pilotnet import build
-    from agent.training.pilotnet_training import save_checkpoint
+    from towndrive.agent.perception.classes import CLASSES
+    from towndrive.agent.perception.detector import Detector, DetectorConfig
+    from towndrive.agent.perception.pilotnet import build
+    from towndrive.agent.training.pilotnet_training import save_checkpoint
 
     folder = tmp_path_factory.mktemp("models")
     torch.manual_seed(0)
@@ -202,7 +209,7 @@ def test_export_writes_fp32_fp16_calibration_and_manifest(exported) -> None:
 
 
 def test_calibration_inputs_are_the_models_inputs(exported, episode_dir: Path) -> None:
-    from agent.deploy.backends import detector_feeds, pilotnet_feeds
+    from towndrive.agent.deploy.backends import detector_feeds, pilotnet_feeds
 
     profile, manifest = exported
     out = profile.export_path
@@ -250,10 +257,10 @@ def test_onnx_matches_torch_per_model_fp32_and_fp16(exported) -> None:
 @pytest.mark.parametrize("name, size", [("detector", (320, 160)), ("pilotnet", (200, 66))])
 def test_shipped_model_parity_fp32_and_fp16(tmp_path: Path, name: str, size: tuple[int, int]) -> None:
     """The models that ship in data/models: exported again and compared with torch on road-like frames."""
-    from agent.deploy.backends import detector_feeds, pilotnet_feeds
-    from agent.deploy.export_profile import prepare, to_fp16, torch_outputs
-    from agent.deploy.onnx_export import export_onnx
-    from agent.perception.onnx_runtime import onnx_session
+    from towndrive.agent.deploy.backends import detector_feeds, pilotnet_feeds
+    from towndrive.agent.deploy.export_profile import prepare, to_fp16, torch_outputs
+    from towndrive.agent.deploy.onnx_export import export_onnx
+    from towndrive.agent.perception.onnx_runtime import onnx_session
 
     checkpoint = ROOT / "data" / "models" / f"{name}.pt"
     if not checkpoint.is_file():
@@ -414,7 +421,7 @@ def test_jsonl_alerts(tmp_path: Path) -> None:
 def test_alert_from_the_agents_view_maps_its_worded_warnings() -> None:
     from types import SimpleNamespace
 
-    from agent.deploy.alerts import alert_from_view, encode_line
+    from towndrive.agent.deploy.alerts import alert_from_view, encode_line
 
     decision = SimpleNamespace(in_path=[7], throttle_brake=-0.7, steer=0.1, light="red", reason="pedestrian #7")
     view = SimpleNamespace(decision=decision, lanes=SimpleNamespace(detected=True), time_s=3.0, speed_mps=5.0,
@@ -456,7 +463,7 @@ def test_side_by_side_and_csi_pipeline() -> None:
 
 
 def test_csi_without_gstreamer_is_one_clear_error() -> None:
-    from agent.deploy.camera_sources import csi_source
+    from towndrive.agent.deploy.camera_sources import csi_source
 
     if gstreamer_available():
         pytest.skip("this OpenCV has GStreamer")
@@ -502,7 +509,7 @@ def test_episode_source_carries_speed_and_command(episode_dir: Path) -> None:
 @pytest.fixture(scope="module")
 def sim_video(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """40 frames of the autopilot driving in traffic, rendered by the simulator and encoded as H.264."""
-    from envs.drive_env import DriveConfig
+    from towndrive.envs.drive_env import DriveConfig
 
     frames = autopilot_frames(DriveConfig(), seed=3, steps=40, frame=lambda obs: obs["image"])
     return write_video(tmp_path_factory.mktemp("video") / "sim.mp4", frames)
@@ -510,8 +517,8 @@ def sim_video(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def autopilot_frames(config: Any, seed: int, steps: int, frame: Any) -> np.ndarray:
     """``frame(observation)`` for each of ``steps`` steps of the autopilot driving in dense traffic."""
-    from agent.autopilot import Autopilot
-    from envs.drive_env import DriveEnv
+    from towndrive.agent.autopilot import Autopilot
+    from towndrive.envs.drive_env import DriveEnv
 
     env = DriveEnv(config)
     driver = Autopilot()
@@ -531,9 +538,9 @@ def test_agent_runs_on_a_recorded_simulator_video(sim_video: Path, tiny_models: 
 
     import imageio.v2 as imageio
 
-    from agent.deploy.alerts import Alerts, JsonlAlerts
-    from agent.deploy.profiled_agent import ProfiledAgent, run_on_source
-    from agent.training.pilotnet_training import export, load_model
+    from towndrive.agent.deploy.alerts import Alerts, JsonlAlerts
+    from towndrive.agent.deploy.profiled_agent import ProfiledAgent, run_on_source
+    from towndrive.agent.training.pilotnet_training import export, load_model
 
     detector = ROOT / "data" / "models" / "detector.pt"
     if not detector.with_suffix(".onnx").is_file():
@@ -581,10 +588,10 @@ def test_agent_runs_on_a_recorded_simulator_video(sim_video: Path, tiny_models: 
 def test_agent_with_side_by_side_stereo_every_second_frame(tmp_path: Path) -> None:
     """A ZED-style recording (left | right in one frame) from the simulator's stereo pair: the agent splits it,
     and stereo matching runs on every 2nd frame only, as the profile says."""
-    from agent.deploy.alerts import Alerts
-    from agent.deploy.profiled_agent import ProfiledAgent, run_on_source
-    from envs.drive_env import DriveConfig
-    from sim.render import CameraConfig
+    from towndrive.agent.deploy.alerts import Alerts
+    from towndrive.agent.deploy.profiled_agent import ProfiledAgent, run_on_source
+    from towndrive.envs.drive_env import DriveConfig
+    from towndrive.sim.render import CameraConfig
 
     models = ROOT / "data" / "models"
     if not (models / "pilotnet.onnx").is_file() or not (models / "detector.onnx").is_file():
@@ -631,9 +638,9 @@ def test_drive_py_profile_on_a_video_and_its_errors(sim_video: Path, tmp_path: P
 
 def test_a_profile_sets_the_road_priors_the_agent_assumes(tmp_path) -> None:
     """A deployment profile overrides the road-design priors (sim.spec) for a real road; the agent's stages use them."""
-    from agent.agent_driver import AgentDriver
-    from agent.deploy.profiles import ProfileError, profile_from_dict
-    from sim.spec import ROAD
+    from towndrive.agent.agent_driver import AgentDriver
+    from towndrive.agent.deploy.profiles import ProfileError, profile_from_dict
+    from towndrive.sim.spec import ROAD
 
     profile = profile_from_dict({"road": {"lane_width_m": 3.0, "signal_head_height_m": 6.0}}, "road.yaml")
     assert profile.road.lane_width_m == 3.0 and profile.road.stop_line_setback_m == ROAD.stop_line_setback_m

@@ -9,8 +9,8 @@ import pytest
 import torch
 from torch import nn
 
-from agent.overlays import CLASS_COLORS, draw_detections
-from agent.perception.detector import (
+from towndrive.agent.overlays import CLASS_COLORS, draw_detections
+from towndrive.agent.perception.detector import (
     DecodedDetector,
     Detection,
     Detector,
@@ -21,13 +21,13 @@ from agent.perception.detector import (
     nms_numpy,
     postprocess,
 )
-from agent.perception.light_state import hsv_state
-from agent.training.autolabel import CLASSES, render_and_label
-from agent.training.detector_eval import Sample, class_ap
-from agent.training.detector_train_loop import build_targets, yolo_loss
-from sim.objects import SemanticClass
-from sim.render import CameraConfig, SceneRenderer
-from sim.world import World, WorldConfig
+from towndrive.agent.perception.light_state import hsv_state
+from towndrive.agent.training.autolabel import CLASSES, render_and_label
+from towndrive.agent.training.detector_eval import Sample, class_ap
+from towndrive.agent.training.detector_train_loop import build_targets, yolo_loss
+from towndrive.sim.objects import SemanticClass
+from towndrive.sim.render import CameraConfig, SceneRenderer
+from towndrive.sim.world import World, WorldConfig
 
 MODELS = Path(__file__).resolve().parents[1] / "data" / "models"
 
@@ -113,8 +113,8 @@ def test_ap_counts_ignore_regions_neither_way():
 
 
 def test_onnx_export_matches_torch_and_runs_in_onnx_runtime(tmp_path):
-    from agent.deploy.onnx_export import export_detector
-    from agent.training.detector_train_loop import save_checkpoint
+    from towndrive.agent.deploy.onnx_export import export_detector
+    from towndrive.agent.training.detector_train_loop import save_checkpoint
 
     torch.manual_seed(1)
     save_checkpoint(tmp_path / "d.pt", Detector(), {})
@@ -128,9 +128,9 @@ def test_onnx_export_matches_torch_and_runs_in_onnx_runtime(tmp_path):
 
 
 def test_stride_4_head_targets_export_and_checkpoints_without_strides(tmp_path):
-    from agent.deploy.onnx_export import export_detector
-    from agent.perception.detector import load_detector
-    from agent.training.detector_train_loop import save_checkpoint
+    from towndrive.agent.deploy.onnx_export import export_detector
+    from towndrive.agent.perception.detector import load_detector
+    from towndrive.agent.training.detector_train_loop import save_checkpoint
 
     strides = (4, 8, 16)
     boxes = np.array([[100.0, 60.0, 103.0, 72.0], [40.0, 40.0, 60.0, 80.0], [150, 20, 250, 120]], np.float32)
@@ -157,9 +157,9 @@ def test_stride_4_head_targets_export_and_checkpoints_without_strides(tmp_path):
 
 
 def test_stride_4_refinement_blocks_start_as_the_identity_and_export(tmp_path):
-    from agent.deploy.onnx_export import export_detector
-    from agent.perception.detector import load_detector
-    from agent.training.detector_train_loop import save_checkpoint
+    from towndrive.agent.deploy.onnx_export import export_detector
+    from towndrive.agent.perception.detector import load_detector
+    from towndrive.agent.training.detector_train_loop import save_checkpoint
 
     torch.manual_seed(2)
     plain = Detector(DetectorConfig(strides=(4, 8, 16))).eval()
@@ -178,9 +178,9 @@ def test_stride_4_refinement_blocks_start_as_the_identity_and_export(tmp_path):
 
 
 def test_stride_4_pixel_projection_starts_at_zero_and_sees_single_pixel_columns(tmp_path):
-    from agent.deploy.onnx_export import export_detector
-    from agent.perception.detector import load_detector
-    from agent.training.detector_train_loop import save_checkpoint
+    from towndrive.agent.deploy.onnx_export import export_detector
+    from towndrive.agent.perception.detector import load_detector
+    from towndrive.agent.training.detector_train_loop import save_checkpoint
 
     torch.manual_seed(3)
     blocks = Detector(DetectorConfig(strides=(4, 8, 16), s4_blocks=2)).eval()
@@ -206,7 +206,7 @@ def test_stride_4_pixel_projection_starts_at_zero_and_sees_single_pixel_columns(
 
 
 def test_iou_aware_objectness_and_pixel_exact_shifts():
-    from agent.training.detector_train_loop import augment
+    from towndrive.agent.training.detector_train_loop import augment
 
     torch.manual_seed(0)
     model = Detector(DetectorConfig(width=8, strides=(4, 8, 16)))
@@ -299,7 +299,7 @@ def test_decoded_detector_has_one_output_row_per_cell():
 
 
 def test_training_splits_share_no_town_with_val_or_test():
-    from agent.training.autolabel import WEATHERS, default_splits
+    from towndrive.agent.training.autolabel import WEATHERS, default_splits
 
     specs = {s.name: s for s in default_splits()}
     assert set(specs) == {"train", "val", "test", "train_peds", "train_peds2"}

@@ -7,11 +7,11 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import envs  # noqa: F401  (registers Drive-v0)
-from agent.drivers import make_driver
-from envs.drive_env import DriveConfig
-from envs.driver_context import DriverContext
-from sim.spec import MIRRORS, CameraConfig
+import towndrive.envs  # noqa: F401  (registers Drive-v0)
+from towndrive.agent.drivers import make_driver
+from towndrive.envs.drive_env import DriveConfig
+from towndrive.envs.driver_context import DriverContext
+from towndrive.sim.spec import MIRRORS, CameraConfig
 
 
 def test_a_camera_only_context_holds_the_rig_not_the_world() -> None:

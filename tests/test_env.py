@@ -8,10 +8,10 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import envs  # noqa: F401  (registers Drive-v0)
-from envs.drive_env import DriveConfig, DriveEnv
-from sim.objects import LIGHT_ID_BASE, LightState, SemanticClass
-from sim.render import CameraConfig
+import towndrive.envs  # noqa: F401  (registers Drive-v0)
+from towndrive.envs.drive_env import DriveConfig, DriveEnv
+from towndrive.sim.objects import LIGHT_ID_BASE, LightState, SemanticClass
+from towndrive.sim.render import CameraConfig
 
 SMALL = CameraConfig(width=200, height=66)
 

@@ -9,11 +9,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from agent.autopilot import Autopilot
-from envs.drive_env import DriveConfig, DriveEnv
-from envs.evaluation import evaluate, run_episode
-from envs.metrics import EpisodeTrace, EvaluationRules, episode_metrics
-from sim.world import WorldConfig
+from towndrive.agent.autopilot import Autopilot
+from towndrive.envs.drive_env import DriveConfig, DriveEnv
+from towndrive.envs.evaluation import evaluate, run_episode
+from towndrive.envs.metrics import EpisodeTrace, EvaluationRules, episode_metrics
+from towndrive.sim.world import WorldConfig
 
 BLIND = DriveConfig(render_camera=False, world=replace(WorldConfig(), npc_count=6, pedestrian_count=6), max_time_s=30.0)
 

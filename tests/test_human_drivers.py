@@ -10,10 +10,10 @@ import numpy as np  # noqa: E402
 import pygame  # noqa: E402
 import pytest  # noqa: E402
 
-from agent.drivers import Driver, make_driver  # noqa: E402
-from agent.human import GamepadDriver, KeyboardDriver  # noqa: E402
-from envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
-from sim.render import CameraConfig  # noqa: E402
+from towndrive.agent.drivers import Driver, make_driver  # noqa: E402
+from towndrive.agent.human import GamepadDriver, KeyboardDriver  # noqa: E402
+from towndrive.envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
+from towndrive.sim.render import CameraConfig  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from envs.audit import AuditTrace, audit_episode
-from sim.objects import LightState
-from sim.world import World, WorldConfig
+from towndrive.envs.audit import AuditTrace, audit_episode
+from towndrive.sim.objects import LightState
+from towndrive.sim.world import World, WorldConfig
 
 CFG = WorldConfig()
 
@@ -147,7 +147,7 @@ def test_a_deviation_after_coming_back_to_the_route_counts_again(town):
 
 
 def test_the_audit_confirms_a_red_run_and_a_collision_and_misses_nothing(town):
-    from sim.objects import SemanticClass
+    from towndrive.sim.objects import SemanticClass
 
     ap = town.approaches[2]
     index, lane = lane_of(town, ap)

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from data.episodes import EpisodeWriter, list_episodes, next_episode_path, read_episode
+from towndrive.data.episodes import EpisodeWriter, list_episodes, next_episode_path, read_episode
 
 ROOT = Path(__file__).resolve().parents[1]
 MODELS = ROOT / "data" / "models"
@@ -58,10 +58,10 @@ def _episode(path: Path, steps: int = 5, steer: float = 0.1) -> Path:
 def test_1_a_crafted_checkpoint_runs_no_code(tmp_path: Path) -> None:
     import torch
 
-    from agent.perception.checkpoints import load_checkpoint
-    from agent.perception.detector import load_detector
-    from agent.perception.ped_refiner import load_refiner
-    from agent.perception.pilotnet import PilotNetModel, load_model
+    from towndrive.agent.perception.checkpoints import load_checkpoint
+    from towndrive.agent.perception.detector import load_detector
+    from towndrive.agent.perception.ped_refiner import load_refiner
+    from towndrive.agent.perception.pilotnet import PilotNetModel, load_model
 
     marker = tmp_path / "code_ran"
     evil = tmp_path / "x.pt"
@@ -79,7 +79,7 @@ def test_1_a_crafted_checkpoint_runs_no_code(tmp_path: Path) -> None:
 
 
 def test_1_a_crafted_rl_zip_runs_no_code(tmp_path: Path) -> None:
-    from agent.rl_driver import load_policy
+    from towndrive.agent.rl_driver import load_policy
 
     marker = tmp_path / "code_ran"
     crafted = tmp_path / "rl_ppo.zip"
@@ -101,7 +101,7 @@ def test_1_a_crafted_rl_zip_runs_no_code(tmp_path: Path) -> None:
 # ------------------------------------------------------------------------------------------ 2. a full disk
 _FULL_DISK = """
 import errno, sys
-import data.episodes as E
+import towndrive.data.episodes as E
 budget = [int(sys.argv[1])]
 class Disk:  # a disk with `budget` bytes free: writes beyond it fail as a full disk does
     def __init__(self, raw): self.raw = raw
@@ -179,8 +179,8 @@ def test_3_sigterm_and_sighup_while_recording_keep_finished_episodes(tmp_path: P
 
 
 def test_3_partial_leftovers_are_reported_and_never_overwritten(tmp_path: Path) -> None:
-    from data.__main__ import main
-    from data.summary import summarize
+    from towndrive.data.__main__ import main
+    from towndrive.data.summary import summarize
 
     folder = tmp_path / "ds"
     _episode(folder / "episode_00000.h5")
@@ -207,7 +207,7 @@ def test_3_partial_leftovers_are_reported_and_never_overwritten(tmp_path: Path) 
     ({"goal": ("a", "b")}, "goal must be an edge of town 0"),
 ])
 def test_4_bad_reset_options_are_one_sentence(options: dict, words: str) -> None:
-    from envs.drive_env import DriveConfig, DriveEnv
+    from towndrive.envs.drive_env import DriveConfig, DriveEnv
 
     env = DriveEnv(DriveConfig(render_camera=False))
     t0 = time.perf_counter()
@@ -233,8 +233,8 @@ def test_4_bad_flags_are_one_sentence_and_exit_2(flags: list[str], words: str, c
 
 # ------------------------------------------------------------------------------------------ 5. ONNX files
 def test_5_corrupt_or_mismatched_onnx_is_one_sentence_naming_the_file(tmp_path: Path) -> None:
-    from agent.perception.detector import OnnxDetector
-    from agent.perception.pilotnet import PilotNetModel
+    from towndrive.agent.perception.detector import OnnxDetector
+    from towndrive.agent.perception.pilotnet import PilotNetModel
 
     broken = tmp_path / "broken.onnx"
     broken.write_bytes(b"\x08\x07garbage" * 10)
@@ -256,7 +256,7 @@ def test_5_corrupt_or_mismatched_onnx_is_one_sentence_naming_the_file(tmp_path: 
 def test_6_import_udacity_refuses_labels_out_of_range(tmp_path: Path, steering: str, words: str) -> None:
     import cv2
 
-    from data.udacity import UdacityError, import_udacity
+    from towndrive.data.udacity import UdacityError, import_udacity
 
     src = tmp_path / "u"
     (src / "IMG").mkdir(parents=True)
@@ -268,7 +268,7 @@ def test_6_import_udacity_refuses_labels_out_of_range(tmp_path: Path, steering: 
 
 
 def test_6_summary_reports_episodes_with_bad_labels(tmp_path: Path) -> None:
-    from data.summary import format_summary, summarize
+    from towndrive.data.summary import format_summary, summarize
 
     _episode(tmp_path / "ds" / "episode_00000.h5", steer=5.0)
     summary = summarize(tmp_path / "ds")
@@ -279,7 +279,7 @@ def test_6_summary_reports_episodes_with_bad_labels(tmp_path: Path) -> None:
 def test_7_gymnasium_contract_after_termination_and_close() -> None:
     import gymnasium as gym
 
-    import envs  # noqa: F401  (registers Drive-v0)
+    import towndrive.envs  # noqa: F401  (registers Drive-v0)
 
     env = gym.make("Drive-v0", render_camera=False, max_time_s=0.2, render_mode="rgb_array")
     env.reset(seed=0)
@@ -308,7 +308,7 @@ def test_7_alerts_are_refused_in_simulator_runs(capsys: pytest.CaptureFixture) -
 @pytest.mark.parametrize("line", ["TDA,1,GG,-,0,0,0,-", "TDA,1,G,-,101,0,0,-", "TDA,1,G,-,0,500,0,-",
                                   "TDA,1,G,-,0,0,-5,-", "TDA,1,G,BF,0,0,5,-", "TDA,1,G,-,0,0,5,X"])
 def test_7_alert_parser_refuses_out_of_spec_fields(line: str) -> None:
-    from agent.deploy.alerts import checksum, parse_line
+    from towndrive.agent.deploy.alerts import checksum, parse_line
 
     with pytest.raises(ValueError, match="must be"):
         parse_line(f"${line}*{checksum(line)}\r\n")
@@ -317,8 +317,8 @@ def test_7_alert_parser_refuses_out_of_spec_fields(line: str) -> None:
 
 
 def test_7_export_udacity_leaves_no_orphan_images(tmp_path: Path) -> None:
-    from data.stopping import Stopped
-    from data.udacity import export_udacity
+    from towndrive.data.stopping import Stopped
+    from towndrive.data.udacity import export_udacity
 
     _episode(tmp_path / "ds" / "episode_00000.h5", steps=8)
     calls = []
@@ -334,8 +334,8 @@ def test_7_export_udacity_leaves_no_orphan_images(tmp_path: Path) -> None:
 
 
 def test_7_non_utf8_profile_and_csv_name_the_file(tmp_path: Path) -> None:
-    from agent.deploy.profiles import ProfileError, load_profile, profile_from_dict
-    from data.udacity import UdacityError, read_log
+    from towndrive.agent.deploy.profiles import ProfileError, load_profile, profile_from_dict
+    from towndrive.data.udacity import UdacityError, read_log
 
     bad = tmp_path / "p.yaml"
     bad.write_bytes(b"name: x\ndescription: caf\xe9\n")
@@ -352,7 +352,7 @@ def test_7_non_utf8_profile_and_csv_name_the_file(tmp_path: Path) -> None:
 def test_7_summary_decodes_frames_so_damaged_ones_are_caught(tmp_path: Path) -> None:
     import h5py
 
-    from data.summary import summarize
+    from towndrive.data.summary import summarize
 
     path = _episode(tmp_path / "ds" / "episode_00000.h5", steps=6)
     with h5py.File(path, "r") as f:
@@ -378,8 +378,8 @@ def test_8_renderers_of_new_towns_do_not_keep_memory() -> None:
     import ctypes
     import gc
 
-    import sim.render as render
-    from sim.world import WorldConfig, generate_town
+    import towndrive.sim.render as render
+    from towndrive.sim.world import WorldConfig, generate_town
 
     def rss_mb() -> float:
         with open("/proc/self/status") as f:

@@ -10,11 +10,11 @@ import cv2
 import numpy as np
 import pytest
 
-from agent.perception.lanes import BirdsEye, BirdsEyeConfig, LaneDetector, ground_homography
-from agent.perception.lanes_hough import HoughLaneDetector
-from agent.perception.stop_line import StopLineDetector
-from envs.perception_truth import lane_z_range_rows, tusimple_frame
-from sim.render import CameraConfig
+from towndrive.agent.perception.lanes import BirdsEye, BirdsEyeConfig, LaneDetector, ground_homography
+from towndrive.agent.perception.lanes_hough import HoughLaneDetector
+from towndrive.agent.perception.stop_line import StopLineDetector
+from towndrive.envs.perception_truth import lane_z_range_rows, tusimple_frame
+from towndrive.sim.render import CameraConfig
 
 CAM = CameraConfig()
 
@@ -53,8 +53,8 @@ def synthetic_road(lines: list[tuple[float, float, float]], stop_at_m: float | N
 
 def test_homography_matches_renderer_depth(town) -> None:
     """Road pixels mapped to the ground with our homography have the renderer's metric depth."""
-    from sim.objects import SemanticClass
-    from sim.render import SceneRenderer
+    from towndrive.sim.objects import SemanticClass
+    from towndrive.sim.render import SceneRenderer
 
     renderer = SceneRenderer(town, seed=town.seed)
     lane = town.lane(town.road_lanes()[0])
@@ -153,9 +153,9 @@ def test_tusimple_metric() -> None:
 
 def test_ground_truth_lines_lie_on_painted_pixels() -> None:
     """The evaluation's lane truth (projected from the ground map) falls on lane-marking pixels of the render."""
-    from envs.drive_env import DriveConfig, DriveEnv
-    from envs.perception_truth import lane_truth
-    from sim.objects import SemanticClass
+    from towndrive.envs.drive_env import DriveConfig, DriveEnv
+    from towndrive.envs.perception_truth import lane_truth
+    from towndrive.sim.objects import SemanticClass
 
     env = DriveEnv(DriveConfig(observe_depth=True, observe_segmentation=True))
     obs, _ = env.reset(seed=4, options={"traffic_density": 0.0})
@@ -233,7 +233,7 @@ def test_lane_centre_from_one_line_with_the_car_turned() -> None:
     """With only the solid edge line seen and the car turned 20 degrees to the lane (a lane change), the lane
     centre is half a lane across the boundary measured across the lane, not along the car's axis (which would be
     0.1 m off here)."""
-    from agent.perception.lanes import LaneLine
+    from towndrive.agent.perception.lanes import LaneLine
 
     det = LaneDetector(CAM)
     z0 = -CAM.mount_forward_m

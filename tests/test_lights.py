@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.lights import LightTiming, TrafficLights, light_phases
-from sim.objects import LightState
-from sim.town import OPPOSITE
+from towndrive.sim.lights import LightTiming, TrafficLights, light_phases
+from towndrive.sim.objects import LightState
+from towndrive.sim.town import OPPOSITE
 
 
 def test_opposite_approaches_agree_and_conflicting_ones_are_red(town):

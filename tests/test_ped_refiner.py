@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from agent.deploy.onnx_export import export_refiner
-from agent.perception.detector import Detection, OnnxDetector, TorchDetector, box_iou
-from agent.perception.ped_refiner import (
+from towndrive.agent.deploy.onnx_export import export_refiner
+from towndrive.agent.perception.detector import Detection, OnnxDetector, TorchDetector, box_iou
+from towndrive.agent.perception.ped_refiner import (
     CROP_HW,
     PEDESTRIAN,
     PedRefiner,
@@ -25,9 +25,9 @@ from agent.perception.ped_refiner import (
     torch_refine,
     windows,
 )
-from agent.training.autolabel import CLASSES, render_and_label
-from agent.training.detector_eval import Sample
-from agent.training.ped_refiner_training import build_samples, refiner_loss
+from towndrive.agent.training.autolabel import CLASSES, render_and_label
+from towndrive.agent.training.detector_eval import Sample
+from towndrive.agent.training.ped_refiner_training import build_samples, refiner_loss
 
 MODELS = Path(__file__).resolve().parents[1] / "data" / "models"
 CAR = CLASSES.index("car")
@@ -148,9 +148,9 @@ def test_export_matches_torch_and_carries_its_config(tmp_path):
 @pytest.mark.skipif(not (MODELS / "ped_refiner.onnx").is_file(), reason="no shipped refiner")
 @pytest.mark.parametrize("backend", ["torch", "onnx"])
 def test_shipped_detector_and_refiner_box_a_pedestrian_at_the_kerb(town, backend):
-    from sim.pedestrians import PedestrianCrowd
-    from sim.render import CameraConfig, SceneRenderer
-    from sim.world import World, WorldConfig
+    from towndrive.sim.pedestrians import PedestrianCrowd
+    from towndrive.sim.render import CameraConfig, SceneRenderer
+    from towndrive.sim.world import World, WorldConfig
 
     world = World(town, WorldConfig(npc_count=0, pedestrian_count=0), seed=5, spawn_traffic=False)
     (start, end, _), _, _ = world.ego_lane
@@ -177,8 +177,8 @@ def test_shipped_detector_and_refiner_box_a_pedestrian_at_the_kerb(town, backend
 
 @pytest.mark.skipif(not (MODELS / "ped_refiner.onnx").is_file(), reason="no shipped refiner")
 def test_deployment_profiles_run_the_refiner_unless_it_is_disabled():
-    from agent.deploy.backends import open_detector
-    from agent.deploy.profiles import load_profile, profile_from_dict
+    from towndrive.agent.deploy.backends import open_detector
+    from towndrive.agent.deploy.profiles import load_profile, profile_from_dict
 
     assert open_detector(load_profile("cpu")).refine is not None
     off = profile_from_dict({"modules": {"refiner": {"enabled": False}}})

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from agent.perception.pilotnet import ConditionalPilotNet, PilotNet, build, parameter_count, preprocess, to_tensor
-from agent.training.pilotnet_data import (
+from towndrive.agent.perception.pilotnet import ConditionalPilotNet, PilotNet, build, parameter_count, preprocess, to_tensor
+from towndrive.agent.training.pilotnet_data import (
     MIRRORED_COMMAND,
     Augment,
     Augmenter,
@@ -18,7 +18,7 @@ from agent.training.pilotnet_data import (
     corrected_steer,
     split_by_episode,
 )
-from sim.render import CameraConfig
+from towndrive.sim.render import CameraConfig
 
 
 def test_pilotnet_has_the_papers_layers_and_parameter_count():
@@ -73,7 +73,7 @@ def test_corrected_steer_brings_the_car_back_in_two_seconds():
 
 def test_viewpoint_warp_reproduces_a_side_camera(town):
     """The flat-world re-projection of the centre frame matches a camera really rendered 0.6 m to the side."""
-    from sim.render import SceneRenderer
+    from towndrive.sim.render import SceneRenderer
 
     renderer = SceneRenderer(town, seed=town.seed)
     try:
@@ -122,7 +122,7 @@ def test_split_is_by_episode():
 
 
 def test_onnx_export_matches_torch(tmp_path):
-    from agent.training.pilotnet_training import export, load_model
+    from towndrive.agent.training.pilotnet_training import export, load_model
 
     torch.manual_seed(0)
     model = build(conditional=True).eval()
@@ -136,7 +136,7 @@ def test_onnx_export_matches_torch(tmp_path):
 
 
 def test_loading_a_wrong_file_is_one_clear_error(tmp_path):
-    from agent.training.pilotnet_training import load_model
+    from towndrive.agent.training.pilotnet_training import load_model
 
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")
@@ -159,7 +159,7 @@ def tiny_dataset(tmp_path_factory):
 
 
 def test_side_cameras_load_with_corrected_labels(tiny_dataset):
-    from agent.training.pilotnet_data import load_frames
+    from towndrive.agent.training.pilotnet_data import load_frames
 
     with_side = load_frames([tiny_dataset])
     centre = load_frames([tiny_dataset], side_cameras=False)
@@ -177,7 +177,7 @@ def _train(folder, out, *extra):
 
 
 def test_training_is_deterministic_resumable_and_exports(tiny_dataset, tmp_path):
-    from agent.training.pilotnet_training import load_model
+    from towndrive.agent.training.pilotnet_training import load_model
 
     assert _train(tiny_dataset, tmp_path / "a", "--epochs", "2") == 0
     assert _train(tiny_dataset, tmp_path / "b", "--epochs", "1") == 0
@@ -193,7 +193,7 @@ def test_training_is_deterministic_resumable_and_exports(tiny_dataset, tmp_path)
 
 
 def test_dagger_round_records_learner_episodes_labelled_by_the_autopilot(tiny_dataset, tmp_path):
-    from data.episodes import list_episodes, read_episode
+    from towndrive.data.episodes import list_episodes, read_episode
 
     assert _train(tiny_dataset, tmp_path, "--epochs", "1", "--dagger", "1", "--dagger-episodes", "1",
                   "--dagger-seconds", "3", "--dagger-epochs", "1") == 0
@@ -214,11 +214,11 @@ def test_shipped_model_keeps_its_lane_closed_loop_in_an_unseen_town():
     """The shipped PilotNet drives 25 s of a route in a town never used for training, without the safety driver."""
     from dataclasses import replace
 
-    from agent.drivers import make_driver
-    from envs.drive_env import DriveConfig, DriveEnv
-    from envs.evaluation import run_episode
-    from envs.metrics import episode_metrics
-    from sim.world import WorldConfig
+    from towndrive.agent.drivers import make_driver
+    from towndrive.envs.drive_env import DriveConfig, DriveEnv
+    from towndrive.envs.evaluation import run_episode
+    from towndrive.envs.metrics import episode_metrics
+    from towndrive.sim.world import WorldConfig
 
     world = replace(WorldConfig(), npc_count=0, pedestrian_count=0)
     env = DriveEnv(DriveConfig(world=world, max_time_s=25.0, terminate_on_infraction=False,
@@ -233,7 +233,7 @@ def test_shipped_model_keeps_its_lane_closed_loop_in_an_unseen_town():
 
 
 def test_driver_uses_only_the_camera_speed_and_command():
-    from agent.drivers import make_driver
+    from towndrive.agent.drivers import make_driver
 
     driver = make_driver("pilotnet", backend="torch")
     assert driver.privileged is False

@@ -14,14 +14,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agent.autopilot import Autopilot
-from agent.drivers import make_driver
-from data.episodes import EpisodeError, list_episodes, read_episode
-from envs.drive_env import DriveConfig, DriveEnv
-from envs.evaluation import run_episode
-from envs.metrics import EpisodeTrace, aggregate, episode_metrics
-from envs.scenarios import SCENARIOS, run_scenario
-from sim.render import CameraConfig
+from towndrive.agent.autopilot import Autopilot
+from towndrive.agent.drivers import make_driver
+from towndrive.data.episodes import EpisodeError, list_episodes, read_episode
+from towndrive.envs.drive_env import DriveConfig, DriveEnv
+from towndrive.envs.evaluation import run_episode
+from towndrive.envs.metrics import EpisodeTrace, aggregate, episode_metrics
+from towndrive.envs.scenarios import SCENARIOS, run_scenario
+from towndrive.sim.render import CameraConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = CameraConfig(width=200, height=66)

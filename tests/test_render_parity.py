@@ -8,12 +8,12 @@ import math
 
 import numpy as np
 
-import sim.render as render
-import sim.render_kernels as kernels
-from envs.drive_env import DriveConfig, DriveEnv
-from sim.objects import SemanticClass, snapshot_of
-from sim.render import CameraConfig
-from sim.render_kernels import object_boxes
+import towndrive.sim.render as render
+import towndrive.sim.render_kernels as kernels
+from towndrive.envs.drive_env import DriveConfig, DriveEnv
+from towndrive.sim.objects import SemanticClass, snapshot_of
+from towndrive.sim.render import CameraConfig
+from towndrive.sim.render_kernels import object_boxes
 
 
 def numpy_in_view(objects, view) -> list[bool]:

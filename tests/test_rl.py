@@ -7,8 +7,8 @@ import pytest
 
 
 def _state_env():
-    from agent.rl_features import StateObservation
-    from envs.drive_env import DriveConfig, DriveEnv
+    from towndrive.agent.rl_features import StateObservation
+    from towndrive.envs.drive_env import DriveConfig, DriveEnv
 
     return StateObservation(DriveEnv(DriveConfig(render_camera=False)))
 
@@ -37,8 +37,8 @@ def test_state_features_see_the_lane_offset_and_the_command():
 
 def test_train_py_rl_trains_saves_and_the_driver_loads_it(tmp_path):
     import train
-    from agent.drivers import make_driver
-    from envs.drive_env import DriveConfig, DriveEnv
+    from towndrive.agent.drivers import make_driver
+    from towndrive.envs.drive_env import DriveConfig, DriveEnv
 
     model = tmp_path / "rl_ppo.zip"
     assert train.main(["rl", "--algo", "ppo", "--steps", "512", "--envs", "1", "--eval-every", "100000",
@@ -54,7 +54,7 @@ def test_train_py_rl_trains_saves_and_the_driver_loads_it(tmp_path):
 
 
 def test_rl_driver_without_a_model_is_one_clear_error(tmp_path):
-    from agent.drivers import make_driver
+    from towndrive.agent.drivers import make_driver
 
     with pytest.raises(FileNotFoundError, match="train one with: python train.py rl"):
         make_driver("rl", model=tmp_path / "none.zip")
@@ -87,7 +87,7 @@ class _ScriptedEnv:
 
 
 def test_shaping_charges_speeding_and_ends_the_episode_on_a_red_light():
-    from agent.training.rl_shaping import ShapingConfig, TrafficRulesShaping
+    from towndrive.agent.training.rl_shaping import ShapingConfig, TrafficRulesShaping
 
     cfg = ShapingConfig(speed_limit_mps=10.0, overspeed_penalty=0.02, red_light_penalty=-10.0)
     env = TrafficRulesShaping(_ScriptedEnv([9.0, 15.0, 9.0], [[], ["wrong_way"], ["red_light"]]), cfg)

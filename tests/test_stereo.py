@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agent.perception.stereo import StereoDepth, fill_invalid
-from envs.perception_truth import d1_all
-from sim.render import CameraConfig
+from towndrive.agent.perception.stereo import StereoDepth, fill_invalid
+from towndrive.envs.perception_truth import d1_all
+from towndrive.sim.render import CameraConfig
 
 CAM = CameraConfig(stereo=True)
 
@@ -63,12 +63,12 @@ def test_d1_and_background_fill() -> None:
 def test_ground_truth_disparity_matches_sgbm_on_the_simulator(town) -> None:
     """On a rendered pair, SGBM agrees with f B / Z from the renderer's depth on most road pixels
     (a check of the ground truth's geometry: baseline direction, focal length, left camera)."""
-    from sim.render import SceneRenderer
-    from sim.world import World, WorldConfig
+    from towndrive.sim.render import SceneRenderer
+    from towndrive.sim.world import World, WorldConfig
 
     world = World(town, WorldConfig(npc_count=0, pedestrian_count=0), seed=0)
     renderer = SceneRenderer(town, seed=town.seed)
-    from envs.perception_truth import stereo_truth
+    from towndrive.envs.perception_truth import stereo_truth
 
     truth = stereo_truth(renderer, world, CAM, "noon")
     renderer.close()

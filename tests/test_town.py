@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from highway_env.road.lane import CircularLane
 
-from sim.routes import command_at, random_route, route_length, shortest_route
-from sim.town import Command, TownConfig, generate_town
+from towndrive.sim.routes import command_at, random_route, route_length, shortest_route
+from towndrive.sim.town import Command, TownConfig, generate_town
 
 
 def test_town_is_at_least_three_by_three_with_two_lanes_each_way(town):

@@ -8,7 +8,16 @@ import time
 import numpy as np
 import pytest
 
-from agent.perception.tracking import BoxKalman, KalmanNoise, SkipTracker, Sort, SortConfig, box_to_z, iou_matrix, z_to_box
+from towndrive.agent.perception.tracking import (
+    BoxKalman,
+    KalmanNoise,
+    SkipTracker,
+    Sort,
+    SortConfig,
+    box_to_z,
+    iou_matrix,
+    z_to_box,
+)
 
 
 def test_box_conversions_and_iou() -> None:

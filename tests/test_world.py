@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from sim.objects import LightState, SemanticClass
-from sim.pedestrians import PedestrianCrowd
-from sim.world import World, WorldConfig
+from towndrive.sim.objects import LightState, SemanticClass
+from towndrive.sim.pedestrians import PedestrianCrowd
+from towndrive.sim.world import World, WorldConfig
 
 CFG = WorldConfig()
 

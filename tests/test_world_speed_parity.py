@@ -10,15 +10,15 @@ import struct
 import numpy as np
 import pytest
 
-import sim.traffic as traffic
-from sim.ego import EgoVehicle
-from sim.geometry import circle_polygon_intersect, polygons_intersect, rect_corners, wrap_to_pi
-from sim.objects import ObjectSnapshot, SemanticClass, snapshot_of
-from sim.path_filter import MARGIN_M, clearly_nearest_lane, path_rows, points_within, zone_holds
-from sim.pedestrians import BODY_MARGIN_M, FRONT_MARGIN_M, STEP_AHEAD_M, cars_in_the_way
-from sim.routes import command_at
-from sim.traffic import Agents, TownVehicle, crosswalk_gap, path_gap, step_vehicles
-from sim.world import StaticObstacles, World, WorldConfig
+import towndrive.sim.traffic as traffic
+from towndrive.sim.ego import EgoVehicle
+from towndrive.sim.geometry import circle_polygon_intersect, polygons_intersect, rect_corners, wrap_to_pi
+from towndrive.sim.objects import ObjectSnapshot, SemanticClass, snapshot_of
+from towndrive.sim.path_filter import MARGIN_M, clearly_nearest_lane, path_rows, points_within, zone_holds
+from towndrive.sim.pedestrians import BODY_MARGIN_M, FRONT_MARGIN_M, STEP_AHEAD_M, cars_in_the_way
+from towndrive.sim.routes import command_at
+from towndrive.sim.traffic import Agents, TownVehicle, crosswalk_gap, path_gap, step_vehicles
+from towndrive.sim.world import StaticObstacles, World, WorldConfig
 
 
 def car_in_the_way(ped, vehicles: np.ndarray, speeds: np.ndarray) -> bool:

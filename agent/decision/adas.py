@@ -20,7 +20,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from agent.perception.objects import PerceivedObject
+from towndrive.agent.perception.objects import PerceivedObject
 
 KINDS = ("lane_departure", "forward_collision", "object_in_lane")
 

@@ -28,11 +28,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from agent.perception.detector import Detection
+from towndrive.agent.perception.detector import Detection
 
 if TYPE_CHECKING:
-    from agent.perception.box_geometry import BoxGeometry
-    from agent.perception.lanes import LaneResult
+    from towndrive.agent.perception.box_geometry import BoxGeometry
+    from towndrive.agent.perception.lanes import LaneResult
 
 VEHICLES = ("car", "truck")
 

@@ -48,10 +48,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agent.decision.stop_line_track import LIGHT_STATES, StopLineTrack
-from agent.perception.objects import PerceivedObject
-from sim.idm import idm_acceleration
-from sim.spec import CAMERA_TO_FRONT_M, ROAD, VEHICLE, RoadDesign
+from towndrive.agent.decision.stop_line_track import LIGHT_STATES, StopLineTrack
+from towndrive.agent.perception.objects import PerceivedObject
+from towndrive.sim.idm import idm_acceleration
+from towndrive.sim.spec import CAMERA_TO_FRONT_M, ROAD, VEHICLE, RoadDesign
 
 VEHICLE_KINDS = ("car", "truck")
 

@@ -15,10 +15,10 @@ from functools import lru_cache
 
 import numpy as np
 
-from agent.decision.odometry import Odometry
-from agent.decision.stop_line_track import StopLineTrack
-from agent.perception.stop_line import StopLine
-from sim.spec import ROAD, VEHICLE, RoadDesign
+from towndrive.agent.decision.odometry import Odometry
+from towndrive.agent.decision.stop_line_track import StopLineTrack
+from towndrive.agent.perception.stop_line import StopLine
+from towndrive.sim.spec import ROAD, VEHICLE, RoadDesign
 
 
 @lru_cache(maxsize=16)

@@ -13,8 +13,8 @@ import math
 
 import numpy as np
 
-from agent.decision.stop_line_track import StopLineTrack
-from sim.spec import VEHICLE
+from towndrive.agent.decision.stop_line_track import StopLineTrack
+from towndrive.sim.spec import VEHICLE
 
 
 class Odometry:

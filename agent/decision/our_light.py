@@ -14,10 +14,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from agent.decision.stop_line_track import StopLineTrack
-from agent.perception.box_geometry import BoxGeometry
-from agent.perception.detector import Detection
-from sim.spec import ROAD, RoadDesign
+from towndrive.agent.decision.stop_line_track import StopLineTrack
+from towndrive.agent.perception.box_geometry import BoxGeometry
+from towndrive.agent.perception.detector import Detection
+from towndrive.sim.spec import ROAD, RoadDesign
 
 
 @dataclass

@@ -12,10 +12,10 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from sim.spec import ROAD, RoadDesign
+from towndrive.sim.spec import ROAD, RoadDesign
 
 if TYPE_CHECKING:
-    from agent.decision.controller import ControllerConfig
+    from towndrive.agent.decision.controller import ControllerConfig
 
 LIGHT_STATES = ("red", "yellow", "green")
 

@@ -217,7 +217,7 @@ def alert_from_view(view: Any, frame: int, timings_ms: dict[str, float] | None =
     was found, green otherwise. The agent words its warnings for people (``agent.decision.adas.LABELS``: "OBJECT IN
     LANE: car #4 at 12.0 m"); the alert carries their kinds and keeps the words in ``details``.
     """
-    from agent.decision.adas import LABELS
+    from towndrive.agent.decision.adas import LABELS
 
     kinds = {label: kind for kind, label in LABELS.items()}
     decision = view.decision

@@ -23,9 +23,9 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 if TYPE_CHECKING:
-    from agent.deploy.profiles import Profile
-    from agent.perception.detector import Detection
-    from agent.perception.ped_refiner import Refine
+    from towndrive.agent.deploy.profiles import Profile
+    from towndrive.agent.perception.detector import Detection
+    from towndrive.agent.perception.ped_refiner import Refine
 
 DETECTOR_INPUTS = ("image",)
 DETECTOR_OUTPUTS = ("detections",)
@@ -73,7 +73,7 @@ class OnnxRuntimeBackend:
     name = "onnxruntime"
 
     def __init__(self, path: str | Path, precision: str = "fp32", threads: int = 1, role: str | None = None) -> None:
-        from agent.perception.onnx_runtime import onnx_session
+        from towndrive.agent.perception.onnx_runtime import onnx_session
 
         self.session = onnx_session(path, threads, role)
         self.precision = precision
@@ -174,11 +174,11 @@ def model_meta(profile: Profile, model: str) -> dict[str, Any]:
         entry = json.loads(manifest.read_text()).get("models", {}).get(model)
         if entry and "meta" in entry:
             return dict(entry["meta"])
-    from agent.deploy.profiles import resolve
+    from towndrive.agent.deploy.profiles import resolve
 
     checkpoint = resolve(profile.models[model].checkpoint)
     if model == "pilotnet":
-        from agent.perception.pilotnet import load_model
+        from towndrive.agent.perception.pilotnet import load_model
 
         _, meta = load_model(checkpoint)
         return {"conditional": bool(meta["conditional"]), "crop": dict(meta.get("crop", {}))}
@@ -196,18 +196,18 @@ def open_backend(profile: Profile, model: str) -> Backend:
             raise FileNotFoundError(f"{path} not found; write it with: python train.py export --profile {profile.name}")
         return OnnxRuntimeBackend(path, spec.precision, spec.threads, role="PilotNet" if model == "pilotnet" else "detector")
     if model == "pilotnet":
-        from agent.perception.pilotnet import load_model
+        from towndrive.agent.perception.pilotnet import load_model
 
         net, meta = load_model(path)
         return TorchBackend(net, ["image", "command"] if meta["conditional"] else ["image"], spec.threads)
-    from agent.perception.detector import DecodedDetector, load_detector
+    from towndrive.agent.perception.detector import DecodedDetector, load_detector
 
     return TorchBackend(DecodedDetector(load_detector(path)), DETECTOR_INPUTS, spec.threads)
 
 
 def pilotnet_feeds(rgb: np.ndarray, command: int, conditional: bool, crop: Any = None) -> dict[str, np.ndarray]:
     """A camera frame as PilotNet's inputs: ``preprocess`` (crop, 200x66, YUV) as float32 NCHW 0..255, and the command."""
-    from agent.perception.pilotnet import DEFAULT_CROP, preprocess
+    from towndrive.agent.perception.pilotnet import DEFAULT_CROP, preprocess
 
     yuv = preprocess(rgb, crop or DEFAULT_CROP)
     feeds = {"image": np.ascontiguousarray(yuv.transpose(2, 0, 1)[None], dtype=np.float32)}
@@ -231,7 +231,7 @@ class PilotNetRunner:
     """``steer(rgb, command)`` as ``agent.perception.pilotnet.PilotNetModel`` has it, on any backend."""
 
     def __init__(self, backend: Backend, conditional: bool, crop: dict[str, float] | None = None) -> None:
-        from agent.perception.pilotnet import Crop
+        from towndrive.agent.perception.pilotnet import Crop
 
         self.backend = backend
         self.conditional = conditional
@@ -268,7 +268,7 @@ class DetectorRunner:
         return pred
 
     def __call__(self, rgb: np.ndarray) -> list[Detection]:
-        from agent.perception.detector import detect_and_refine
+        from towndrive.agent.perception.detector import detect_and_refine
 
         return detect_and_refine(self.raw(rgb), rgb, self.score_threshold, self.refine)
 
@@ -283,8 +283,8 @@ def open_detector(profile: Profile, score_threshold: float = 0.3) -> DetectorRun
     (the refiner is small and runs on ONNX Runtime's CPU provider whatever the detector's backend)."""
     refine = None
     if profile.every("refiner"):
-        from agent.deploy.profiles import resolve
-        from agent.perception.ped_refiner import DEFAULT_REFINER_ONNX, onnx_refine
+        from towndrive.agent.deploy.profiles import resolve
+        from towndrive.agent.perception.ped_refiner import DEFAULT_REFINER_ONNX, onnx_refine
 
         refine = onnx_refine(resolve(DEFAULT_REFINER_ONNX), threads=1)
     return DetectorRunner(open_backend(profile, "detector"), profile.models["detector"].input_size, score_threshold,

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 if TYPE_CHECKING:
-    from agent.deploy.profiles import Profile
+    from towndrive.agent.deploy.profiles import Profile
 
 
 @dataclass
@@ -162,7 +162,7 @@ class EpisodeSource:
     def __init__(self, path: str | Path, width: int = 320, height: int = 160) -> None:
         import h5py
 
-        from data.episodes import read_episode
+        from towndrive.data.episodes import read_episode
 
         self.path = Path(path)
         ep = read_episode(self.path, load_frames=False)  # validates the file, names it when it is not an episode
@@ -201,7 +201,7 @@ class EpisodeSource:
 
 def open_source(profile: Profile) -> OpenCVSource | EpisodeSource:
     """The profile's camera source (``camera.source``: video, usb, csi or episode)."""
-    from agent.deploy.profiles import resolve
+    from towndrive.agent.deploy.profiles import resolve
 
     c = profile.camera
     if c.source == "video":

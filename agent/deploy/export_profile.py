@@ -16,7 +16,7 @@ For each model of the profile (``pilotnet``, ``detector``) the folder gets:
   pilotnet.calib_command.npy the route command of each calibration frame (conditional PilotNet)
   manifest.json              what was written, the parity figures, the models' metadata (so a Jetson without
                              torch can run the files), the calibration inputs' scales
-  build_engines.sh           run on the device: the INT8 calibration cache (``python -m agent.deploy.trt_calibrate``)
+  build_engines.sh           run on the device: the INT8 calibration cache (``python -m towndrive.agent.deploy.trt_calibrate``)
                              and ``trtexec`` with ``--fp16`` or ``--int8 --calib``, one engine per TensorRT model
 
 Why build engines on the device: a TensorRT engine is specific to the GPU and the TensorRT version, so
@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.deploy.profiles import Profile, ProfileError, load_profile, resolve
+from towndrive.agent.deploy.profiles import Profile, ProfileError, load_profile, resolve
 
 FP32_TOLERANCE = 1e-4
 # fp16 has an 11-bit significand (relative step 2^-11 ~ 4.9e-4 per rounding); through a dozen layers the
@@ -107,7 +107,7 @@ def prepare(name: str, checkpoint: Path, input_size: tuple[int, int]) -> ModelEx
     gen = torch.Generator().manual_seed(0)
     w, h = input_size
     if name == "pilotnet":
-        from agent.perception.pilotnet import load_model
+        from towndrive.agent.perception.pilotnet import load_model
 
         model, meta = load_model(checkpoint)
         conditional = bool(meta["conditional"])
@@ -118,8 +118,8 @@ def prepare(name: str, checkpoint: Path, input_size: tuple[int, int]) -> ModelEx
         return ModelExport(name, model, examples, names, ["steer"],
                            {"conditional": conditional, "crop": dict(meta.get("crop", {}))}, shapes)
     if name == "detector":
-        from agent.perception.classes import CLASSES
-        from agent.perception.detector import DecodedDetector, load_detector
+        from towndrive.agent.perception.classes import CLASSES
+        from towndrive.agent.perception.detector import DecodedDetector, load_detector
 
         module = DecodedDetector(load_detector(checkpoint)).eval()
         return ModelExport(name, module, [torch.rand(2, 3, h, w, generator=gen)], ["image"], ["detections"],
@@ -189,7 +189,7 @@ def fp16_check(outputs: Sequence[np.ndarray], reference: Sequence[np.ndarray]) -
 
 
 def torch_outputs(module: Any, feeds: dict[str, np.ndarray], names: Sequence[str]) -> list[np.ndarray]:
-    from agent.deploy.backends import TorchBackend
+    from towndrive.agent.deploy.backends import TorchBackend
 
     return TorchBackend(module, names, threads=0).run(feeds)
 
@@ -200,7 +200,7 @@ def calibration_frames(folders: Sequence[Path], n: int, seed: int) -> tuple[np.n
     ``folders`` (every episode gives its share, random moving frames within it). Empty arrays when none."""
     import h5py
 
-    from data.episodes import EpisodeError, list_episodes
+    from towndrive.data.episodes import EpisodeError, list_episodes
 
     paths = []
     for folder in folders:
@@ -235,8 +235,8 @@ def calibration_frames(folders: Sequence[Path], n: int, seed: int) -> tuple[np.n
 def calibration_inputs(name: str, meta: dict[str, Any], input_size: tuple[int, int], frames: np.ndarray,
                        commands: np.ndarray) -> dict[str, np.ndarray]:
     """The model's inputs for the calibration frames, as compact integers (the runtime multiplies by the scale)."""
-    from agent.deploy.backends import detector_feeds, pilotnet_feeds
-    from agent.perception.pilotnet import Crop
+    from towndrive.agent.deploy.backends import detector_feeds, pilotnet_feeds
+    from towndrive.agent.perception.pilotnet import Crop
 
     if name == "pilotnet":
         crop = Crop(**meta.get("crop", {}))
@@ -255,8 +255,8 @@ def export_profile(profile: Profile, out: Path | None = None, models: Sequence[s
                    episodes: Sequence[Path] = (Path("data/episodes/autopilot"),), calib_frames: int = 300, seed: int = 0,
                    checkpoints: dict[str, Path] | None = None) -> dict[str, Any]:
     """Write every file listed in the module docstring into ``out``; returns the manifest."""
-    from agent.deploy.backends import OnnxRuntimeBackend
-    from agent.deploy.onnx_export import export_onnx
+    from towndrive.agent.deploy.backends import OnnxRuntimeBackend
+    from towndrive.agent.deploy.onnx_export import export_onnx
 
     out = resolve(out) if out is not None else profile.export_path
     out.mkdir(parents=True, exist_ok=True)
@@ -358,7 +358,7 @@ def engine_script(manifest: dict[str, Any], out: Path) -> str:
                 lines.append(f'echo "{name}: no calibration frames were exported (no recorded episodes); record some '
                              'with drive.py --record and run train.py export again." >&2; exit 1')
                 continue
-            lines.append(f'(cd "$REPO" && "$PYTHON" -m agent.deploy.trt_calibrate '
+            lines.append(f'(cd "$REPO" && "$PYTHON" -m towndrive.agent.deploy.trt_calibrate '
                          f'--manifest "$HERE/manifest.json" --model {name})')
             args += ["--int8", "--fp16", f'--calib="$HERE/{m["calibration"]["cache"]}"']  # fp16 where int8 has no kernel
         if m["dla_core"] is not None:

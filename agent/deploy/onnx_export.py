@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from agent.perception.detector import INPUT_HW, DecodedDetector, load_detector
-from agent.perception.onnx_runtime import onnx_session
-from agent.perception.ped_refiner import CROP_HW, load_refiner
+from towndrive.agent.perception.detector import INPUT_HW, DecodedDetector, load_detector
+from towndrive.agent.perception.onnx_runtime import onnx_session
+from towndrive.agent.perception.ped_refiner import CROP_HW, load_refiner
 
 
 def export_onnx(model: torch.nn.Module, example_inputs: Sequence[torch.Tensor], path: str | Path,

@@ -25,9 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from agent.agent_driver import AgentConfig, AgentDriver, Stages
-from agent.deploy.profiles import Profile, ProfileError
-from envs.driver_context import DriverContext
+from towndrive.agent.agent_driver import AgentConfig, AgentDriver, Stages
+from towndrive.agent.deploy.profiles import Profile, ProfileError
+from towndrive.envs.driver_context import DriverContext
 
 
 class EveryK:
@@ -71,7 +71,7 @@ class ProfiledAgent:
     privileged = False
 
     def __init__(self, profile: Profile, **config_overrides: Any) -> None:
-        from agent.deploy.backends import open_detector, open_pilotnet
+        from towndrive.agent.deploy.backends import open_detector, open_pilotnet
 
         if not profile.every("detector"):
             raise ProfileError(f"{profile.source_file}: the agent needs its detector; set modules.detector.enabled: true.")
@@ -134,7 +134,7 @@ def run_on_source(profile: Profile, source: Any, out: Path | None = None, speed_
                   max_frames: int | None = None, show: bool = False, alerts: Any = None,
                   agent: ProfiledAgent | None = None) -> dict[str, Any]:
     """Drive the profile's agent on a camera source (see module docstring); returns the summary."""
-    from agent.deploy.alerts import alert_from_view, open_alerts
+    from towndrive.agent.deploy.alerts import alert_from_view, open_alerts
 
     agent = agent or ProfiledAgent(profile)
     alerts = alerts or open_alerts(profile.alerts.serial_port, profile.alerts.baud, profile.alerts.jsonl)
@@ -147,7 +147,7 @@ def run_on_source(profile: Profile, source: Any, out: Path | None = None, speed_
     agent.reset(frame_env(profile.camera_config(getattr(source, "eye_size", None)), dt, first.right is not None))
     writer = None
     if out is not None:
-        from envs.evaluation import video_writer
+        from towndrive.envs.evaluation import video_writer
 
         out.mkdir(parents=True, exist_ok=True)
         writer = video_writer(out / "overlay.mp4", int(round(1.0 / dt)))
@@ -227,9 +227,9 @@ def run_profile(name: str, camera: str | None, out: Path, speed_mps: float = 8.0
     """``drive.py --profile NAME`` on real frames: the profile's camera (or ``camera``), alerts, overlay video."""
     from dataclasses import replace
 
-    from agent.deploy.alerts import open_alerts
-    from agent.deploy.camera_sources import open_source
-    from agent.deploy.profiles import load_profile
+    from towndrive.agent.deploy.alerts import open_alerts
+    from towndrive.agent.deploy.camera_sources import open_source
+    from towndrive.agent.deploy.profiles import load_profile
 
     profile = load_profile(name)
     if camera is not None:

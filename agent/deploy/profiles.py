@@ -23,8 +23,8 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, get_type_hints
 
-from agent.shipped import ROOT
-from sim.spec import ROAD, RoadDesign
+from towndrive.agent.shipped import ROOT
+from towndrive.sim.spec import ROAD, RoadDesign
 
 PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
 
@@ -162,7 +162,7 @@ class Profile:
         A frame wider than the agent's aspect is centre-cropped, which narrows the field of view:
         ``tan(hfov'/2) = (crop share) tan(hfov/2)``.
         """
-        from sim.render import CameraConfig
+        from towndrive.sim.render import CameraConfig
 
         c = self.camera
         hfov = c.hfov_deg
@@ -228,9 +228,14 @@ class Profile:
 
 # ---------------------------------------------------------------------- loading
 def resolve(path: str | Path) -> Path:
-    """A profile path: absolute as given, relative to the repository root otherwise."""
+    """A profile path: absolute as given; a relative one from the current directory, or, when nothing is there, a
+    file shipped with the package (``data/models/...``: the shipped models, wherever the package is installed)."""
     p = Path(path).expanduser()
-    return p if p.is_absolute() else ROOT / p
+    if p.is_absolute():
+        return p
+    here = Path.cwd() / p
+    shipped = ROOT / p
+    return shipped if shipped.exists() and not here.exists() else here
 
 
 def available_profiles() -> list[str]:

@@ -1,6 +1,6 @@
 """Write a TensorRT INT8 calibration cache from the frames ``train.py export`` saved (run on the device).
 
-  python -m agent.deploy.trt_calibrate --manifest out/deploy/jetson-xavier/manifest.json --model detector
+  python -m towndrive.agent.deploy.trt_calibrate --manifest out/deploy/jetson-xavier/manifest.json --model detector
 
 ``trtexec --int8 --calib=FILE`` only reads a calibration cache; it cannot compute one from images. This
 module feeds the exported calibration frames (recorded simulator episodes) through TensorRT's entropy
@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.deploy.backends import BackendUnavailable, import_cudart, import_tensorrt
+from towndrive.agent.deploy.backends import BackendUnavailable, import_cudart, import_tensorrt
 
 
 def calibration_arrays(manifest_path: Path, model: str) -> tuple[dict[str, Any], dict[str, np.ndarray]]:

@@ -12,8 +12,8 @@ import math
 
 import numpy as np
 
-from agent.perception.lanes import BirdsEye
-from sim.spec import CameraConfig
+from towndrive.agent.perception.lanes import BirdsEye
+from towndrive.sim.spec import CameraConfig
 
 # Size priors (metres): typical heights, which unlike widths do not change with the viewing angle.
 HEIGHT_PRIOR_M = {"car": 1.5, "truck": 2.8, "pedestrian": 1.75}

@@ -10,8 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.perception.classes import CLASSES
-from agent.perception.tracking import iou_matrix as box_iou  # one IoU for NMS, evaluation and tracking
+from towndrive.agent.perception.classes import CLASSES
+from towndrive.agent.perception.tracking import iou_matrix as box_iou  # one IoU for NMS, evaluation and tracking
 
 
 @dataclass(frozen=True)

@@ -26,11 +26,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from agent.perception.classes import CLASSES
-from agent.perception.detections import Detection, box_iou, nms_numpy  # noqa: F401 (re-exported)
+from towndrive.agent.perception.classes import CLASSES
+from towndrive.agent.perception.detections import Detection, box_iou, nms_numpy  # noqa: F401 (re-exported)
 
 if TYPE_CHECKING:
-    from agent.perception.ped_refiner import Refine
+    from towndrive.agent.perception.ped_refiner import Refine
 
 STRIDES = (8, 16)  # the default (and every checkpoint without "strides" in its config); (4, 8, 16) adds a stride-4 head
 INPUT_HW = (160, 320)
@@ -209,7 +209,7 @@ def to_input(rgb: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- checkpoints and inference
 def load_detector(path: str | Path) -> Detector:
     """A trained detector from a checkpoint written by ``train.py detector train``."""
-    from agent.perception.checkpoints import load_checkpoint
+    from towndrive.agent.perception.checkpoints import load_checkpoint
 
     path = Path(path)
     if not path.is_file():
@@ -237,7 +237,7 @@ class TorchDetector:
 
     def __init__(self, path: str | Path = "data/models/detector.pt", score_threshold: float = 0.3,
                  refiner: str | Path | None = None) -> None:
-        from agent.perception.ped_refiner import torch_refine
+        from towndrive.agent.perception.ped_refiner import torch_refine
 
         self.model = DecodedDetector(load_detector(path)).eval()
         self.score_threshold = score_threshold
@@ -257,8 +257,8 @@ class OnnxDetector:
 
     def __init__(self, path: str | Path = "data/models/detector.onnx", score_threshold: float = 0.3,
                  threads: int = 0, refiner: str | Path | None = None) -> None:
-        from agent.perception.onnx_runtime import onnx_session
-        from agent.perception.ped_refiner import onnx_refine
+        from towndrive.agent.perception.onnx_runtime import onnx_session
+        from towndrive.agent.perception.ped_refiner import onnx_refine
 
         self.session = onnx_session(path, threads, role="detector")
         self.input_name = self.session.get_inputs()[0].name

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from sim.spec import CameraConfig
+from towndrive.sim.spec import CameraConfig
 
 
 # --------------------------------------------------------------------------- geometry

@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from agent.perception.lanes import BirdsEye, BirdsEyeConfig, LaneLine, LaneResult, ThresholdConfig, lane_masks
-from sim.spec import CameraConfig
+from towndrive.agent.perception.lanes import BirdsEye, BirdsEyeConfig, LaneLine, LaneResult, ThresholdConfig, lane_masks
+from towndrive.sim.spec import CameraConfig
 
 
 @dataclass(frozen=True)

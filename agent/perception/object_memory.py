@@ -14,8 +14,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from agent.perception.box_geometry import BoxGeometry, at_side_edge
-from agent.perception.objects import PerceivedObject
+from towndrive.agent.perception.box_geometry import BoxGeometry, at_side_edge
+from towndrive.agent.perception.objects import PerceivedObject
 
 
 @dataclass(frozen=True)

@@ -22,9 +22,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.perception.box_geometry import DEPTH_PRIOR_M, BoxGeometry, at_side_edge
-from agent.perception.classes import CLASSES
-from agent.perception.tracking import Track
+from towndrive.agent.perception.box_geometry import DEPTH_PRIOR_M, BoxGeometry, at_side_edge
+from towndrive.agent.perception.classes import CLASSES
+from towndrive.agent.perception.tracking import Track
 
 TRACKED = ("car", "truck", "pedestrian")
 

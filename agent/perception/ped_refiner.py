@@ -25,8 +25,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from agent.perception.classes import CLASSES
-from agent.perception.detections import Detection, nms_numpy
+from towndrive.agent.perception.classes import CLASSES
+from towndrive.agent.perception.detections import Detection, nms_numpy
 
 PEDESTRIAN = CLASSES.index("pedestrian")
 DEFAULT_REFINER_ONNX = "data/models/ped_refiner.onnx"
@@ -163,7 +163,7 @@ def load_refiner(path: str | Path) -> PedRefiner:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"Pedestrian refiner {path} not found; train one with `python train.py detector refiner`.")
-    from agent.perception.checkpoints import load_checkpoint
+    from towndrive.agent.perception.checkpoints import load_checkpoint
 
     ckpt = load_checkpoint(path, "pedestrian refiner")
     if ckpt.get("kind") != "ped_refiner":
@@ -187,7 +187,7 @@ def onnx_refine(path: str | Path, threads: int = 0) -> Refine:
     """The exported refiner through ONNX Runtime; its config travels in the ONNX file's metadata."""
     import json
 
-    from agent.perception.onnx_runtime import onnx_session
+    from towndrive.agent.perception.onnx_runtime import onnx_session
 
     session = onnx_session(path, threads, role="pedestrian refiner")
     meta = session.get_modelmeta().custom_metadata_map

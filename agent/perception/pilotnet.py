@@ -25,8 +25,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from agent.perception.checkpoints import load_checkpoint
-from agent.shipped import PILOTNET
+from towndrive.agent.perception.checkpoints import load_checkpoint
+from towndrive.agent.shipped import PILOTNET
 
 DEFAULT_MODEL = PILOTNET  # the shipped pair: pilotnet.pt and pilotnet.onnx
 
@@ -170,7 +170,7 @@ class PilotNetModel:
         if backend == "onnx":
             import json
 
-            from agent.perception.onnx_runtime import onnx_session
+            from towndrive.agent.perception.onnx_runtime import onnx_session
 
             self.session = onnx_session(path, threads=threads, role="PilotNet")
             self.conditional = "command" in {i.name for i in self.session.get_inputs()}

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from sim.spec import CameraConfig
+from towndrive.sim.spec import CameraConfig
 
 
 @dataclass(frozen=True)

@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from agent.perception.lanes import BirdsEye, BirdsEyeConfig, LaneResult
-from sim.spec import CameraConfig
+from towndrive.agent.perception.lanes import BirdsEye, BirdsEyeConfig, LaneResult
+from towndrive.sim.spec import CameraConfig
 
 
 @dataclass(frozen=True)

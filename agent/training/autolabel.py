@@ -27,11 +27,11 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from agent.perception.classes import CLASSES, LIGHT_CLASSES, STATE_OF_CLASS  # noqa: F401 (re-exported)
-from sim.objects import LIGHT_ID_BASE, LightState, ObjectSnapshot, SemanticClass
-from sim.render import CameraConfig, SceneRenderer
-from sim.scene_meshes import HOUSING_HALF, SURFACE_RAISED, Z_SLAB, to_world
-from sim.town import Town
+from towndrive.agent.perception.classes import CLASSES, LIGHT_CLASSES, STATE_OF_CLASS  # noqa: F401 (re-exported)
+from towndrive.sim.objects import LIGHT_ID_BASE, LightState, ObjectSnapshot, SemanticClass
+from towndrive.sim.render import CameraConfig, SceneRenderer
+from towndrive.sim.scene_meshes import HOUSING_HALF, SURFACE_RAISED, Z_SLAB, to_world
+from towndrive.sim.town import Town
 
 _KIND_CLASS = {SemanticClass.CAR: 0, SemanticClass.TRUCK: 1, SemanticClass.PEDESTRIAN: 2}
 _STATE_CLASS = {LightState.RED: 3, LightState.YELLOW: 4, LightState.GREEN: 5}
@@ -310,8 +310,8 @@ def generate_split(root, spec: SplitSpec, seed: int, progress: bool = True) -> d
 
     from tqdm import tqdm
 
-    from agent.drivers import make_driver
-    from envs.drive_env import DriveConfig, DriveEnv
+    from towndrive.agent.drivers import make_driver
+    from towndrive.envs.drive_env import DriveConfig, DriveEnv
 
     root = Path(root)
     img_dir, lab_dir = root / "images" / spec.name, root / "labels" / spec.name

@@ -19,9 +19,9 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from agent.perception.classes import CLASSES, LIGHT_CLASSES, STATE_OF_CLASS
-from agent.perception.detector import NMS_GROUP, Detection, box_iou
-from agent.shipped import MODELS_DIR
+from towndrive.agent.perception.classes import CLASSES, LIGHT_CLASSES, STATE_OF_CLASS
+from towndrive.agent.perception.detector import NMS_GROUP, Detection, box_iou
+from towndrive.agent.shipped import MODELS_DIR
 
 IOU_THRESHOLDS = np.round(np.arange(0.5, 0.96, 0.05), 2)
 
@@ -168,7 +168,7 @@ def light_state_report(samples: list[Sample], detections: list[list[Detection]],
     and, as an upper bound for it, the ground-truth box (``hsv_gt_box``). A light with no matching detection
     counts as missed (state "none") for the detector and for HSV on detector boxes.
     """
-    from agent.perception.light_state import hsv_state
+    from towndrive.agent.perception.light_state import hsv_state
 
     states = ("red", "yellow", "green")
     light_ids = [CLASSES.index(n) for n in LIGHT_CLASSES]
@@ -242,7 +242,7 @@ def resolve_refiner(choice: str, model: str) -> str | None:
 
 def evaluate_command(args: argparse.Namespace) -> int:
     """``train.py detector evaluate``: print and save the full report for a .pt or .onnx model."""
-    from agent.perception.detector import OnnxDetector, TorchDetector
+    from towndrive.agent.perception.detector import OnnxDetector, TorchDetector
 
     samples = load_split(args.data, args.split)
     model = str(args.model)

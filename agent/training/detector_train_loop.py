@@ -23,11 +23,11 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from agent.perception.checkpoints import load_checkpoint
-from agent.perception.checkpoints import save_checkpoint as save
-from agent.perception.classes import CLASSES
-from agent.perception.detector import INPUT_HW, STRIDES, DecodedDetector, Detector, DetectorConfig, postprocess
-from agent.training.detector_eval import Sample, detection_report, load_split, read_rgb
+from towndrive.agent.perception.checkpoints import load_checkpoint
+from towndrive.agent.perception.checkpoints import save_checkpoint as save
+from towndrive.agent.perception.classes import CLASSES
+from towndrive.agent.perception.detector import INPUT_HW, STRIDES, DecodedDetector, Detector, DetectorConfig, postprocess
+from towndrive.agent.training.detector_eval import Sample, detection_report, load_split, read_rgb
 
 LOSS_WEIGHTS = {"box": 0.05, "obj": 0.2, "cls": 0.04}
 # Objectness weight per stride, proportional to the number of cells (YOLOv5's P3:P4 = 4:1), so every cell weighs

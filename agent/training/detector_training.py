@@ -18,11 +18,15 @@ import json
 import time
 from pathlib import Path
 
+from towndrive.agent.training.outputs import add_replace_shipped
+
 DEFAULT_DATA = "data/datasets/detector"
-DEFAULT_CKPT = "data/models/detector.pt"
+DEFAULT_CKPT = "data/models/detector.pt"  # the shipped models (read by eval; written only with --replace-shipped)
 DEFAULT_ONNX = "data/models/detector.onnx"
 DEFAULT_REFINER = "data/models/ped_refiner.pt"
 DEFAULT_REFINER_ONNX = "data/models/ped_refiner.onnx"
+RUN_CKPT = "out/detector/detector.pt"  # what training writes by default
+RUN_REFINER = "out/detector/ped_refiner.pt"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -44,7 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p = sub.add_parser("train", help="train the detector on a generated dataset")
     p.add_argument("--data", default=DEFAULT_DATA)
     p.add_argument("--train-splits", default="train", help="training splits, comma-separated (e.g. train,train_peds)")
-    p.add_argument("--out", default=DEFAULT_CKPT, help="best checkpoint (by val mAP@0.5)")
+    p.add_argument("--out", default=RUN_CKPT, help="best checkpoint (by val mAP@0.5)")
     p.add_argument("--epochs", type=int, default=30)
     p.add_argument("--batch", type=int, default=32)
     p.add_argument("--lr", type=float, default=2e-3)
@@ -73,7 +77,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--data", default=DEFAULT_DATA)
     p.add_argument("--detector", default=DEFAULT_CKPT, help="the trained detector whose candidates it refines")
     p.add_argument("--train-splits", default="train,train_peds,train_peds2")
-    p.add_argument("--out", default=DEFAULT_REFINER, help="best checkpoint (by val pedestrian AP@0.5 within 40 m)")
+    p.add_argument("--out", default=RUN_REFINER, help="best checkpoint (by val pedestrian AP@0.5 within 40 m)")
     p.add_argument("--epochs", type=int, default=6)
     p.add_argument("--batch", type=int, default=256)
     p.add_argument("--lr", type=float, default=2e-3)
@@ -94,10 +98,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--report", default="out/detector/eval.json")
 
     p = sub.add_parser("export", help="export the checkpoint (and the refiner) to ONNX with a parity check")
-    p.add_argument("--model", default=DEFAULT_CKPT)
-    p.add_argument("--out", default=DEFAULT_ONNX)
-    p.add_argument("--refiner", default=DEFAULT_REFINER, help="refiner checkpoint to export too ('none': skip)")
-    p.add_argument("--refiner-out", default=DEFAULT_REFINER_ONNX)
+    p.add_argument("--model", default=RUN_CKPT, help="the detector checkpoint to export")
+    p.add_argument("--out", default=None, help="the ONNX file (default: beside the checkpoint)")
+    p.add_argument("--refiner", default="auto",
+                   help=f"refiner checkpoint to export too (auto: {RUN_REFINER} if it exists; 'none': skip)")
+    p.add_argument("--refiner-out", default=None, help="the refiner's ONNX file (default: beside its checkpoint)")
+    add_replace_shipped(p, "detector and refiner (.pt and .onnx)")
 
     p = sub.add_parser("sheet", help="a sheet of detections on held-out dusk and night frames")
     p.add_argument("--data", default=DEFAULT_DATA)
@@ -115,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _dataset(args: argparse.Namespace) -> int:
-    from agent.training.autolabel import default_splits, generate_split, write_dataset_yaml
+    from towndrive.agent.training.autolabel import default_splits, generate_split, write_dataset_yaml
 
     root = Path(args.out)
     t0 = time.perf_counter()
@@ -142,33 +148,45 @@ def _dataset(args: argparse.Namespace) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from agent.training.detector_train_loop import train
+    from towndrive.agent.training.detector_train_loop import train
 
     return train(args)
 
 
 def _refiner(args: argparse.Namespace) -> int:
-    from agent.training.ped_refiner_training import train_refiner
+    from towndrive.agent.training.ped_refiner_training import train_refiner
 
     return train_refiner(args)
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from agent.training.detector_eval import evaluate_command
+    from towndrive.agent.training.detector_eval import evaluate_command
 
     return evaluate_command(args)
 
 
 def _export(args: argparse.Namespace) -> int:
-    from agent.deploy.onnx_export import export_detector
+    from towndrive.agent.deploy.onnx_export import export_detector
 
-    diff = export_detector(args.model, args.out)
-    print(f"Wrote {args.out}; largest |ONNX Runtime - torch| difference on the check inputs: {diff:.2e}")
-    if args.refiner != "none":
-        from agent.deploy.onnx_export import export_refiner
+    out = args.out or str(Path(args.model).with_suffix(".onnx"))
+    diff = export_detector(args.model, out)
+    print(f"Wrote {out}; largest |ONNX Runtime - torch| difference on the check inputs: {diff:.2e}")
+    written = [Path(args.model), Path(out)]
+    refiner = args.refiner
+    if refiner == "auto":
+        refiner = RUN_REFINER if Path(RUN_REFINER).is_file() else "none"
+    if refiner != "none":
+        from towndrive.agent.deploy.onnx_export import export_refiner
 
-        diff = export_refiner(args.refiner, args.refiner_out)
-        print(f"Wrote {args.refiner_out}; largest |ONNX Runtime - torch| difference: {diff:.2e}")
+        refiner_out = args.refiner_out or str(Path(refiner).with_suffix(".onnx"))
+        diff = export_refiner(refiner, refiner_out)
+        print(f"Wrote {refiner_out}; largest |ONNX Runtime - torch| difference: {diff:.2e}")
+        written += [Path(refiner), Path(refiner_out)]
+    if args.replace_shipped:
+        from towndrive.agent.training.outputs import replace_shipped
+
+        names = ["detector.pt", "detector.onnx", "ped_refiner.pt", "ped_refiner.onnx"]
+        replace_shipped(written, names[:len(written)])
     return 0
 
 
@@ -177,12 +195,12 @@ def _sheet(args: argparse.Namespace) -> int:
     import cv2
     import numpy as np
 
-    from agent.overlays import draw_detections
-    from agent.perception.detector import OnnxDetector
-    from agent.training.detector_eval import load_split, read_rgb
+    from towndrive.agent.overlays import draw_detections
+    from towndrive.agent.perception.detector import OnnxDetector
+    from towndrive.agent.training.detector_eval import load_split, read_rgb
 
     samples = load_split(args.data, args.split)
-    from agent.training.detector_eval import resolve_refiner
+    from towndrive.agent.training.detector_eval import resolve_refiner
 
     detector = OnnxDetector(args.model, score_threshold=0.3, refiner=resolve_refiner(args.refiner, args.model))
     tiles = []

@@ -25,9 +25,9 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from agent.perception.checkpoints import load_checkpoint, save_checkpoint
-from agent.perception.detector import DecodedDetector, Detection, load_detector, postprocess
-from agent.perception.ped_refiner import (
+from towndrive.agent.perception.checkpoints import load_checkpoint, save_checkpoint
+from towndrive.agent.perception.detector import DecodedDetector, Detection, load_detector, postprocess
+from towndrive.agent.perception.ped_refiner import (
     PEDESTRIAN,
     PedRefiner,
     Refine,
@@ -38,8 +38,8 @@ from agent.perception.ped_refiner import (
     to_window,
     windows,
 )
-from agent.perception.tracking import iou_matrix
-from agent.training.detector_eval import Sample, class_ap, load_split, read_rgb
+from towndrive.agent.perception.tracking import iou_matrix
+from towndrive.agent.training.detector_eval import Sample, class_ap, load_split, read_rgb
 
 SCORE_WEIGHTS = (0.3, 0.4, 0.5, 0.6, 0.7)
 NMS_IOUS = (0.5, 0.7, 1.0)  # 1.0: no second NMS

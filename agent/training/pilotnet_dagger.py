@@ -20,14 +20,14 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from agent.autopilot import Autopilot
-from agent.perception.pilotnet import preprocess, to_tensor
-from agent.training.pilotnet_data import FrameSet, load_frames, split_by_episode
-from data.episodes import EpisodeWriter, next_episode_path
-from envs.drive_env import DriveConfig, DriveEnv
-from envs.metrics import needs_intervention
-from sim.render import LIGHTING_PRESETS
-from sim.world import WorldConfig
+from towndrive.agent.autopilot import Autopilot
+from towndrive.agent.perception.pilotnet import preprocess, to_tensor
+from towndrive.agent.training.pilotnet_data import FrameSet, load_frames, split_by_episode
+from towndrive.data.episodes import EpisodeWriter, next_episode_path
+from towndrive.envs.drive_env import DriveConfig, DriveEnv
+from towndrive.envs.metrics import needs_intervention
+from towndrive.sim.render import LIGHTING_PRESETS
+from towndrive.sim.world import WorldConfig
 
 
 def concat(a: FrameSet, b: FrameSet) -> FrameSet:
@@ -83,7 +83,7 @@ def dagger(model: torch.nn.Module, meta: dict[str, Any], frames: FrameSet, args:
            out: Path, fit: Callable[..., Any]) -> tuple[torch.nn.Module, dict[str, Any]]:
     """``args.dagger`` rounds of collect + fine-tune with ``fit`` (the training loop's); returns the best model and
     its metadata."""
-    from agent.perception.pilotnet import load_model
+    from towndrive.agent.perception.pilotnet import load_model
 
     train, val = split_by_episode(frames, args.validation, args.seed)
     towns = sorted({int(_attr_town(p)) for p in frames.episode_paths}) or [1]

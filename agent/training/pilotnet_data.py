@@ -22,10 +22,10 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from agent.perception.pilotnet import DEFAULT_CROP, INPUT_HEIGHT, INPUT_WIDTH, Crop, preprocess
-from data.episodes import EpisodeError, list_episodes, read_episode
-from sim.ego import EgoVehicle
-from sim.render import CameraConfig
+from towndrive.agent.perception.pilotnet import DEFAULT_CROP, INPUT_HEIGHT, INPUT_WIDTH, Crop, preprocess
+from towndrive.data.episodes import EpisodeError, list_episodes, read_episode
+from towndrive.sim.ego import EgoVehicle
+from towndrive.sim.render import CameraConfig
 
 RETURN_TIME_S = 2.0  # the paper: the corrected label steers the car back to the path in two seconds
 MIN_RETURN_DISTANCE_M = 8.0  # at walking pace two seconds is too short a distance for a sane correction

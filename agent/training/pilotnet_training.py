@@ -28,8 +28,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from agent.perception.checkpoints import load_checkpoint
-from agent.perception.pilotnet import (
+from towndrive.agent.perception.checkpoints import load_checkpoint
+from towndrive.agent.perception.pilotnet import (
     DEFAULT_CROP,
     INPUT_HEIGHT,
     INPUT_WIDTH,
@@ -39,18 +39,19 @@ from agent.perception.pilotnet import (
     parameter_count,
     to_tensor,
 )
-from agent.training.pilotnet_data import Augment, Augmenter, FrameSet, balance_weights, load_frames, split_by_episode
-from data.episodes import EpisodeError
-from sim.render import CameraConfig
-
-DEFAULT_MODEL = Path("data/models/pilotnet.pt")
+from towndrive.agent.training.outputs import add_replace_shipped, replace_shipped
+from towndrive.agent.training.pilotnet_data import Augment, Augmenter, FrameSet, balance_weights, load_frames, split_by_episode
+from towndrive.data.episodes import EpisodeError
+from towndrive.sim.render import CameraConfig
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", type=Path, nargs="+", default=[Path("data/episodes/autopilot")],
                    help="episode folders (drive.py --record output, or python -m data import-udacity output)")
     p.add_argument("--out", type=Path, default=Path("out/pilotnet"), help="run folder: checkpoints, log.csv, loss.png")
-    p.add_argument("--model", type=Path, default=DEFAULT_MODEL, help="where the best model (.pt and .onnx) goes")
+    p.add_argument("--model", type=Path, default=None,
+                   help="where the best model (.pt and .onnx) goes (default: pilotnet.pt in the run folder)")
+    add_replace_shipped(p, "PilotNet (pilotnet.pt and .onnx)")
     p.add_argument("--epochs", type=int, default=12)
     p.add_argument("--samples-per-epoch", type=int, default=0, help="balanced draws per epoch (0: the train set size)")
     p.add_argument("--batch", type=int, default=64)
@@ -74,14 +75,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 # --------------------------------------------------------------------------- checkpoints
 def save_checkpoint(path: Path, model: torch.nn.Module, extra: dict[str, Any]) -> None:
-    from agent.perception.checkpoints import save_checkpoint as save
+    from towndrive.agent.perception.checkpoints import save_checkpoint as save
 
     save(path, {"state_dict": model.state_dict(), **extra})
 
 
 def export(model: torch.nn.Module, meta: dict[str, Any], pt_path: Path) -> float:
     """Write ``pt_path`` (weights + metadata) and its ``.onnx``; return ONNX Runtime's largest difference."""
-    from agent.deploy.onnx_export import export_onnx
+    from towndrive.agent.deploy.onnx_export import export_onnx
 
     pt_path.parent.mkdir(parents=True, exist_ok=True)
     save_checkpoint(pt_path, model, meta)
@@ -219,6 +220,8 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     out: Path = args.out
+    if args.model is None:
+        args.model = out / "pilotnet.pt"
     out.mkdir(parents=True, exist_ok=True)
     try:
         frames = load_frames(args.data, side_cameras=not args.no_side_cameras)
@@ -249,11 +252,14 @@ def run(args: argparse.Namespace) -> int:
         fit(model, train, val, args, out, first_epoch, opt_state, best, remaining, meta)
     best_model, best_meta = load_model(out / "best.pt")
     if args.dagger:
-        from agent.training.pilotnet_dagger import dagger
+        from towndrive.agent.training.pilotnet_dagger import dagger
 
         best_model, best_meta = dagger(best_model, best_meta, frames, args, out, fit)
     diff = export(best_model, best_meta, args.model)
     shutil.copy(out / "log.csv", args.model.with_suffix(".log.csv"))
+    if args.replace_shipped:
+        replace_shipped([args.model, args.model.with_suffix(".onnx"), args.model.with_suffix(".log.csv")],
+                        ["pilotnet.pt", "pilotnet.onnx", "pilotnet.log.csv"])
     summary = {"model": str(args.model), "onnx": str(args.model.with_suffix(".onnx")), "onnx_max_abs_diff": diff,
                "val_loss": best_meta.get("val_loss"), "val_mae": best_meta.get("val_mae"), "epoch": best_meta.get("epoch")}
     (out / "summary.json").write_text(json.dumps(summary, indent=2))

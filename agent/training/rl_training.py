@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from towndrive.agent.training.outputs import add_replace_shipped, replace_shipped  # noqa: E402
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--algo", choices=["ppo", "sac"], default="ppo")
@@ -40,7 +42,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="train on Drive-v0's plain reward (default: speed limit and red lights added, agent.training.rl_shaping)")
     p.add_argument("--eval-every", type=int, default=20_000, help="evaluate every this many steps")
     p.add_argument("--out", type=Path, default=None, help="run folder (default out/rl_<algo>)")
-    p.add_argument("--model", type=Path, default=None, help="final model (default data/models/rl_<algo>.zip)")
+    p.add_argument("--model", type=Path, default=None, help="final model (default rl_<algo>.zip in the run folder)")
+    add_replace_shipped(p, "RL policy (rl_<algo>.zip)")
 
 
 def make_env(args: argparse.Namespace, rank: int, evaluation: bool = False):
@@ -50,11 +53,11 @@ def make_env(args: argparse.Namespace, rank: int, evaluation: bool = False):
         import gymnasium as gym
         from stable_baselines3.common.monitor import Monitor
 
-        from agent.rl_features import StateObservation
-        from agent.training.rl_shaping import TrafficRulesShaping
-        from envs.drive_env import DriveConfig, DriveEnv
-        from sim.render import CameraConfig
-        from sim.world import WorldConfig
+        from towndrive.agent.rl_features import StateObservation
+        from towndrive.agent.training.rl_shaping import TrafficRulesShaping
+        from towndrive.envs.drive_env import DriveConfig, DriveEnv
+        from towndrive.sim.render import CameraConfig
+        from towndrive.sim.world import WorldConfig
 
         base = WorldConfig()
         world = replace(base, npc_count=round(base.npc_count * args.traffic),
@@ -155,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
     from stable_baselines3.common.vec_env import DummyVecEnv
 
     out = args.out or Path(f"out/rl_{args.algo}")
-    model_path = args.model or Path(f"data/models/rl_{args.algo}.zip")
+    model_path = args.model or out / f"rl_{args.algo}.zip"
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(1)
     venv = DummyVecEnv([make_env(args, k) for k in range(args.envs)])
@@ -195,4 +198,7 @@ def run(args: argparse.Namespace) -> int:
               "steps_per_s": round(args.steps / wall, 1), "learning_curve": str(curve)}
     model_path.with_suffix(".json").write_text(json.dumps(record, indent=2))
     print(json.dumps(record, indent=2))
+    if args.replace_shipped:
+        replace_shipped([model_path, model_path.with_suffix(".json")], [f"rl_{args.algo}.zip", f"rl_{args.algo}.json"])
+    print(f"Model: {model_path}; run folder: {out}")
     return 0
