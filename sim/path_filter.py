@@ -11,6 +11,7 @@ larger than any rounding difference. So which agents reach the exact test change
 from __future__ import annotations
 
 import weakref
+from collections.abc import Callable
 
 import numba as nb
 import numpy as np
@@ -38,20 +39,33 @@ def lane_row(lane: AbstractLane) -> np.ndarray:
     return row
 
 
-_PATHS: dict[tuple[int, ...], tuple[tuple[AbstractLane, ...], np.ndarray]] = {}
+_PATHS: dict[tuple[int, ...], tuple[tuple[weakref.ref, ...], np.ndarray]] = {}
+PATHS_MAX = 4096  # a guard only: entries go with their lanes, and the towns in memory hold a few hundred paths
 
 
 def path_rows(lanes: list[AbstractLane]) -> np.ndarray:
     """Flat parameters of the lanes of a path, one row each. NPCs ask for the same few paths step
-    after step, so they are kept; the cache holds the lanes themselves, so no id in a key is reused."""
+    after step, so they are kept, for as long as all their lanes live: the entry holds each lane weakly
+    and is dropped when one of them goes (before its id can be reused by another lane). Why weakly: the
+    cache held the lanes themselves, so a run over many towns kept the lanes of every town it visited
+    (about 50 KB a town, up to 4096 paths, bench/bench_memory_soak.py)."""
     key = tuple(map(id, lanes))
     hit = _PATHS.get(key)
     if hit is None:
-        if len(_PATHS) > 4096:
+        if len(_PATHS) >= PATHS_MAX:
             _PATHS.clear()
-        hit = (tuple(lanes), np.stack([lane_row(lane) for lane in lanes]))
+        forget = _forget_path(key)
+        hit = (tuple(weakref.ref(lane, forget) for lane in lanes), np.stack([lane_row(lane) for lane in lanes]))
         _PATHS[key] = hit
     return hit[1]
+
+
+def _forget_path(key: tuple[int, ...], paths: dict = _PATHS) -> Callable[[weakref.ref], None]:
+    """The weak references' callback: drop the path when one of its lanes is collected (the cache is bound
+    here, not looked up as a global, which may be gone when lanes die at interpreter exit)."""
+    def forget(_: weakref.ref) -> None:
+        paths.pop(key, None)
+    return forget
 
 
 @nb.njit(cache=True, nogil=True)

@@ -213,14 +213,18 @@ class SceneRenderer:
         self._night_emit = np.zeros(len(self._class_lut), bool)  # emissive only when the preset says so
         self.triangle_count = 0
         self.ground_map = _ground_map(town)
-        self._build_static(seed)
-        self._build_calibration_patch()
         self._light_bodies: list[int] = []
         self._light_states: list[LightState | None] = []
         self._light_shown: list[bool] = []
         self._light_input: tuple = ()  # the states last passed to set_light_states
         self._last_cull: tuple[np.ndarray, float, tuple[float, float]] | None = None
-        self._build_lights()
+        self._mesh_files: list[str] = []  # written by _mesh_shape; pybullet reads them when a body is created
+        try:
+            self._build_static(seed)
+            self._build_calibration_patch()
+            self._build_lights()
+        finally:
+            _forget_mesh_files(self._mesh_files, self.client)
         self._light_xy = np.array([ap.light_head for ap in town.approaches]).reshape(-1, 2)
         self._pool: dict[tuple[SemanticClass, tuple[float, float, float]], list[_Body]] = {}
         self._active: dict[int, _Body] = {}
@@ -289,20 +293,22 @@ class SceneRenderer:
         self._tile_hi = np.array([t.hi for t in self._tiles])
         self._tile_shown = np.ones(len(self._tiles), bool)
 
-    def _mesh_shape(self, vertices: np.ndarray, normals: np.ndarray, rgba: Sequence[float]) -> int:
+    def _mesh_shape(self, vertices: np.ndarray, normals: np.ndarray, rgba: Sequence[float],
+                    specular: Sequence[float] | None = (0.0, 0.0, 0.0)) -> int:
         """A visual shape for a triangle soup (3 vertices per triangle), loaded from a Wavefront OBJ file.
 
         Why a file: pybullet never frees the vertex data of a mesh passed as ``vertices=`` lists, not at
         ``removeBody``, ``resetSimulation`` or ``disconnect`` (about 12 MB per town, which a long run over many
-        towns kept); a mesh it loads from a file is freed with the client, except for a copy in a process-wide
-        cache keyed by the file's name (about 23 bytes a vertex, 0.7 MB a town). Because of that cache every file
-        gets a name never used before in this process (a reused name would draw the old mesh). The numbers are
-        written as the shortest text that reads back to the same float64 (``repr``), so the values (and the
-        pixels) are those the lists gave."""
+        towns kept), and it keeps a reference to every Python float of those lists. A mesh it loads from a file
+        is freed with the client. pybullet reads the file when a body uses the shape, not here, so the file stays
+        until the renderer's bodies are built (``_forget_mesh_files``, which also empties pybullet's own cache of
+        parsed files). The numbers are written as the shortest text that reads back to the same float64
+        (``repr``), so the values (and the pixels) are those the lists gave. ``specular`` None: pybullet's
+        default specular colour."""
+        paint = {"rgbaColor": list(rgba), **({} if specular is None else {"specularColor": list(specular)})}
         if MESH_FROM_LISTS:
             return p.createVisualShape(p.GEOM_MESH, vertices=vertices.tolist(), indices=list(range(len(vertices))),
-                                       normals=normals.tolist(), rgbaColor=list(rgba), specularColor=[0.0, 0.0, 0.0],
-                                       **self._cid)
+                                       normals=normals.tolist(), **paint, **self._cid)
         global _MESH_FILES
         _MESH_FILES += 1
         name = os.path.join(_mesh_dir(), f"mesh_{_MESH_FILES}.obj")
@@ -311,13 +317,10 @@ class SceneRenderer:
         text = "".join(("".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in vertices.tolist()),
                         "".join(f"vn {x!r} {y!r} {z!r}\n" for x, y, z in normals.tolist()),
                         "".join(f"f {a}//{a} {b}//{b} {c}//{c}\n" for a, b, c in k.tolist())))
-        try:
-            with open(name, "x") as f:
-                f.write(text)
-            return p.createVisualShape(p.GEOM_MESH, fileName=name, rgbaColor=list(rgba), specularColor=[0.0, 0.0, 0.0],
-                                       **self._cid)
-        finally:
-            os.unlink(name)
+        with open(name, "x") as f:
+            self._mesh_files.append(name)
+            f.write(text)
+        return p.createVisualShape(p.GEOM_MESH, fileName=name, **paint, **self._cid)
 
     def _cull(self, eye_xy: np.ndarray, heading: float, camera: CameraConfig) -> None:
         """Hide static tiles outside the camera's horizontal view wedge (alpha 0: TinyRenderer skips them).
@@ -348,9 +351,8 @@ class SceneRenderer:
         """A grey quad out of every view: its lit colour tells how TinyRenderer shades flat ground."""
         mesh = Mesh()
         mesh.polygon_top(np.array([[-5.0, -5.0], [5.0, -5.0], [5.0, 5.0], [-5.0, 5.0]]), CALIBRATION_Z)
-        v, idx, nrm = mesh.arrays()
-        vs = p.createVisualShape(p.GEOM_MESH, vertices=v, indices=idx, normals=nrm, rgbaColor=[0.5, 0.5, 0.5, 1.0],
-                                 specularColor=[0.0, 0.0, 0.0], **self._cid)
+        v, _, nrm = mesh.arrays()
+        vs = self._mesh_shape(np.array(v), np.array(nrm), (0.5, 0.5, 0.5, 1.0))
         self._no_collisions(p.createMultiBody(baseMass=0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=vs, **self._cid))
         self._ground_palette: dict[str, np.ndarray] = {}
         self._setups: dict[tuple[str, CameraConfig], _FrameSetup] = {}
@@ -379,9 +381,8 @@ class SceneRenderer:
         hx, hy, hz = HOUSING_HALF
         housing = p.createVisualShape(p.GEOM_BOX, halfExtents=[hx, hy, hz], rgbaColor=[*HOUSING_RGB, 1.0],
                                       specularColor=[0.0, 0.0, 0.0], **self._cid)
-        v, idx, nrm = light_lamp_disc()
-        lamps = [p.createVisualShape(p.GEOM_MESH, vertices=v, indices=idx, normals=nrm,
-                                     rgbaColor=[*LAMP_OFF_RGB[s], 1.0], **self._cid) for s in LAMP_ORDER]
+        v, _, nrm = light_lamp_disc()
+        lamps = [self._mesh_shape(np.array(v), np.array(nrm), (*LAMP_OFF_RGB[s], 1.0), specular=None) for s in LAMP_ORDER]
         for ap in self.town.approaches:
             pos = to_world(ap.light_head[0], ap.light_head[1], Town.LIGHT_HEAD_HEIGHT_M)
             # Local +x must look at the oncoming traffic, i.e. along -travel_heading on the map.
@@ -737,6 +738,26 @@ def _mesh_dir() -> str:
         _MESH_DIR = tempfile.mkdtemp(prefix="towndrive_meshes_")
         atexit.register(shutil.rmtree, _MESH_DIR, True)
     return _MESH_DIR
+
+
+def _forget_mesh_files(names: list[str], client: int) -> None:
+    """Delete a renderer's mesh files once its bodies are built, and empty pybullet's cache of parsed OBJ files.
+
+    Why: pybullet keeps every OBJ file it parses in a process-wide cache keyed by the file's name
+    (``LoadMeshFromObj.cpp``'s ``gCachedObjResults``: about 1.2 MB a town), which no disconnect empties;
+    a run over many towns kept one entry per mesh file it ever loaded. The only call that empties it is
+    switching the cache off (``enableFileCaching=0``); it is switched on again at once, since while a body
+    is created the cache lets TinyRenderer reuse the parse of the file the body's importer made a moment
+    before (off for good, every file would be parsed twice). Once the bodies exist nothing reads the files
+    again: TinyRenderer keeps its own copy of the triangles. The cache is the whole process's, so this also
+    drops entries of files other code loaded; they are parsed again when next used."""
+    for name in names:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(name)
+    names.clear()
+    if p.isConnected(physicsClientId=client):
+        p.setPhysicsEngineParameter(enableFileCaching=0, physicsClientId=client)
+        p.setPhysicsEngineParameter(enableFileCaching=1, physicsClientId=client)
 
 
 def _disconnect(client: int) -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import mmap
 from dataclasses import dataclass, field
 from enum import IntEnum
 
@@ -191,7 +192,7 @@ def build_ground_map(town: Town, texels_per_m: float = 10.0) -> GroundMap:
     xmin, ymin, xmax, ymax = town.extent
     origin = np.array([xmin, ymin])
     w, h = math.ceil((xmax - xmin) * texels_per_m), math.ceil((ymax - ymin) * texels_per_m)
-    tex = np.zeros((h, w), np.uint8)
+    tex = _own_pages(h, w)
     shift = 4
 
     def fill(poly: np.ndarray, value: Surface) -> None:
@@ -212,6 +213,19 @@ def build_ground_map(town: Town, texels_per_m: float = 10.0) -> GroundMap:
     tex[[0, -1], :] = Surface.GRASS  # a grass border: lookups clamp onto it (see GroundMap.lookup)
     tex[:, [0, -1]] = Surface.GRASS
     return GroundMap(tex, origin, texels_per_m)
+
+
+def _own_pages(h: int, w: int) -> np.ndarray:
+    """A zeroed HxW uint8 array in its own anonymous memory map, unmapped (given back to the OS) when freed.
+
+    Why: a ground map is about 16 MB and there is one per town. glibc serves the first from its own mmap,
+    but freeing it raises glibc's mmap threshold above its size, so every later map came from the heap;
+    freed there it stayed resident (a process that renders town after town held one or two dead maps,
+    about 30 MB, bench/bench_memory_soak.py). A map of its own goes back to the OS when the last renderer
+    of its town lets go of it, whatever malloc's thresholds."""
+    if h * w == 0:
+        return np.zeros((h, w), np.uint8)
+    return np.frombuffer(mmap.mmap(-1, h * w), np.uint8).reshape(h, w)
 
 
 @dataclass
