@@ -17,6 +17,7 @@ from towndrive.agent.overlays import draw_detections
 from towndrive.agent.perception.classes import CLASSES
 from towndrive.agent.perception.detector import Detection
 from towndrive.agent.perception.lanes import BirdsEye
+from towndrive.sim.spec import COMMAND_NAMES
 
 if TYPE_CHECKING:
     from towndrive.agent.agent_driver import AgentView
@@ -89,7 +90,7 @@ def draw_agent(view: AgentView, birdseye: BirdsEye, scale: int = 2) -> np.ndarra
     h, w = out.shape[:2]
     # Speed, target and the reason.
     _text(out, f"{view.speed_mps * 3.6:4.1f} km/h  target {decision.target_speed_mps * 3.6:4.1f}  "
-               f"accel {decision.accel_mps2:+.1f}  cmd {view.command}", (8, 18), (255, 255, 255))
+               f"accel {decision.accel_mps2:+.1f}  {COMMAND_NAMES.get(view.command, view.command)}", (8, 18), (255, 255, 255))
     override = decision.reason != "cruise" and not decision.reason.startswith("cruise")
     _text(out, decision.reason, (8, 38), (255, 220, 60) if override else (220, 220, 220))
     if decision.stop_line_gap_m is not None:

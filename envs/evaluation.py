@@ -107,7 +107,7 @@ def video_frame(env: DriveEnv, driver: Driver, info: dict[str, Any], extra: str 
     if picture is None:
         return draw_hud(env.composite(), info, driver.name, extra)
     picture = picture.copy()
-    _label(picture, "camera + the agent's perception", picture.shape[1] // 2 - 110, 14)
+    _label(picture, "camera + perception", 6, picture.shape[0] - 8, 0.35)  # left of the steering bar
     composite = env.composite()
     side = composite.shape[0]
     width = picture.shape[1]

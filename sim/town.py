@@ -24,7 +24,7 @@ from highway_env.road.road import RoadNetwork
 
 from towndrive.sim.geometry import right_of, wrap_to_pi
 from towndrive.sim.path_filter import ROW_SIZE, lane_row, lanes_may_hold
-from towndrive.sim.spec import ROAD
+from towndrive.sim.spec import COMMAND_NAMES, ROAD
 
 LaneIndex = tuple[str, str, int]
 LaneLocation = tuple[LaneIndex, float, float]  # lane index, longitudinal s, lateral offset
@@ -56,6 +56,9 @@ class Command(IntEnum):
     LEFT = 1
     RIGHT = 2
     STRAIGHT = 3
+
+
+assert {int(c): c.name.lower() for c in Command} == COMMAND_NAMES, "sim.spec.COMMAND_NAMES names the commands"
 
 
 def lanes_for(command: Command) -> tuple[int, ...]:
