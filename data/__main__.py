@@ -14,7 +14,7 @@ def main(argv: list[str] | None = None, prog: str = "towndrive data") -> int:
     parser = argparse.ArgumentParser(prog=prog, description="Inspect and convert recorded episodes.")
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("summary", help="episodes, frames, hours, drivers, commands and steering of a dataset folder")
-    p.add_argument("folder", type=Path)
+    p.add_argument("folder", type=Path, help="the folder of episodes")
     p.add_argument("--png", type=Path, help="also write the steering histogram to this PNG")
     p.add_argument("--json", action="store_true", help="print the summary as JSON instead of a table")
     p.add_argument("--quick", action="store_true", help="skip decoding the frames (a damaged frame then passes)")

@@ -6,7 +6,13 @@ highway-env) is imported before a subcommand that needs it runs.
 
 from __future__ import annotations
 
+import argparse
 import sys
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """Descriptions as written, and every option's default shown after its help."""
+
 
 COMMANDS = {
     "drive": "drive a route and watch it (video, frames, summary): the demo by default",

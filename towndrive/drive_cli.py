@@ -24,12 +24,13 @@ from typing import Any
 import numpy as np
 
 from towndrive.agent.drivers import BUILTIN
+from towndrive.cli import HelpFormatter
 from towndrive.envs.rules_cli import add_rule_arguments, rules_from_arguments
 from towndrive.sim.spec import WEATHERS
 
 
 def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog=prog, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog=prog, description=__doc__, formatter_class=HelpFormatter)
     p.add_argument("--driver", default="agent", choices=sorted(BUILTIN),
                    help="who drives: agent (default; shipped models, camera only), autopilot (privileged expert), "
                         "keyboard, gamepad, pilotnet, rl (privileged)")
@@ -58,8 +59,8 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
     p.add_argument("--traffic", type=float, default=1.0, help="traffic density multiplier (NPCs and pedestrians)")
     p.add_argument("--seconds", type=float, default=None,
                    help="longest episode, simulated seconds (default 60 for a demo drive or a recording, 180 to evaluate)")
-    p.add_argument("--width", type=int, default=320)
-    p.add_argument("--height", type=int, default=160)
+    p.add_argument("--width", type=int, default=320, help="camera width in pixels")
+    p.add_argument("--height", type=int, default=160, help="camera height in pixels")
     p.add_argument("--out", type=Path, default=None, help="output folder (default out/drive, out/eval, out/scenarios)")
     p.add_argument("--frames", type=int, default=4, help="demo: how many camera frames to save as PNG")
     p.add_argument("--no-video", action="store_true", help="skip the MP4")

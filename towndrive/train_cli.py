@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from towndrive.cli import HelpFormatter
 from towndrive.extras import import_for
 
 # subcommand -> (module with add_arguments(parser) and run(args), what it does)
@@ -18,21 +19,24 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "rl": ("towndrive.agent.training.rl_training", "the PPO baseline on ground-truth features"),
     "export": ("towndrive.agent.deploy.export_profile", "a deployment profile's models: ONNX, int8, TensorRT scripts"),
 }
+# where a subcommand's flags live when its module is heavy to import (torch): parsed first, run module imported after
+ARGUMENTS = {"pilotnet": "towndrive.agent.training.pilotnet_args"}
 
 
 def build_parser(command: str | None = None, prog: str | None = None) -> argparse.ArgumentParser:
     """The parser; only ``command``'s module is imported (the others' heavy imports wait until they are asked for)."""
-    parser = argparse.ArgumentParser(prog=prog, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__, formatter_class=HelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True, metavar="{" + ",".join(SUBCOMMANDS) + "}")
     for name, (module_name, summary) in SUBCOMMANDS.items():
         if name != command:
             sub.add_parser(name, help=summary)
             continue
-        module = import_for(module_name, f"towndrive train {name}" if name != "export" else "towndrive export")
-        p = sub.add_parser(name, help=summary, description=module.__doc__,
-                           formatter_class=argparse.RawDescriptionHelpFormatter)
-        module.add_arguments(p)
-        p.set_defaults(run=module.run)
+        what = f"towndrive train {name}" if name != "export" else "towndrive export"
+        light = import_for(ARGUMENTS.get(name, module_name), what)
+        p = sub.add_parser(name, help=summary, description=light.__doc__ if name not in ARGUMENTS else summary,
+                           formatter_class=HelpFormatter)
+        light.add_arguments(p)
+        p.set_defaults(run=lambda args, module_name=module_name, what=what: import_for(module_name, what).run(args))
     return parser
 
 

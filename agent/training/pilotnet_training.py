@@ -39,38 +39,13 @@ from towndrive.agent.perception.pilotnet import (
     parameter_count,
     to_tensor,
 )
-from towndrive.agent.training.outputs import add_replace_shipped, replace_shipped
+from towndrive.agent.training.outputs import replace_shipped
+from towndrive.agent.training.pilotnet_args import add_arguments as pilotnet_arguments
 from towndrive.agent.training.pilotnet_data import Augment, Augmenter, FrameSet, balance_weights, load_frames, split_by_episode
 from towndrive.data.episodes import EpisodeError
 from towndrive.sim.render import CameraConfig
 
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", type=Path, nargs="+", default=[Path("data/episodes/autopilot")],
-                   help="episode folders (drive.py --record output, or python -m data import-udacity output)")
-    p.add_argument("--out", type=Path, default=Path("out/pilotnet"), help="run folder: checkpoints, log.csv, loss.png")
-    p.add_argument("--model", type=Path, default=None,
-                   help="where the best model (.pt and .onnx) goes (default: pilotnet.pt in the run folder)")
-    add_replace_shipped(p, "PilotNet (pilotnet.pt and .onnx)")
-    p.add_argument("--epochs", type=int, default=12)
-    p.add_argument("--samples-per-epoch", type=int, default=0, help="balanced draws per epoch (0: the train set size)")
-    p.add_argument("--batch", type=int, default=64)
-    p.add_argument("--lr", type=float, default=1e-3)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--validation", type=float, default=0.15, help="fraction of episodes held out for validation")
-    p.add_argument("--unconditional", action="store_true", help="plain PilotNet without the route command")
-    p.add_argument("--no-augment", action="store_true")
-    p.add_argument("--no-flip", action="store_true", help="augment without horizontal flips")
-    p.add_argument("--no-side-cameras", action="store_true", help="ignore side cameras even where recorded")
-    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
-    p.add_argument("--precision", choices=["auto", "fp32", "bf16"], default="auto",
-                   help="training arithmetic: bf16 autocast (weights stay fp32) is 1.6x faster on CPUs with "
-                        "AVX512-BF16; auto picks it where the CPU has it")
-    p.add_argument("--resume", action="store_true", help="continue from --out/last.pt")
-    p.add_argument("--dagger", type=int, default=0, metavar="ROUNDS", help="DAgger rounds after training")
-    p.add_argument("--dagger-episodes", type=int, default=8, help="learner episodes per DAgger round")
-    p.add_argument("--dagger-epochs", type=int, default=4, help="training epochs per DAgger round")
-    p.add_argument("--dagger-seconds", type=float, default=60.0, help="length of each DAgger episode")
+add_arguments = pilotnet_arguments  # the flags live in a light module (help answers at once)
 
 
 # --------------------------------------------------------------------------- checkpoints

@@ -27,15 +27,15 @@ from towndrive.agent.training.outputs import add_replace_shipped, replace_shippe
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--algo", choices=["ppo", "sac"], default="ppo")
-    p.add_argument("--observation", choices=["state", "camera"], default="state")
+    p.add_argument("--algo", choices=["ppo", "sac"], default="ppo", help="stable-baselines3 algorithm")
+    p.add_argument("--observation", choices=["state", "camera"], default="state", help="policy input: state features or camera")
     p.add_argument("--steps", type=int, default=300_000, help="environment steps in total")
     p.add_argument("--envs", type=int, default=4, help="parallel environments (a vector env)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the environments and the policy")
     p.add_argument("--town-seed", type=int, default=1, help="first training town (towns cycle over --towns)")
-    p.add_argument("--towns", type=int, default=8)
+    p.add_argument("--towns", type=int, default=8, help="number of training towns (from --town-seed on)")
     p.add_argument("--traffic", type=float, default=0.5, help="NPC and pedestrian density while training")
-    p.add_argument("--episode-seconds", type=float, default=60.0)
+    p.add_argument("--episode-seconds", type=float, default=60.0, help="length of each training episode")
     p.add_argument("--init", type=Path, default=None,
                    help="start from this saved policy (same algorithm), e.g. a plain-reward run to fine-tune with shaping")
     p.add_argument("--no-shaping", action="store_true",
