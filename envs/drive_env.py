@@ -91,6 +91,8 @@ class DriveConfig:
     terminate_on_route_deviation: bool = True
     terminate_on_infraction: bool = True  # False: collisions and leaving the road are penalised but the episode
     #                                       goes on (closed-loop evaluation with a safety driver)
+    image_only: bool = False  # the observation is the camera image alone (a Box), for CnnPolicy and Gymnasium's
+    #                           image wrappers; speed and command are then in info (ego.speed_mps, command)
 
 
 class DriveEnv(gym.Env):
@@ -125,7 +127,8 @@ class DriveEnv(gym.Env):
             obs["stereo"] = spaces.Box(0, 255, (2, cam.height, cam.width, 3), np.uint8)
         if config.observe_side_cameras:
             obs["side"] = spaces.Box(0, 255, (2, cam.height, cam.width, 3), np.uint8)
-        self.observation_space = spaces.Dict(obs)
+        self._dict_space = spaces.Dict(obs)
+        self.observation_space: spaces.Space = obs["image"] if config.image_only else self._dict_space
         self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.world: World | None = None
         self.renderer: SceneRenderer | None = None
@@ -265,7 +268,7 @@ class DriveEnv(gym.Env):
         import pygame
 
         if self._window is None:
-            pygame.init()
+            pygame.display.init()  # the window only: no audio device (headless machines have none)
             self._window = pygame.display.set_mode((image.shape[1] * 2, image.shape[0] * 2))
             pygame.display.set_caption("Drive-v0")
         surf = pygame.surfarray.make_surface(np.ascontiguousarray(image.transpose(1, 0, 2)))
@@ -288,7 +291,7 @@ class DriveEnv(gym.Env):
         ego = self._require_world().ego
         return float(ego.position[0]), float(ego.position[1]), float(ego.heading)
 
-    def _observe(self) -> dict[str, Any]:
+    def _observe(self) -> Any:
         world = self._require_world()
         cfg = self.config
         cam = cfg.camera
@@ -322,7 +325,8 @@ class DriveEnv(gym.Env):
                 obs["stereo"] = np.zeros((2, cam.height, cam.width, 3), np.uint8)
             if cfg.observe_side_cameras:
                 obs["side"] = np.zeros((2, cam.height, cam.width, 3), np.uint8)
-        return {k: obs[k] for k in self.observation_space.spaces}
+        picked = {k: obs[k] for k in self._dict_space.spaces}
+        return picked["image"] if self.config.image_only else picked
 
     def _visible_objects(self) -> list[dict[str, Any]]:
         """Every moving object and traffic light with pixels in the frame: class, id, position, 2D box."""

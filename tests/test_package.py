@@ -11,6 +11,7 @@ import venv
 import zipfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -108,3 +109,22 @@ def test_gym_make_finds_the_env_by_module_prefix_from_an_empty_folder(tmp_path: 
     run = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
     assert int(run.stdout.strip()) > 0
+
+
+def test_gymnasium_image_wrappers_and_record_video_work_on_the_image_only_observation(tmp_path: Path) -> None:
+    """``image_only=True``: a Box observation that Gymnasium's image wrappers and CnnPolicy take as it is."""
+    import gymnasium as gym
+    from gymnasium.wrappers import GrayscaleObservation, RecordVideo, ResizeObservation
+
+    import towndrive  # noqa: F401
+    from towndrive.envs import DriveConfig
+
+    env = gym.make("towndrive/Drive-v0", config=DriveConfig(image_only=True), render_mode="rgb_array")
+    assert isinstance(env.observation_space, gym.spaces.Box) and env.observation_space.shape == (160, 320, 3)
+    env = RecordVideo(GrayscaleObservation(ResizeObservation(env, (84, 84))), str(tmp_path / "videos"), disable_logger=True)
+    obs, info = env.reset(seed=0)
+    assert obs.shape == (84, 84) and obs.dtype == np.uint8 and "speed_mps" in info["ego"]
+    for _ in range(5):
+        obs, *_ = env.step(np.array([0.0, 0.5], np.float32))
+    env.close()
+    assert list((tmp_path / "videos").glob("*.mp4")), "RecordVideo wrote no video"
