@@ -35,7 +35,7 @@ def test_the_wheel_holds_one_package_with_its_models_and_profiles(wheel: Path) -
     assert "towndrive/sim/spec.py" in names and "towndrive/agent/perception/detector.py" in names
     assert not any(n.startswith("towndrive/data/models/") and n.endswith(".jsonl") for n in names)  # no training logs
     entry = next(n for n in names if n.endswith("entry_points.txt"))
-    assert "towndrive = towndrive.cli:main" in zipfile.ZipFile(wheel).read(entry).decode()
+    assert "towndrive = towndrive.cli:run" in zipfile.ZipFile(wheel).read(entry).decode()
 
 
 def test_the_installed_wheel_finds_its_models_and_profiles_outside_the_clone(wheel: Path, tmp_path: Path) -> None:

@@ -65,5 +65,16 @@ def main(argv: list[str] | None = None) -> int:
     return data(rest, prog=prog)
 
 
+def run() -> int:
+    """The console command: ``main`` with a closed pipe (``towndrive --help | head``) ending quietly."""
+    try:
+        return main()
+    except BrokenPipeError:
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # nothing more can be written there
+        return 0
+
+
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run())
