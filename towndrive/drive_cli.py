@@ -36,8 +36,9 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
                         "keyboard, gamepad, pilotnet, rl (privileged)")
     p.add_argument("--model", type=Path, default=None,
                    help="pilotnet/agent/rl: model file (default data/models/pilotnet.pt, data/models/rl_ppo.zip)")
-    p.add_argument("--backend", default=None, choices=["onnx", "torch"],
-                   help="pilotnet/agent: PilotNet's inference backend (default: torch for a --model .pt, else onnx)")
+    p.add_argument("--backend", default=None, choices=["onnxruntime", "torch"],
+                   help="pilotnet/agent: PilotNet's inference backend, named as in the profiles (default: torch for a "
+                        "--model .pt, else onnxruntime)")
     p.add_argument("--target-speed", type=float, default=None, help="pilotnet: cruise speed in m/s (default 7)")
     p.add_argument("--profile", default=None, metavar="NAME",
                    help="run the agent with a deployment profile (agent/deploy/profiles/NAME.yaml, or a .yaml path): its "
@@ -160,9 +161,9 @@ def make_named_driver(args: argparse.Namespace) -> Any:
     if args.driver in ("pilotnet", "rl", "agent") and args.model is not None:
         kwargs["model"] = args.model
     if args.driver == "agent":
-        kwargs["backend"] = args.backend
+        kwargs["backend"] = {"onnxruntime": "onnx"}.get(args.backend, args.backend)
     if args.driver == "pilotnet":
-        kwargs["backend"] = args.backend
+        kwargs["backend"] = {"onnxruntime": "onnx"}.get(args.backend, args.backend)
         if args.target_speed is not None:
             kwargs["target_speed_mps"] = args.target_speed
     elif args.target_speed is not None:

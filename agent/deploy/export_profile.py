@@ -12,7 +12,7 @@ For each model of the profile (``pilotnet``, ``detector``) the folder gets:
   <model>.int8.onnx          statically quantized for ONNX Runtime's CPU (QDQ, calibrated on the frames below);
                              its accuracy is measured by evaluation (the detector's AP), not by a tolerance
   <model>.calib.npy          INT8 calibration inputs (uint8 N x C x H x W, the model's input before its scale),
-                             frames drawn evenly from recorded episodes (``--episodes``), seeded
+                             frames drawn evenly from recorded episodes (``--calibration-data``), seeded
   pilotnet.calib_command.npy the route command of each calibration frame (conditional PilotNet)
   manifest.json              what was written, the parity figures, the models' metadata (so a Jetson without
                              torch can run the files), the calibration inputs' scales
@@ -66,7 +66,7 @@ class ModelExport:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--profile", default="cpu", help="profile name (agent/deploy/profiles/*.yaml) or a .yaml path")
     p.add_argument("--out", type=Path, default=None, help="output folder (default: the profile's export_dir)")
-    p.add_argument("--episodes", type=Path, nargs="+", default=[Path("data/episodes/autopilot")],
+    p.add_argument("--calibration-data", type=Path, nargs="+", default=[Path("data/episodes/autopilot")],
                    help="recorded episode folders for INT8 calibration frames")
     p.add_argument("--calib-frames", type=int, default=300, help="calibration frames (TensorRT suggests ~500)")
     p.add_argument("--seed", type=int, default=0, help="which calibration frames are drawn")
@@ -84,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     checkpoints = {k: v for k, v in (("pilotnet", args.pilotnet), ("detector", args.detector)) if v is not None}
     models = [m for m in args.models.split(",") if m] or list(profile.models)
     try:
-        manifest = export_profile(profile, args.out, models, args.episodes, args.calib_frames, args.seed, checkpoints)
+        manifest = export_profile(profile, args.out, models, args.calibration_data, args.calib_frames, args.seed, checkpoints)
     except (FileNotFoundError, ValueError) as exc:
         print(f"train.py export: {exc}")
         return 2
