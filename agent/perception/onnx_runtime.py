@@ -45,7 +45,7 @@ def onnx_session(path: str | Path, threads: int = 0, role: str | None = None):  
     except Exception as exc:  # onnxruntime's exceptions (InvalidProtobuf, Fail, ...) share no base but Exception
         reason = " ".join(str(exc).split())
         reason = reason.split(" : ")[-1] if " : " in reason else reason
-        raise ValueError(f"{path} is not a readable ONNX model ({reason[:160]}); re-export it (towndrive train, towndrive export).") from None
+        raise ValueError(f"{path} is not a readable ONNX model ({reason[:160]}); re-export it with towndrive export.") from None
     if role is not None:
         check_role(session, path, role)
     return session
