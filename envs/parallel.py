@@ -48,6 +48,7 @@ if TYPE_CHECKING:
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS",
                     "VECLIB_MAXIMUM_THREADS")
 ATTEMPTS = 2  # an episode runs at most twice: once, and once more after a crash
+STARTUP_DEATHS = 3  # workers that die before building their driver, more and the run stops (nothing could run)
 STOP_GRACE_S = 10.0  # how long a stopped worker may take to clean up before it is killed
 
 
@@ -185,6 +186,7 @@ def run_parallel(items: Sequence[WorkItem], driver: DriverSpec, workers: int, de
     attempts = [0] * n
     results: dict[int, Any] = {}
     slots: list[_Slot] = []
+    startup_deaths = 0
     bar = tqdm(total=n, desc=desc, unit="episode", disable=not progress, mininterval=1.0, dynamic_ncols=True)
 
     def start() -> None:
@@ -237,6 +239,11 @@ def run_parallel(items: Sequence[WorkItem], driver: DriverSpec, workers: int, de
                         continue
                     slot.process.join(1.0)
                     slots.remove(slot)
+                    if not slot.ready:  # died before its driver was built: a broken start, not an episode's fault
+                        startup_deaths += 1
+                        if startup_deaths > STARTUP_DEATHS:
+                            raise RuntimeError(f"worker processes die while starting "
+                                               f"({_exit_text(slot.process.exitcode)}); see the errors above.")
                     if slot.index is not None:
                         settle(slot.index, None, f"the worker process died ({_exit_text(slot.process.exitcode)})")
                     if len(slots) < min(workers, n - len(results)):
