@@ -352,10 +352,26 @@ def _terminate(signum: int, frame: Any) -> None:
     raise SystemExit(128 + signum)
 
 
+def _stop_with_parent() -> None:
+    """A watcher thread: when the parent process is gone (killed, say), stop this worker as the parent would."""
+    import threading
+
+    parent = mp.parent_process()
+    if parent is None:
+        return
+
+    def watch() -> None:
+        wait([parent.sentinel])
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    threading.Thread(target=watch, daemon=True, name="towndrive-parent-watch").start()
+
+
 def _worker_main(conn: Connection, driver_spec: DriverSpec) -> None:
     """A worker: build the driver once, then run the items the parent sends until it sends None."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     signal.signal(signal.SIGTERM, _terminate)  # the parent's stop: unwind, so files in progress are discarded
+    _stop_with_parent()
     try:
         driver = driver_spec.build()
         limit_threads()

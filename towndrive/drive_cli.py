@@ -15,6 +15,7 @@ finished episode and drops only the one in progress. Summarise or convert datase
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import json
 import signal
@@ -424,6 +425,7 @@ def evaluate(args: argparse.Namespace) -> int:
     import cv2
     import imageio.v2 as imageio
 
+    from towndrive.data.stopping import StopSignals
     from towndrive.envs.evaluation import evaluate as run
     from towndrive.envs.parallel import Interrupted
 
@@ -432,14 +434,21 @@ def evaluate(args: argparse.Namespace) -> int:
     rules = rules_from_arguments(args)
     replay = args.until is not None
     spec = driver_spec(args)
+    # With workers, SIGTERM and SIGHUP stop the run as Ctrl-C does (the finished episodes are reported); the serial
+    # run keeps Python's own handling.
+    stop = StopSignals() if args.workers > 1 else contextlib.nullcontext()
     try:
-        metrics = run(spec if args.workers > 1 else spec.build(), config, args.episodes, args.seed, out,
-                      video=not args.no_video or replay, options=functools.partial(episode_options, args), rules=rules,
-                      until_s=args.until, plots=not replay, workers=args.workers)
+        with stop:
+            metrics = run(spec if args.workers > 1 else spec.build(), config, args.episodes, args.seed, out,
+                          video=not args.no_video or replay, options=functools.partial(episode_options, args),
+                          rules=rules, until_s=args.until, plots=not replay, workers=args.workers,
+                          should_stop=(lambda: stop.requested) if isinstance(stop, StopSignals) else None)
     except Interrupted as exc:
-        print(f"\nInterrupted: stopped {args.workers} workers; kept {len(exc.results)} finished episode(s) of "
+        signum = getattr(stop, "signum", None) or signal.SIGINT
+        what = "Interrupted" if signum == signal.SIGINT else f"Stopped by {signal.Signals(signum).name}"
+        print(f"\n{what}: stopped {args.workers} workers; kept {len(exc.results)} finished episode(s) of "
               f"{exc.total}, reported in {out / 'metrics.json'}.", file=sys.stderr)
-        return 130
+        return 128 + signum
     if replay:  # the moment itself, as a picture
         with imageio.get_reader(out / "video.mp4") as reader:
             tail = deque(reader, maxlen=1)
