@@ -27,8 +27,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from towndrive.agent.drivers import make_driver  # noqa: E402
 from towndrive.envs.drive_env import DriveConfig  # noqa: E402
 from towndrive.envs.evaluation import evaluate  # noqa: E402
-from towndrive.envs.parallel import DriverSpec, parse_workers  # noqa: E402
+from towndrive.envs.parallel import DriverSpec, available_cores, parse_workers  # noqa: E402
 from towndrive.envs.rules_cli import add_rule_arguments, rules_from_arguments  # noqa: E402
+from towndrive.extras import import_for  # noqa: E402
 from towndrive.sim.render import LIGHTING_PRESETS  # noqa: E402
 from towndrive.sim.world import WorldConfig  # noqa: E402
 
@@ -50,12 +51,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", default="1", metavar="N",
                     help="run each driver's episodes on N worker processes ('auto': one per available core); "
                          "the figures are the serial run's")
+    ap.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                    help="run the episodes as Ray tasks: a local cluster of --workers CPUs, or the cluster at ADDRESS "
+                         "(needs towndrive[cluster])")
     ap.add_argument("--out", type=Path, default=Path("out/compare"))
     add_rule_arguments(ap)
     ap.add_argument("--reuse", action="store_true",
                     help="take a driver's row from an earlier run in --out with the same settings instead of re-running")
     args = ap.parse_args(argv)
     args.workers = parse_workers(args.workers)
+    if args.ray:
+        import_for("ray", "--ray")
+        if args.ray == "local" and args.workers == 1:
+            args.workers = available_cores()
     weathers = sorted(LIGHTING_PRESETS) if args.weathers == "all" else args.weathers.split(",")
     base = WorldConfig()
     world = replace(base, npc_count=round(base.npc_count * args.traffic),
@@ -66,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     options = functools.partial(episode_options, args.town_seed, args.towns, weathers)
 
     settings = {k: v for k, v in vars(args).items()
-                if k not in ("drivers", "out", "reuse", "video", "no_clips", "workers")}
+                if k not in ("drivers", "out", "reuse", "video", "no_clips", "workers", "ray")}
     rows = []
     for spec in args.drivers:
         name, _, model = spec.partition("@")
@@ -83,10 +91,10 @@ def main(argv: list[str] | None = None) -> int:
             # A privileged driver never looks at the pictures: without a video, skip rendering them (the
             # world, and so every figure, is the same; it runs about 50 times faster).
             blind = driver.privileged and not args.video
-            metrics = evaluate(spec if args.workers > 1 else driver,
+            metrics = evaluate(spec if args.workers > 1 or args.ray else driver,
                                replace(config, render_camera=False) if blind else config, args.episodes,
                                args.seed, folder, video=args.video, options=options, rules=rules,
-                               clips=not args.no_clips, workers=args.workers)
+                               clips=not args.no_clips, workers=args.workers, ray=args.ray)
             earlier.write_text(json.dumps(settings, indent=2))
             (folder / "wall_s.txt").write_text(f"{time.perf_counter() - t0:.1f}\n")
         m = metrics["mean"]

@@ -38,7 +38,7 @@ from towndrive.envs.metrics import (
     markdown_table,
     needs_intervention,
 )
-from towndrive.envs.parallel import DriverSpec, Interrupted, RunSummary, Worker, run_parallel
+from towndrive.envs.parallel import DriverSpec, Interrupted, RunSummary, Worker, run_items
 from towndrive.envs.standing import STANDING_SPEED_MPS, standing_reason
 
 if TYPE_CHECKING:
@@ -405,7 +405,7 @@ def evaluate(driver: Driver | DriverSpec, config: DriveConfig, episodes: int, se
              video: bool = True, options: Callable[[int], dict[str, Any]] | None = None,
              rules: EvaluationRules | None = None, clips: bool = True, audit: bool = True, plots: bool = True,
              until_s: float | None = None, workers: int = 1, summary: RunSummary | None = None,
-             should_stop: Callable[[], bool] | None = None) -> dict:
+             should_stop: Callable[[], bool] | None = None, ray: str | None = None) -> dict:
     """Run the suite, write every report file into ``out``, and return the metrics dict.
 
     ``options(k)`` gives the k-th episode's reset options (e.g. its town and weather); ``rules`` the take-over
@@ -414,21 +414,22 @@ def evaluate(driver: Driver | DriverSpec, config: DriveConfig, episodes: int, se
     comparison; ``plots`` writes the trajectory and speed plots; ``until_s`` stops each episode at that time.
 
     ``workers`` > 1 runs the episodes on that many processes (``envs.parallel``; ``driver`` must then be a
-    ``DriverSpec``); the report is the serial run's. An episode whose worker died twice, or whose driver raised
-    there, is reported failed with its error and counted as zero. On Ctrl-C the finished episodes' report is
-    written (``interrupted`` says how many of how many) and ``envs.parallel.Interrupted`` is raised."""
+    ``DriverSpec``), ``ray`` (an address, or ``"local"``) as Ray tasks; the report is the serial run's. An episode
+    whose worker died twice, or whose driver raised there, is reported failed with its error and counted as zero.
+    On Ctrl-C the finished episodes' report is written (``interrupted`` says how many of how many) and
+    ``envs.parallel.Interrupted`` is raised."""
     config = replace(config, terminate_on_infraction=False, terminate_on_route_deviation=False)
     rules = rules or EvaluationRules()
     out.mkdir(parents=True, exist_ok=True)
     items = [EvalEpisode(k, seed + k, config, out, options(k) if options else None, rules, until_s, video and k == 0,
                          clips, audit, plots) for k in range(episodes)]
-    if workers > 1:
+    if workers > 1 or ray is not None:
         if not isinstance(driver, DriverSpec):
             raise ValueError("evaluate(workers > 1) builds a driver in each worker: give a DriverSpec, not a driver.")
         name = driver.name
         try:
-            results = run_parallel(items, driver, workers, f"evaluating {name} ({workers} workers)", should_stop,
-                                   summary)
+            results = run_items(items, driver, workers, f"evaluating {name} ({workers} workers)", should_stop,
+                                summary, ray)
         except Interrupted as stop:
             done = [stop.results[k] for k in sorted(stop.results)]
             _write_report(done, name, None, config, seed, episodes, rules, out, video,

@@ -20,6 +20,8 @@ How the workers run, and why:
   (``os._exit``, SIGKILL, a segfault in native code) is seen by its process sentinel; its episode is retried
   once on the next free worker (a fresh one replaces the dead), and if it fails again it is a failed result
   with the error (``item.failed``), never dropped. An exception inside an episode counts the same way.
+- ``run_ray`` runs the same items as Ray actor tasks (a local Ray cluster, or an existing one), with the same
+  retry rule and the same bar; Ray is an optional extra (``towndrive[cluster]``).
 - Workers ignore SIGINT: Ctrl-C (or the caller's ``should_stop``) reaches the parent, which stops every worker
   with SIGTERM (raised in the worker as ``SystemExit``, so a recording discards its ``.partial``) and raises
   ``Interrupted`` with the episodes that finished.
@@ -178,39 +180,20 @@ def run_parallel(items: Sequence[WorkItem], driver: DriverSpec, workers: int, de
 
     Raises ``Interrupted`` on Ctrl-C or when ``should_stop()`` turns true, and ``RuntimeError`` when a worker
     cannot build its driver (a missing model: nothing could run)."""
-    summary = summary if summary is not None else RunSummary()
-    t0 = time.perf_counter()
+    books = _Books(items, summary, desc, progress)
     n = len(items)
     ctx = mp.get_context("spawn")
-    pending: deque[int] = deque(range(n))
-    attempts = [0] * n
-    results: dict[int, Any] = {}
+    pending, results, settle = books.pending, books.results, books.settle
     slots: list[_Slot] = []
     startup_deaths = 0
-    bar = tqdm(total=n, desc=desc, unit="episode", disable=not progress, mininterval=1.0, dynamic_ncols=True)
 
     def start() -> None:
         slots.append(_Slot.start(ctx, driver))
 
-    def settle(index: int, result: Any, error: str | None) -> None:
-        if error is None:
-            results[index] = result
-        else:
-            attempts[index] += 1
-            if attempts[index] < ATTEMPTS:
-                summary.retried += 1
-                pending.appendleft(index)
-                bar.set_postfix(failed=len(summary.failed), retried=summary.retried, refresh=False)
-                return
-            summary.failed[index] = error
-            results[index] = items[index].failed(error)
-        bar.update(1)
-        bar.set_postfix(failed=len(summary.failed), retried=summary.retried, refresh=False)
-
     try:
         for _ in range(min(workers, n)):
             start()
-        while len(results) < n:
+        while not books.done:
             if should_stop is not None and should_stop():
                 raise KeyboardInterrupt
             for slot in slots:
@@ -249,19 +232,165 @@ def run_parallel(items: Sequence[WorkItem], driver: DriverSpec, workers: int, de
                     if len(slots) < min(workers, n - len(results)):
                         start()  # a fresh worker takes the dead one's place
     except KeyboardInterrupt:
-        bar.close()
+        books.close()
         _stop(slots)
-        summary.wall_s = time.perf_counter() - t0
         raise Interrupted(results, n) from None
     except BaseException:
-        bar.close()
+        books.close()
         _stop(slots)
         raise
-    bar.close()
+    books.close()
     for slot in slots:
         slot.finish()
-    summary.wall_s = time.perf_counter() - t0
-    return [results[i] for i in range(n)]
+    return books.ordered()
+
+
+LOCAL_RAY = "local"  # ``--ray`` without an address: start a local Ray cluster
+
+
+def run_items(items: Sequence[WorkItem], driver: DriverSpec, workers: int, desc: str = "episodes",
+              should_stop: Callable[[], bool] | None = None, summary: RunSummary | None = None,
+              ray: str | None = None, progress: bool = True) -> list[Any]:
+    """``run_parallel`` on local processes, or with ``ray`` (an address, or ``LOCAL_RAY``) ``run_ray``."""
+    if ray is not None:
+        return run_ray(items, driver, workers, None if ray == LOCAL_RAY else ray, desc, should_stop, summary, progress)
+    return run_parallel(items, driver, workers, desc, should_stop, summary, progress)
+
+
+def run_ray(items: Sequence[WorkItem], driver: DriverSpec, workers: int, address: str | None = None,
+            desc: str = "episodes", should_stop: Callable[[], bool] | None = None, summary: RunSummary | None = None,
+            progress: bool = True) -> list[Any]:
+    """The same work items as Ray actor tasks: ``address`` an existing cluster (``auto``, ``ray://host:10001``),
+    or None to start a local cluster with ``workers`` CPUs here (stopped at the end). One actor per worker (one CPU
+    each; ``workers`` 1 on a cluster: one per CPU of the cluster) builds its driver once and keeps its simulator.
+    An actor that dies takes its episode with it to a fresh actor once, as a local worker's does.
+
+    The items write their files (clips, plots, recorded episodes) where they run: on a cluster of several machines,
+    give an output folder every node sees (a shared file system)."""
+    import ray
+
+    books = _Books(items, summary, f"{desc} (Ray)", progress)
+    n = len(items)
+    started = False
+    if not ray.is_initialized():
+        runtime_env = {"env_vars": {k: "1" for k in THREAD_VARIABLES}}
+        if address is None:
+            ray.init(num_cpus=workers, runtime_env=runtime_env, include_dashboard=False, log_to_driver=False,
+                     object_store_memory=300 * 2**20)
+        else:
+            ray.init(address=address, runtime_env=runtime_env, log_to_driver=False)
+        started = True
+    size = workers if workers > 1 or address is None else int(ray.cluster_resources().get("CPU", 1))
+    actor_class = ray.remote(num_cpus=1, max_restarts=0)(_RayWorker)
+    actors: list[Any] = []
+    idle: list[Any] = []
+    running: dict[Any, tuple[Any, int]] = {}
+
+    def new_actor() -> None:
+        actors.append(actor_class.remote(driver))
+        idle.append(actors[-1])
+
+    try:
+        for _ in range(min(size, n)):
+            new_actor()
+        while not books.done:
+            if should_stop is not None and should_stop():
+                raise KeyboardInterrupt
+            while idle and books.pending:
+                actor, index = idle.pop(), books.pending.popleft()
+                running[actor.run.remote(items[index])] = (actor, index)
+            if not running:
+                new_actor()
+                continue
+            ready, _ = ray.wait(list(running), num_returns=1, timeout=0.5)
+            for ref in ready:
+                actor, index = running.pop(ref)
+                try:
+                    kind, payload = ray.get(ref)
+                except ray.exceptions.RayActorError as exc:  # its process died (killed, out of memory, crashed)
+                    books.settle(index, None, f"the Ray worker died ({' '.join(str(exc).split())[:200]})")
+                    new_actor()
+                    continue
+                if kind == "fatal":
+                    raise RuntimeError(f"a Ray worker could not start its driver: {payload}")
+                books.settle(index, payload if kind == "done" else None, payload if kind == "error" else None)
+                idle.append(actor)
+    except KeyboardInterrupt:
+        books.close()
+        raise Interrupted(books.results, n) from None
+    finally:
+        books.close()
+        for actor in actors:
+            with contextlib.suppress(Exception):
+                ray.kill(actor)
+        if started:
+            ray.shutdown()
+    return books.ordered()
+
+
+class _RayWorker:
+    """A Ray actor: one worker (driver built once, one simulator), as a local worker process is."""
+
+    def __init__(self, driver_spec: DriverSpec) -> None:
+        self.error: str | None = None
+        self.worker: Worker | None = None
+        try:
+            driver = driver_spec.build()
+            limit_threads()
+            self.worker = Worker(driver)
+        except Exception as exc:
+            self.error = describe(exc)
+
+    def run(self, item: WorkItem) -> tuple[str, Any]:
+        if self.worker is None:
+            return "fatal", self.error
+        try:
+            return "done", item.run(self.worker)
+        except Exception as exc:
+            return "error", describe(exc)
+
+
+class _Books:
+    """A run's bookkeeping, the same for every backend: what waits, how often each item was tried, the results,
+    the one progress bar (episodes done, failed, retried, ETA) and the summary."""
+
+    def __init__(self, items: Sequence[WorkItem], summary: RunSummary | None, desc: str, progress: bool) -> None:
+        self.items = items
+        self.summary = summary if summary is not None else RunSummary()
+        self.pending: deque[int] = deque(range(len(items)))
+        self.attempts = [0] * len(items)
+        self.results: dict[int, Any] = {}
+        self.t0 = time.perf_counter()
+        self.bar = tqdm(total=len(items), desc=desc, unit="episode", disable=not progress, mininterval=1.0,
+                        dynamic_ncols=True)
+
+    @property
+    def done(self) -> bool:
+        return len(self.results) == len(self.items)
+
+    def settle(self, index: int, result: Any, error: str | None) -> None:
+        """An attempt ended: keep its result, or try the item once more, or record it as failed."""
+        summary = self.summary
+        if error is None:
+            self.results[index] = result
+        else:
+            self.attempts[index] += 1
+            if self.attempts[index] < ATTEMPTS:
+                summary.retried += 1
+                self.pending.appendleft(index)
+                self.bar.set_postfix(failed=len(summary.failed), retried=summary.retried, refresh=False)
+                return
+            summary.failed[index] = error
+            self.results[index] = self.items[index].failed(error)
+        self.bar.update(1)
+        self.bar.set_postfix(failed=len(summary.failed), retried=summary.retried, refresh=False)
+
+    def close(self) -> None:
+        self.bar.close()
+        self.summary.wall_s = time.perf_counter() - self.t0
+
+    def ordered(self) -> list[Any]:
+        return [self.results[i] for i in range(len(self.items))]
 
 
 @dataclass

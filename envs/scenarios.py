@@ -349,15 +349,15 @@ class ScenarioItem:
 
 
 def run_scenarios(names: list[str], driver: Any, config: DriveConfig, out: Path | None = None, video: bool = False,
-                  workers: int = 1) -> list[ScenarioResult]:
-    """Run scenarios in order: here with ``driver``, or on ``workers`` processes (``driver`` a ``DriverSpec``)."""
-    from towndrive.envs.parallel import DriverSpec, run_parallel
+                  workers: int = 1, ray: str | None = None) -> list[ScenarioResult]:
+    """Run scenarios in order: here with ``driver``, or on ``workers`` processes or Ray (``driver`` a ``DriverSpec``)."""
+    from towndrive.envs.parallel import DriverSpec, run_items
 
     items = [ScenarioItem(k, name, config, out, video) for k, name in enumerate(names)]
-    if workers > 1:
+    if workers > 1 or ray is not None:
         if not isinstance(driver, DriverSpec):
             raise ValueError("run_scenarios(workers > 1) builds a driver in each worker: give a DriverSpec.")
-        return run_parallel(items, driver, workers, f"scenarios ({workers} workers)")
+        return run_items(items, driver, workers, f"scenarios ({workers} workers)", ray=ray)
     return [run_scenario(name, driver.build() if isinstance(driver, DriverSpec) else driver, config, out, video)
             for name in names]  # a spec: a fresh driver per scenario, as the command line has always done
 

@@ -124,3 +124,20 @@ def test_two_workers_record_the_serial_run_s_episode_files(tmp_path):
             for key in ("frames", "actions", "speed", "command"):
                 assert np.array_equal(a[key][()], b[key][()]), (name, key)
             assert a.attrs["seed"] == b.attrs["seed"] and a.attrs["town_seed"] == b.attrs["town_seed"]
+
+
+def test_ray_gives_the_serial_report_and_retries_a_killed_worker(serial, tmp_path):
+    """The same items as Ray tasks on a local 2-CPU cluster (skipped without towndrive[cluster])."""
+    pytest.importorskip("ray", reason="--ray needs towndrive[cluster]")
+    import sys
+
+    from ray import cloudpickle
+
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])  # Ray's workers need not find this test file
+    marker = tmp_path / "killed_once"
+    summary = RunSummary()
+    spec = DriverSpec.of(faulty_driver, "autopilot", bad=2, how="kill", marker=str(marker))
+    metrics = evaluate(spec, BLIND, 3, 500, tmp_path / "out", video=False, options=options, plots=False, workers=2,
+                       summary=summary, ray="local")
+    assert marker.exists() and summary.retried == 1 and not summary.failed
+    assert json.dumps(metrics, sort_keys=True) == json.dumps(serial, sort_keys=True)

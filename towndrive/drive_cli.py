@@ -30,6 +30,7 @@ import numpy as np
 from towndrive.agent.drivers import BUILTIN
 from towndrive.cli import HelpFormatter
 from towndrive.envs.rules_cli import add_rule_arguments, rules_from_arguments
+from towndrive.extras import MissingExtra
 from towndrive.sim.spec import WEATHERS
 
 
@@ -77,6 +78,11 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
     p.add_argument("--workers", default="1", metavar="N",
                    help="record/evaluate/scenario all: run episodes on N worker processes, one simulator and one "
                         "driver each ('auto': one per available core); the results are the serial run's")
+    p.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                   help="record/evaluate/scenario all: run the episodes as Ray tasks, on a local Ray cluster of "
+                        "--workers CPUs (default: every available core), or on the cluster at ADDRESS ('auto', "
+                        "'ray://host:10001'; one task per CPU unless --workers says otherwise). Needs towndrive[cluster]; "
+                        "on several machines, --out and the recording folder must be on a file system every node sees")
     p.add_argument("--until", type=float, default=None, metavar="SECONDS",
                    help="evaluate: stop each episode at this time and save its last frame (replay an event: the "
                         "report gives seed, town and weather)")
@@ -117,8 +123,17 @@ def check_args(args: argparse.Namespace) -> None:
     args.workers = parse_workers(args.workers)
     if args.workers > 1 and args.driver in ("keyboard", "gamepad"):
         raise ValueError(f"--workers {args.workers}: the {args.driver} driver is one person at one window; drop --workers.")
-    if args.workers > 1 and not (args.record or args.evaluate or args.scenario):
-        raise ValueError("--workers is for record, evaluate and scenario all; a demo drive is one episode.")
+    if (args.workers > 1 or args.ray) and not (args.record or args.evaluate or args.scenario):
+        raise ValueError("--workers and --ray are for record, evaluate and scenario all; a demo drive is one episode.")
+    if args.ray:
+        if args.driver in ("keyboard", "gamepad"):
+            raise ValueError(f"--ray: the {args.driver} driver is one person at one window; drop --ray.")
+        from towndrive.envs.parallel import LOCAL_RAY, available_cores
+        from towndrive.extras import import_for
+
+        import_for("ray", "--ray")
+        if args.ray == LOCAL_RAY and args.workers == 1:
+            args.workers = available_cores()
     if args.until is not None:
         if not args.evaluate:
             raise ValueError(f"--until {args.until} replays an evaluation episode up to a time: it needs --evaluate.")
@@ -337,7 +352,7 @@ def record(args: argparse.Namespace) -> int:
     from towndrive.envs.drive_env import DriveEnv
 
     config = make_config(args)
-    if args.workers > 1:
+    if args.workers > 1 or args.ray:
         return _record_parallel(args, config)
     human = args.driver in ("keyboard", "gamepad")
     env = DriveEnv(config)
@@ -385,7 +400,7 @@ def _record_parallel(args: argparse.Namespace, config: Any) -> int:
     worker records it; each is renamed into place when it finishes."""
     from towndrive.data.episodes import next_episode_path
     from towndrive.data.stopping import StopSignals
-    from towndrive.envs.parallel import Interrupted, RunSummary, run_parallel
+    from towndrive.envs.parallel import Interrupted, RunSummary, run_items
 
     spec = driver_spec(args)
     first = int(next_episode_path(args.record).stem.split("_")[1])
@@ -396,8 +411,8 @@ def _record_parallel(args: argparse.Namespace, config: Any) -> int:
     t0 = time.perf_counter()
     with StopSignals() as stop:
         try:
-            results = run_parallel(items, spec, args.workers, f"recording ({args.workers} workers)",
-                                   lambda: stop.requested, summary)
+            results = run_items(items, spec, args.workers, f"recording ({args.workers} workers)",
+                                lambda: stop.requested, summary, args.ray)
         except Interrupted as exc:
             kept = [r for r in exc.results.values() if r["path"]]
             signum = stop.signum or signal.SIGINT
@@ -436,13 +451,15 @@ def evaluate(args: argparse.Namespace) -> int:
     spec = driver_spec(args)
     # With workers, SIGTERM and SIGHUP stop the run as Ctrl-C does (the finished episodes are reported); the serial
     # run keeps Python's own handling.
-    stop = StopSignals() if args.workers > 1 else contextlib.nullcontext()
+    parallel = args.workers > 1 or args.ray is not None
+    stop = StopSignals() if parallel else contextlib.nullcontext()
     try:
         with stop:
-            metrics = run(spec if args.workers > 1 else spec.build(), config, args.episodes, args.seed, out,
+            metrics = run(spec if parallel else spec.build(), config, args.episodes, args.seed, out,
                           video=not args.no_video or replay, options=functools.partial(episode_options, args),
                           rules=rules, until_s=args.until, plots=not replay, workers=args.workers,
-                          should_stop=(lambda: stop.requested) if isinstance(stop, StopSignals) else None)
+                          should_stop=(lambda: stop.requested) if isinstance(stop, StopSignals) else None,
+                          ray=args.ray)
     except Interrupted as exc:
         signum = getattr(stop, "signum", None) or signal.SIGINT
         what = "Interrupted" if signum == signal.SIGINT else f"Stopped by {signal.Signals(signum).name}"
@@ -476,7 +493,7 @@ def scenarios(args: argparse.Namespace) -> int:
         raise ValueError(f"Unknown scenario {unknown[0]!r}; choose one of {', '.join(SCENARIOS)} or 'all'.")
     out = args.out or Path("out/scenarios")
     results = run_scenarios(names, driver_spec(args), make_config(args), out, video=not args.no_video,
-                            workers=min(args.workers, len(names)))
+                            workers=min(args.workers, len(names)), ray=args.ray)
     print(format_results(args.driver, results))
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps([r.__dict__ for r in results], indent=2, default=str))
@@ -522,7 +539,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
         if args.scenario:
             return scenarios(args)
         return demo(args)
-    except (ValueError, RuntimeError, FileNotFoundError) as exc:
+    except (ValueError, RuntimeError, FileNotFoundError, MissingExtra) as exc:
         print(f"{prog or 'drive.py'}: {exc}", file=sys.stderr)
         return 2
 
