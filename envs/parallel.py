@@ -17,9 +17,10 @@ How the workers run, and why:
   worker is spawned with (they must be set before numpy and torch load), and once the driver is built torch and
   OpenCV are told again. N workers then use N cores, not N times every core.
 - Each worker has its own pipe, so the parent always knows which episode a worker holds. A worker that dies
-  (``os._exit``, SIGKILL, a segfault in native code) is seen by its process sentinel; its episode is retried
-  once on the next free worker (a fresh one replaces the dead), and if it fails again it is a failed result
-  with the error (``item.failed``), never dropped. An exception inside an episode counts the same way.
+  (``os._exit``, SIGKILL, a segfault in native code) is seen by its process sentinel and a fresh worker takes
+  its place; its episode is retried once, and if it fails again it is a failed result with the error
+  (``item.failed``), never dropped. An exception inside an episode counts the same way, and its retry goes to
+  another worker than the one it failed on.
 - ``run_ray`` runs the same items as Ray actor tasks (a local Ray cluster, or an existing one), with the same
   retry rule and the same bar; Ray is an optional extra (``towndrive[cluster]``).
 - Workers ignore SIGINT: Ctrl-C (or the caller's ``should_stop``) reaches the parent, which stops every worker
@@ -186,6 +187,7 @@ def run_parallel(items: Sequence[WorkItem], driver: DriverSpec, workers: int, de
     pending, results, settle = books.pending, books.results, books.settle
     slots: list[_Slot] = []
     startup_deaths = 0
+    tried_on: dict[int, int] = {}  # episode -> the worker (pid) of its last attempt
 
     def start() -> None:
         slots.append(_Slot.start(ctx, driver))
@@ -198,7 +200,11 @@ def run_parallel(items: Sequence[WorkItem], driver: DriverSpec, workers: int, de
                 raise KeyboardInterrupt
             for slot in slots:
                 if slot.ready and slot.index is None and pending:
-                    slot.give(pending.popleft(), items)
+                    # a retry goes to another worker than the one it failed on, unless this is the only one
+                    choice = next((i for i in pending if tried_on.get(i) != slot.process.pid or len(slots) == 1), None)
+                    if choice is not None:
+                        pending.remove(choice)
+                        slot.give(choice, items)
             ready = wait([s.conn for s in slots] + [s.process.sentinel for s in slots], timeout=0.5)
             for slot in list(slots):
                 if slot.conn in ready:
@@ -215,6 +221,7 @@ def run_parallel(items: Sequence[WorkItem], driver: DriverSpec, workers: int, de
                         else:  # ("done", index, result) or ("error", index, text)
                             _, index, payload = message
                             slot.index = None
+                            tried_on[index] = slot.process.pid
                             settle(index, payload if kind == "done" else None, payload if kind == "error" else None)
                         continue
                 if slot.conn in ready or slot.process.sentinel in ready:
