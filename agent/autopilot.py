@@ -75,6 +75,11 @@ class Autopilot:
         self._next_noise_s = float(self._rng.uniform(*self.noise_every_s))
         self._noise_until_s = -1.0
 
+    def set_episode_index(self, index: int) -> None:
+        """The run's episode ``index`` comes next: its steering noise is drawn from (``noise_seed``, index), so
+        an episode is the same whichever worker process runs it (``envs.parallel``)."""
+        self._episodes = index
+
     @property
     def world(self) -> World:
         if self.env is None or self.env.world is None:

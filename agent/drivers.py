@@ -33,6 +33,9 @@ class Driver(Protocol):
 
     # Optional: ``on_intervention()``, called by the evaluation after the safety driver has put the car back
     # on its lane (a driver that tracks or dead-reckons state starts it afresh there).
+    # Optional: ``set_episode_index(k)``, called before ``reset`` with the episode's place in its run, so a driver
+    # with per-episode randomness draws it from the index, not from how many episodes this instance has seen
+    # (an episode then gives the same result on any worker process, envs.parallel).
 
 
 _REGISTRY: dict[str, Callable[..., Driver]] = {}

@@ -6,6 +6,7 @@ with the safety driver of ``envs.metrics``. The defaults are the PilotNet issue'
 
   python bench/compare_drivers.py --drivers autopilot pilotnet --episodes 10 --traffic 0
   python bench/compare_drivers.py --drivers autopilot pilotnet --traffic 1 --out out/compare_traffic
+  python bench/compare_drivers.py --drivers autopilot agent --workers auto     # one worker process per core
 
 Per-driver reports (metrics.json, table.md, plots, the first episode's video) go to ``--out/<driver>``,
 the comparison to ``--out/table.md``.
@@ -14,6 +15,7 @@ the comparison to ``--out/table.md``.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 import time
@@ -25,7 +27,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from towndrive.agent.drivers import make_driver  # noqa: E402
 from towndrive.envs.drive_env import DriveConfig  # noqa: E402
 from towndrive.envs.evaluation import evaluate  # noqa: E402
+from towndrive.envs.parallel import DriverSpec, available_cores, parse_workers  # noqa: E402
 from towndrive.envs.rules_cli import add_rule_arguments, rules_from_arguments  # noqa: E402
+from towndrive.extras import import_for  # noqa: E402
 from towndrive.sim.render import LIGHTING_PRESETS  # noqa: E402
 from towndrive.sim.world import WorldConfig  # noqa: E402
 
@@ -44,11 +48,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--video", action="store_true", help="also write each driver's first-episode video")
     ap.add_argument("--no-clips", action="store_true",
                     help="no clip around each infraction and take-over (they draw the map every step: about 1 ms)")
+    ap.add_argument("--workers", default="1", metavar="N",
+                    help="run each driver's episodes on N worker processes ('auto': one per available core); "
+                         "the figures are the serial run's")
+    ap.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                    help="run the episodes as Ray tasks: a local cluster of --workers CPUs, or the cluster at ADDRESS "
+                         "(needs towndrive[cluster])")
     ap.add_argument("--out", type=Path, default=Path("out/compare"))
     add_rule_arguments(ap)
     ap.add_argument("--reuse", action="store_true",
                     help="take a driver's row from an earlier run in --out with the same settings instead of re-running")
     args = ap.parse_args(argv)
+    args.workers = parse_workers(args.workers)
+    if args.ray:
+        import_for("ray", "--ray")
+        if args.ray == "local" and args.workers == 1:
+            args.workers = available_cores()
     weathers = sorted(LIGHTING_PRESETS) if args.weathers == "all" else args.weathers.split(",")
     base = WorldConfig()
     world = replace(base, npc_count=round(base.npc_count * args.traffic),
@@ -56,10 +71,10 @@ def main(argv: list[str] | None = None) -> int:
     config = DriveConfig(world=world, max_time_s=args.seconds)
     rules = rules_from_arguments(args)
 
-    def options(k: int) -> dict:
-        return {"town_seed": args.town_seed + k % args.towns, "weather": weathers[k % len(weathers)]}
+    options = functools.partial(episode_options, args.town_seed, args.towns, weathers)
 
-    settings = {k: v for k, v in vars(args).items() if k not in ("drivers", "out", "reuse", "video", "no_clips")}
+    settings = {k: v for k, v in vars(args).items()
+                if k not in ("drivers", "out", "reuse", "video", "no_clips", "workers", "ray")}
     rows = []
     for spec in args.drivers:
         name, _, model = spec.partition("@")
@@ -71,13 +86,15 @@ def main(argv: list[str] | None = None) -> int:
             metrics = json.loads((folder / "metrics.json").read_text())
             print(f"{name}: reusing {folder / 'metrics.json'}")
         else:
-            driver = make_driver(name, model=Path(model)) if model else make_driver(name)
+            spec = DriverSpec.of(make_driver, name, **({"model": Path(model)} if model else {}))
+            driver = spec.build()
             # A privileged driver never looks at the pictures: without a video, skip rendering them (the
             # world, and so every figure, is the same; it runs about 50 times faster).
             blind = driver.privileged and not args.video
-            metrics = evaluate(driver, replace(config, render_camera=False) if blind else config, args.episodes,
+            metrics = evaluate(spec if args.workers > 1 or args.ray else driver,
+                               replace(config, render_camera=False) if blind else config, args.episodes,
                                args.seed, folder, video=args.video, options=options, rules=rules,
-                               clips=not args.no_clips)
+                               clips=not args.no_clips, workers=args.workers, ray=args.ray)
             earlier.write_text(json.dumps(settings, indent=2))
             (folder / "wall_s.txt").write_text(f"{time.perf_counter() - t0:.1f}\n")
         m = metrics["mean"]
@@ -97,6 +114,11 @@ def main(argv: list[str] | None = None) -> int:
     (args.out / "table.md").write_text(table)
     print(table)
     return 0
+
+
+def episode_options(town_seed: int, towns: int, weathers: list[str], k: int) -> dict:
+    """Town and weather of the k-th episode."""
+    return {"town_seed": town_seed + k % towns, "weather": weathers[k % len(weathers)]}
 
 
 def _audit_cell(mean: dict) -> str:

@@ -2,8 +2,10 @@
 
 Writes ``metrics.json`` (per episode and ``mean``, with every infraction and take-over as an event),
 ``table.md`` (the events listed under each episode), a few seconds of video around each event in
-``clips/``, plots (each route's trajectory on the map; speed and steering over time) and ``video.mp4`` of
-the first episode (camera beside the top-down map, with a HUD). The metrics, the intervention rule and
+``clips/``, plots (each route's trajectory on its town's map; speed and steering over time) and ``video.mp4``
+of the first episode (camera beside the top-down map, with a HUD). Each episode is a work item
+(``EvalEpisode``) that writes its own clips, plots and video, so episodes can run on several processes
+(``envs.parallel``) and give the serial run's report. The metrics, the intervention rule and
 the Leaderboard rules one can switch on are documented in ``envs.metrics``; every episode's infractions
 are also recomputed by ``envs.audit`` and the comparison is reported.
 """
@@ -32,9 +34,11 @@ from towndrive.envs.metrics import (
     EvaluationRules,
     aggregate,
     episode_metrics,
+    failed_episode_metrics,
     markdown_table,
     needs_intervention,
 )
+from towndrive.envs.parallel import DriverSpec, Interrupted, RunSummary, Worker, run_items
 from towndrive.envs.standing import STANDING_SPEED_MPS, standing_reason
 
 if TYPE_CHECKING:
@@ -294,8 +298,11 @@ def _rule_events(rules: EvaluationRules, state: _RuleState, world: World, info: 
     return out
 
 
-def plot_traces(env: DriveEnv, traces: list[EpisodeTrace], out: Path) -> list[str]:
-    """One trajectory-on-map PNG per episode and one speed/steering-over-time PNG per episode."""
+_MAP_CACHE: dict[int, tuple[Any, Any, np.ndarray]] = {}  # id(town) -> (town, TopDownMap, its picture): the last one
+
+
+def plot_trace(town: Any, tr: EpisodeTrace, out: Path) -> list[str]:
+    """The episode's trajectory on its own town's map and its speed and steering over time: two PNGs."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -303,89 +310,163 @@ def plot_traces(env: DriveEnv, traces: list[EpisodeTrace], out: Path) -> list[st
 
     from towndrive.sim.topdown import TopDownMap
 
-    assert env.world is not None
+    cached = _MAP_CACHE.get(id(town))
+    if cached is None or cached[0] is not town:
+        topdown = TopDownMap(town, pixels_per_m=1.5)
+        _MAP_CACHE.clear()
+        cached = _MAP_CACHE[id(town)] = (town, topdown, topdown.render())
+    _, topdown, background = cached
     out.mkdir(parents=True, exist_ok=True)
-    topdown = TopDownMap(env.world.town, pixels_per_m=1.5)
-    background = topdown.render()
     written = []
-    for tr in traces:
-        px = topdown.to_px(np.stack([tr.x, tr.y], axis=1))
-        fig, ax = plt.subplots(figsize=(5, 5), dpi=100)
-        ax.imshow(background)
-        ax.plot(px[:, 0], px[:, 1], color="tab:blue", lw=2, label="driven")
-        ax.scatter(px[:1, 0], px[:1, 1], c="lime", s=30, zorder=3, label="start")
-        for inf in tr.infractions:
-            p = topdown.to_px(np.array([[inf["x"], inf["y"]]]))[0]
-            ax.scatter(p[0], p[1], c="red", marker="x", s=50, zorder=4)
-        ax.set_title(f"seed {tr.seed}: trajectory (red x: infractions)")
-        ax.axis("off")
-        ax.legend(loc="lower right", fontsize=7)
-        name = f"trajectory_seed{tr.seed}.png"
-        fig.savefig(out / name, bbox_inches="tight")
-        plt.close(fig)
-        written.append(name)
-        t = np.arange(len(tr.speed)) * tr.dt_s
-        fig, (a1, a2) = plt.subplots(2, 1, figsize=(7, 4), dpi=100, sharex=True)
-        a1.plot(t, tr.speed, color="tab:blue")
-        a1.set_ylabel("speed m/s")
-        a2.plot(t, tr.steer, color="tab:orange")
-        a2.set_ylabel("steer [-1, 1]")
-        a2.set_xlabel("time s")
-        for ti in tr.interventions:
-            a1.axvline(ti, color="red", lw=0.8)
-        fig.suptitle(f"seed {tr.seed}: speed and steering (red: interventions)")
-        name = f"speed_steer_seed{tr.seed}.png"
-        fig.savefig(out / name, bbox_inches="tight")
-        plt.close(fig)
-        written.append(name)
+    px = topdown.to_px(np.stack([tr.x, tr.y], axis=1))
+    fig, ax = plt.subplots(figsize=(5, 5), dpi=100)
+    ax.imshow(background)
+    ax.plot(px[:, 0], px[:, 1], color="tab:blue", lw=2, label="driven")
+    ax.scatter(px[:1, 0], px[:1, 1], c="lime", s=30, zorder=3, label="start")
+    for inf in tr.infractions:
+        p = topdown.to_px(np.array([[inf["x"], inf["y"]]]))[0]
+        ax.scatter(p[0], p[1], c="red", marker="x", s=50, zorder=4)
+    ax.set_title(f"seed {tr.seed}: trajectory (red x: infractions)")
+    ax.axis("off")
+    ax.legend(loc="lower right", fontsize=7)
+    name = f"trajectory_seed{tr.seed}.png"
+    fig.savefig(out / name, bbox_inches="tight")
+    plt.close(fig)
+    written.append(name)
+    t = np.arange(len(tr.speed)) * tr.dt_s
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(7, 4), dpi=100, sharex=True)
+    a1.plot(t, tr.speed, color="tab:blue")
+    a1.set_ylabel("speed m/s")
+    a2.plot(t, tr.steer, color="tab:orange")
+    a2.set_ylabel("steer [-1, 1]")
+    a2.set_xlabel("time s")
+    for ti in tr.interventions:
+        a1.axvline(ti, color="red", lw=0.8)
+    fig.suptitle(f"seed {tr.seed}: speed and steering (red: interventions)")
+    name = f"speed_steer_seed{tr.seed}.png"
+    fig.savefig(out / name, bbox_inches="tight")
+    plt.close(fig)
+    written.append(name)
     return written
 
 
-def evaluate(driver: Driver, config: DriveConfig, episodes: int, seed: int, out: Path, video: bool = True,
-             options: Callable[[int], dict[str, Any]] | None = None, rules: EvaluationRules | None = None,
-             clips: bool = True, audit: bool = True, plots: bool = True, until_s: float | None = None) -> dict:
+def plot_traces(env: DriveEnv, traces: list[EpisodeTrace], out: Path) -> list[str]:
+    """``plot_trace`` for each trace, all on the env's current town."""
+    assert env.world is not None
+    return [name for tr in traces for name in plot_trace(env.world.town, tr, out)]
+
+
+@dataclass(frozen=True)
+class EvalEpisode:
+    """One evaluation episode as a work item (``envs.parallel``): everything it needs, so that it gives the same
+    result in any process. ``video``: write ``out/video.mp4`` (the run's first episode)."""
+
+    index: int
+    seed: int
+    config: DriveConfig
+    out: Path
+    options: dict[str, Any] | None = None
+    rules: EvaluationRules = EvaluationRules()
+    until_s: float | None = None
+    video: bool = False
+    clips: bool = True
+    audit: bool = True
+    plots: bool = True
+
+    def run(self, worker: Worker, progress: Any = None) -> dict[str, Any]:
+        """Run it on ``worker``'s env and driver: ``{"metrics", "plots", "driver", "privileged"}``."""
+        env, driver = worker.env(self.config), worker.driver
+        worker.start_episode(self.index)
+        fps = env.metadata["render_fps"]
+        clip_writer = ClipWriter(self.out / "clips", fps) if self.clips else None
+        writer = video_writer(self.out / "video.mp4", fps) if self.video else None
+        try:
+            trace = run_episode(env, driver, self.seed, writer, progress, self.options, self.rules, clip_writer,
+                                self.audit, self.until_s)
+        finally:
+            if writer is not None:
+                writer.close()
+        metrics = episode_metrics(trace)
+        adas = getattr(driver, "adas_summary", None)  # ADAS warnings (the agent): counts and events
+        if callable(adas):
+            metrics["adas"] = adas()
+        assert env.world is not None
+        plots = plot_trace(env.world.town, trace, self.out / "plots") if self.plots else []
+        return {"metrics": metrics, "plots": plots, "driver": driver.name, "privileged": driver.privileged}
+
+    def failed(self, error: str) -> dict[str, Any]:
+        options = self.options or {}
+        metrics = failed_episode_metrics(self.seed, options.get("town_seed", self.config.town_seed),
+                                         options.get("weather", self.config.weather), error)
+        return {"metrics": metrics, "plots": [], "driver": None, "privileged": None}
+
+
+def evaluate(driver: Driver | DriverSpec, config: DriveConfig, episodes: int, seed: int, out: Path,
+             video: bool = True, options: Callable[[int], dict[str, Any]] | None = None,
+             rules: EvaluationRules | None = None, clips: bool = True, audit: bool = True, plots: bool = True,
+             until_s: float | None = None, workers: int = 1, summary: RunSummary | None = None,
+             should_stop: Callable[[], bool] | None = None, ray: str | None = None) -> dict:
     """Run the suite, write every report file into ``out``, and return the metrics dict.
 
     ``options(k)`` gives the k-th episode's reset options (e.g. its town and weather); ``rules`` the take-over
     cost and the Leaderboard rules in force; ``clips`` writes a clip around every infraction and take-over
     into ``out/clips``; ``audit`` recomputes every infraction independently (``envs.audit``) and reports the
-    comparison; ``plots`` writes the trajectory and speed plots; ``until_s`` stops each episode at that time."""
+    comparison; ``plots`` writes the trajectory and speed plots; ``until_s`` stops each episode at that time.
+
+    ``workers`` > 1 runs the episodes on that many processes (``envs.parallel``; ``driver`` must then be a
+    ``DriverSpec``), ``ray`` (an address, or ``"local"``) as Ray tasks; the report is the serial run's. An episode
+    whose worker died twice, or whose driver raised there, is reported failed with its error and counted as zero.
+    On Ctrl-C the finished episodes' report is written (``interrupted`` says how many of how many) and
+    ``envs.parallel.Interrupted`` is raised."""
     config = replace(config, terminate_on_infraction=False, terminate_on_route_deviation=False)
     rules = rules or EvaluationRules()
-    env = DriveEnv(config, render_mode="rgb_array")
     out.mkdir(parents=True, exist_ok=True)
-    traces, per_episode = [], []
-    steps_hint = int(config.max_time_s / config.world.dt_s) * episodes
-    writer = None
-    fps = env.metadata["render_fps"]
-    clip_writer = ClipWriter(out / "clips", fps) if clips else None
+    items = [EvalEpisode(k, seed + k, config, out, options(k) if options else None, rules, until_s, video and k == 0,
+                         clips, audit, plots) for k in range(episodes)]
+    if workers > 1 or ray is not None:
+        if not isinstance(driver, DriverSpec):
+            raise ValueError("evaluate(workers > 1) builds a driver in each worker: give a DriverSpec, not a driver.")
+        name = driver.name
+        try:
+            results = run_items(items, driver, workers, f"evaluating {name} ({workers} workers)", should_stop,
+                                summary, ray)
+        except Interrupted as stop:
+            done = [stop.results[k] for k in sorted(stop.results)]
+            _write_report(done, name, None, config, seed, episodes, rules, out, video,
+                          interrupted={"finished": len(done), "of": episodes})
+            raise
+        return _write_report(results, name, None, config, seed, episodes, rules, out, video)
+    instance = driver.build() if isinstance(driver, DriverSpec) else driver
+    worker = Worker(instance)
+    results = []
     try:
-        with tqdm(total=steps_hint, desc=f"evaluating {driver.name}", unit="step", mininterval=2.0) as bar:
-            for k in range(episodes):
-                if video and k == 0:
-                    writer = video_writer(out / "video.mp4", fps)
-                trace = run_episode(env, driver, seed + k, writer, bar, options(k) if options else None, rules,
-                                    clip_writer, audit, until_s)
-                if writer is not None:
-                    writer.close()
-                    writer = None
-                traces.append(trace)
-                per_episode.append(episode_metrics(trace))
-                adas = getattr(driver, "adas_summary", None)  # ADAS warnings (the agent): counts and events
-                if callable(adas):
-                    per_episode[-1]["adas"] = adas()
-        written = plot_traces(env, traces, out / "plots") if plots else []
+        steps_hint = int(config.max_time_s / config.world.dt_s) * episodes
+        with tqdm(total=steps_hint, desc=f"evaluating {instance.name}", unit="step", mininterval=2.0) as bar:
+            for item in items:
+                results.append(item.run(worker, bar))
     finally:
-        if writer is not None:
-            writer.close()
-        env.close()
-    mean = aggregate(per_episode)
-    if any("adas" in e for e in per_episode):
-        mean["adas_warnings"] = {k: sum(e["adas"]["counts"][k] for e in per_episode if "adas" in e)
-                                 for k in per_episode[0]["adas"]["counts"]}
-    metrics = {"driver": driver.name, "privileged": driver.privileged, "town_seed": config.town_seed,
+        worker.close()
+    return _write_report(results, instance.name, instance.privileged, config, seed, episodes, rules, out, video)
+
+
+def _write_report(results: list[dict[str, Any]], name: str, privileged: bool | None, config: DriveConfig, seed: int,
+                  episodes: int, rules: EvaluationRules, out: Path, video: bool,
+                  interrupted: dict[str, int] | None = None) -> dict:
+    """metrics.json and table.md from the episodes' results, in episode order."""
+    per_episode = [r["metrics"] for r in results]
+    ran = [r for r in results if r["driver"] is not None]
+    if ran:
+        name, privileged = ran[0]["driver"], ran[0]["privileged"]
+    mean = aggregate(per_episode) if per_episode else {}
+    with_adas = [e for e in per_episode if "adas" in e]
+    if with_adas:
+        mean["adas_warnings"] = {k: sum(e["adas"]["counts"][k] for e in with_adas) for k in with_adas[0]["adas"]["counts"]}
+    metrics = {"driver": name, "privileged": privileged, "town_seed": config.town_seed,
                "weather": config.weather, "seeds": [seed, seed + episodes - 1], "rules": asdict(rules),
-               "episodes": per_episode, "mean": mean, "plots": written, "video": "video.mp4" if video else None}
+               "episodes": per_episode, "mean": mean, "plots": [p for r in results for p in r["plots"]],
+               "video": "video.mp4" if video else None,
+               **({"interrupted": interrupted} if interrupted is not None else {})}
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
-    (out / "table.md").write_text(markdown_table(driver.name, per_episode, mean))
+    if per_episode:
+        (out / "table.md").write_text(markdown_table(name, per_episode, mean))
     return metrics

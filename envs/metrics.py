@@ -14,6 +14,9 @@ Per episode:
   longest_clear_hold_s the longest such standstill without a break
   events               every infraction and take-over: kind, time, place, the other party (id and kind), the
                        light it concerns, the ego's speed, and the driver's reason when the driver gives one
+  failed               only on an episode that could not be run (its worker crashed twice, or the driver
+                       raised): the error; it counts as route completion and driving score 0 (never dropped,
+                       as Bench2Drive counts a missing route as 0), its other figures are NaN
 
 The intervention rule: a safety driver takes over when the car is more than 1 m off its lane centre
 (measured outside the band between the centres of its direction's lanes, so that a lane change is not
@@ -172,6 +175,16 @@ def episode_metrics(trace: EpisodeTrace) -> dict[str, Any]:
     }
 
 
+def failed_episode_metrics(seed: int, town_seed: int, weather: str, error: str) -> dict[str, Any]:
+    """The figures of an episode that could not be run: zero score and completion, the error, nothing measured."""
+    nan = float("nan")
+    return {"seed": seed, "town_seed": town_seed, "weather": weather, "route_completion": 0.0,
+            "infraction_penalty": nan, "driving_score": 0.0, "infractions": {}, "infractions_per_km": {},
+            "interventions": 0, "autonomy": nan, "mean_abs_lane_offset_m": nan, "mean_speed_mps": nan,
+            "distance_km": 0.0, "elapsed_s": 0.0, "standing_clear_s": 0.0, "longest_clear_hold_s": 0.0,
+            "events": [], "failed": error}
+
+
 def _longest_run(flags: list[bool]) -> int:
     """The longest run of consecutive True values."""
     best = run = 0
@@ -203,6 +216,9 @@ def aggregate(per_episode: list[dict[str, Any]]) -> dict[str, Any]:
         mean["audit"] = merge(audits)
     mean["distance_km"] = round(total_km, 4)
     mean["episodes"] = len(per_episode)
+    failed = sum("failed" in e for e in per_episode)
+    if failed:
+        mean["failed"] = failed
     return mean
 
 
@@ -212,12 +228,16 @@ def markdown_table(driver: str, per_episode: list[dict[str, Any]], mean: dict[st
     lines = [f"# Closed-loop evaluation: {driver}", "", head, "|" + "---|" * 10]
     for e in per_episode:
         inf = ", ".join(f"{k} {v}" for k, v in sorted(e["infractions"].items())) or "none"
+        if "failed" in e:
+            inf = f"FAILED (counted as 0): {e['failed']}"
         where = f"{e['seed']}, {e.get('town_seed', '')}, {e.get('weather', '')}"
         lines.append(f"| {where} | {e['route_completion']:.1f} | {e['infraction_penalty']:.3f} | "
                      f"{e['driving_score']:.1f} | {e['autonomy']:.1f} | {e['interventions']} | "
                      f"{e['mean_abs_lane_offset_m']:.3f} | {e['mean_speed_mps']:.2f} | "
                      f"{e.get('standing_clear_s', 0.0):.1f} | {inf} |")
     inf = ", ".join(f"{k} {v}" for k, v in sorted(mean["infractions"].items())) or "none"
+    if mean.get("failed"):
+        inf += f"; {mean['failed']} episode(s) failed"
     lines.append(f"| **mean** | {mean['route_completion']:.1f} | {mean['infraction_penalty']:.3f} | "
                  f"**{mean['driving_score']:.1f}** | {mean['autonomy']:.1f} | {mean['interventions']} | "
                  f"{mean['mean_abs_lane_offset_m']:.3f} | {mean['mean_speed_mps']:.2f} | "

@@ -12,7 +12,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -24,6 +24,9 @@ from towndrive.sim.routes import shortest_route
 from towndrive.sim.town import OPPOSITE, Approach, Arm, Command, Edge, Town
 from towndrive.sim.traffic import TownVehicle
 from towndrive.sim.world import World, cached_town
+
+if TYPE_CHECKING:
+    from towndrive.envs.parallel import Worker
 
 START_BEFORE_STOP_M = 55.0
 APPROACH_NODE = (1, 1)
@@ -326,6 +329,37 @@ def run_scenario(name: str, driver: Any, config: DriveConfig, out: Path | None =
         env.close()
     passed, detail = scenario.check(log, ctx)
     return ScenarioResult(name, bool(passed), detail, log.t[-1] if log.t else 0.0)
+
+
+@dataclass(frozen=True)
+class ScenarioItem:
+    """One scenario as a work item (``envs.parallel``): the scenario's name, the config and where its video goes."""
+
+    index: int
+    name: str
+    config: DriveConfig
+    out: Path | None = None
+    video: bool = False
+
+    def run(self, worker: Worker) -> ScenarioResult:
+        return run_scenario(self.name, worker.driver, self.config, self.out, self.video)
+
+    def failed(self, error: str) -> ScenarioResult:
+        return ScenarioResult(self.name, False, f"could not be run: {error}", 0.0)
+
+
+def run_scenarios(names: list[str], driver: Any, config: DriveConfig, out: Path | None = None, video: bool = False,
+                  workers: int = 1, ray: str | None = None) -> list[ScenarioResult]:
+    """Run scenarios in order: here with ``driver``, or on ``workers`` processes or Ray (``driver`` a ``DriverSpec``)."""
+    from towndrive.envs.parallel import DriverSpec, run_items
+
+    items = [ScenarioItem(k, name, config, out, video) for k, name in enumerate(names)]
+    if workers > 1 or ray is not None:
+        if not isinstance(driver, DriverSpec):
+            raise ValueError("run_scenarios(workers > 1) builds a driver in each worker: give a DriverSpec.")
+        return run_items(items, driver, workers, f"scenarios ({workers} workers)", ray=ray)
+    return [run_scenario(name, driver.build() if isinstance(driver, DriverSpec) else driver, config, out, video)
+            for name in names]  # a spec: a fresh driver per scenario, as the command line has always done
 
 
 def _bumper_gap(world: World, npc: TownVehicle) -> float:

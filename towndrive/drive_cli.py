@@ -15,9 +15,13 @@ finished episode and drops only the one in progress. Summarise or convert datase
 from __future__ import annotations
 
 import argparse
+import contextlib
+import functools
 import json
+import signal
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +30,7 @@ import numpy as np
 from towndrive.agent.drivers import BUILTIN
 from towndrive.cli import HelpFormatter
 from towndrive.envs.rules_cli import add_rule_arguments, rules_from_arguments
+from towndrive.extras import MissingExtra
 from towndrive.sim.spec import WEATHERS
 
 
@@ -70,6 +75,14 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
     mode.add_argument("--evaluate", action="store_true", help="closed-loop evaluation with CARLA-style metrics")
     mode.add_argument("--scenario", metavar="NAME", help="run a scenario of the suite, or 'all'")
     p.add_argument("--episodes", type=int, default=1, help="record/evaluate: how many episodes")
+    p.add_argument("--workers", default="1", metavar="N",
+                   help="record/evaluate/scenario all: run episodes on N worker processes, one simulator and one "
+                        "driver each ('auto': one per available core); the results are the serial run's")
+    p.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                   help="record/evaluate/scenario all: run the episodes as Ray tasks, on a local Ray cluster of "
+                        "--workers CPUs (default: every available core), or on the cluster at ADDRESS ('auto', "
+                        "'ray://host:10001'; one task per CPU unless --workers says otherwise). Needs towndrive[cluster]; "
+                        "on several machines, --out and the recording folder must be on a file system every node sees")
     p.add_argument("--until", type=float, default=None, metavar="SECONDS",
                    help="evaluate: stop each episode at this time and save its last frame (replay an event: the "
                         "report gives seed, town and weather)")
@@ -105,6 +118,22 @@ def check_args(args: argparse.Namespace) -> None:
     if args.target_speed is not None:
         check_number("--target-speed", args.target_speed, 0.0, 30.0, lo_open=True)
     check_number("--speed", args.speed, 0.0, 60.0)
+    from towndrive.envs.parallel import parse_workers
+
+    args.workers = parse_workers(args.workers)
+    if args.workers > 1 and args.driver in ("keyboard", "gamepad"):
+        raise ValueError(f"--workers {args.workers}: the {args.driver} driver is one person at one window; drop --workers.")
+    if (args.workers > 1 or args.ray) and not (args.record or args.evaluate or args.scenario):
+        raise ValueError("--workers and --ray are for record, evaluate and scenario all; a demo drive is one episode.")
+    if args.ray:
+        if args.driver in ("keyboard", "gamepad"):
+            raise ValueError(f"--ray: the {args.driver} driver is one person at one window; drop --ray.")
+        from towndrive.envs.parallel import LOCAL_RAY, available_cores
+        from towndrive.extras import import_for
+
+        import_for("ray", "--ray")
+        if args.ray == LOCAL_RAY and args.workers == 1:
+            args.workers = available_cores()
     if args.until is not None:
         if not args.evaluate:
             raise ValueError(f"--until {args.until} replays an evaluation episode up to a time: it needs --evaluate.")
@@ -145,15 +174,27 @@ def make_config(args: argparse.Namespace) -> Any:
 
 
 def make_named_driver(args: argparse.Namespace) -> Any:
+    return driver_spec(args).build()
+
+
+def _profiled_agent(name: str, profile: str) -> Any:
+    """The agent as a deployment profile runs it (a module-level factory, so worker processes can build it)."""
+    from towndrive.agent.deploy.profiled_agent import ProfiledAgent
+    from towndrive.agent.deploy.profiles import load_profile
+
+    return ProfiledAgent(load_profile(profile))
+
+
+def driver_spec(args: argparse.Namespace) -> Any:
+    """The driver the flags ask for, as an ``envs.parallel.DriverSpec``: built here for a serial run, once in
+    each worker process for a parallel one. Flag mistakes are raised here, before any worker starts."""
     from towndrive.agent.drivers import make_driver
+    from towndrive.envs.parallel import DriverSpec
 
     if getattr(args, "profile", None):
         if args.driver not in ("autopilot", "agent"):  # autopilot: the default, so --driver was not given
             raise ValueError(f"--profile runs the agent driver, not {args.driver}; drop --driver.")
-        from towndrive.agent.deploy.profiled_agent import ProfiledAgent
-        from towndrive.agent.deploy.profiles import load_profile
-
-        return ProfiledAgent(load_profile(args.profile))
+        return DriverSpec.of(_profiled_agent, "agent", profile=str(args.profile))
 
     kwargs: dict[str, Any] = {"noise": True, "noise_seed": args.seed} if args.noise else {}
     if args.noise and args.driver != "autopilot":
@@ -170,7 +211,7 @@ def make_named_driver(args: argparse.Namespace) -> Any:
         raise ValueError(f"--target-speed is for the pilotnet driver, not {args.driver}.")
     elif args.model is not None and args.driver not in ("rl", "agent"):
         raise ValueError(f"--model is for the pilotnet, agent and rl drivers, not {args.driver}.")
-    return make_driver(args.driver, **kwargs)
+    return DriverSpec.of(make_driver, args.driver, **kwargs)
 
 
 # ---------------------------------------------------------------------- modes
@@ -237,43 +278,45 @@ def demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def record(args: argparse.Namespace) -> int:
-    """Record episodes; each finished one is renamed into place, so Ctrl-C, SIGTERM, SIGHUP or a full disk loses
-    only the current one, and the run ends with one sentence saying what happened and what was kept."""
-    from tqdm import tqdm
+@dataclass(frozen=True)
+class RecordEpisode:
+    """One recorded episode as a work item (``envs.parallel``): seed, town and weather, the config and the file it
+    becomes. Episode k of a run gets the name the serial run gives it, whichever worker records it."""
 
-    from towndrive.data.episodes import EpisodeWriter, next_episode_path
-    from towndrive.data.stopping import Stopped, StopSignals, describe_os_error
-    from towndrive.envs.drive_env import DriveEnv
+    index: int
+    seed: int
+    options: dict[str, Any]
+    config: Any  # DriveConfig
+    path: Path
+    noise: bool = False
 
-    config = make_config(args)
-    human = args.driver in ("keyboard", "gamepad")
-    env = DriveEnv(config)
-    driver = make_named_driver(args)
-    kept: list[Path] = []
-    writer: EpisodeWriter | None = None
-    t0 = time.perf_counter()
-    frames = 0
-    failure: tuple[str, int] | None = None  # what stopped the recording, and the exit code
-    stop = StopSignals().__enter__()
-    try:
-        for k in tqdm(range(args.episodes), desc="recording", unit="episode", disable=human, mininterval=2.0):
-            seed = args.seed + k
-            options = episode_options(args, k)
-            obs, info = env.reset(seed=seed, options=options)
-            driver.reset(env)
-            assert env.world is not None
-            attrs = {"seed": seed, **options, "driver": driver.name,
-                     "side_camera_offset_m": config.side_camera_offset_m if config.observe_side_cameras else 0.0,
-                     "privileged": driver.privileged, "noise": bool(args.noise), "dt_s": config.world.dt_s,
-                     "camera": {"width": args.width, "height": args.height, "hfov_deg": config.camera.hfov_deg,
-                                "mount_height_m": config.camera.mount_height_m, "pitch_deg": config.camera.pitch_deg},
-                     "route_total_m": env.world.route_total_m}
-            writer = EpisodeWriter(next_episode_path(args.record), attrs)
+    def attrs(self, driver: Any, route_total_m: float) -> dict[str, Any]:
+        c = self.config
+        return {"seed": self.seed, **self.options, "driver": driver.name,
+                "side_camera_offset_m": c.side_camera_offset_m if c.observe_side_cameras else 0.0,
+                "privileged": driver.privileged, "noise": self.noise, "dt_s": c.world.dt_s,
+                "camera": {"width": c.camera.width, "height": c.camera.height, "hfov_deg": c.camera.hfov_deg,
+                           "mount_height_m": c.camera.mount_height_m, "pitch_deg": c.camera.pitch_deg},
+                "route_total_m": route_total_m}
+
+    def record(self, env: Any, driver: Any, stop: Any = None) -> tuple[Path, int]:
+        """Drive the episode into its file (``.partial`` until it finishes, then renamed); its path and frames.
+        Anything that stops it (an error, Ctrl-C, a worker's SIGTERM) discards the ``.partial``."""
+        from towndrive.data.episodes import EpisodeWriter
+
+        hook = getattr(driver, "set_episode_index", None)
+        if callable(hook):
+            hook(self.index)
+        obs, info = env.reset(seed=self.seed, options=self.options)
+        driver.reset(env)
+        assert env.world is not None
+        writer = EpisodeWriter(self.path, self.attrs(driver, env.world.route_total_m))
+        try:
             done = False
             while not done:
                 action = np.asarray(driver.act(obs), np.float32)
-                stop.check()
+                if stop is not None:
+                    stop.check()
                 if getattr(driver, "quit_requested", False):
                     raise KeyboardInterrupt
                 if getattr(driver, "paused", False):
@@ -281,24 +324,62 @@ def record(args: argparse.Namespace) -> int:
                 label = getattr(driver, "clean_action", action)  # noise-free expert label when there is one
                 writer.append(obs, label, info)
                 obs, _, terminated, truncated, info = env.step(action)
-                frames += 1
                 if hasattr(driver, "update_hud"):
                     driver.update_hud(info, recording=True)
                 done = terminated or truncated or getattr(driver, "reset_requested", False)
-            kept.append(writer.close({"route_completion": info["route"]["completion"],
-                                      "infractions": info["infraction_counts"], "steps_done": writer.steps}))
-            writer = None
+            steps = writer.steps
+            return writer.close({"route_completion": info["route"]["completion"],
+                                 "infractions": info["infraction_counts"], "steps_done": writer.steps}), steps
+        except BaseException:
+            writer.discard()  # first the file, then (the caller) the renderer: nothing half-closed is left for exit
+            raise
+
+    def run(self, worker: Any) -> dict[str, Any]:
+        path, frames = self.record(worker.env(self.config, render_mode=None), worker.driver)
+        return {"path": str(path), "frames": frames}
+
+    def failed(self, error: str) -> dict[str, Any]:
+        return {"path": None, "frames": 0, "error": error}
+
+
+def record(args: argparse.Namespace) -> int:
+    """Record episodes; each finished one is renamed into place, so Ctrl-C, SIGTERM, SIGHUP or a full disk loses
+    only the current one(s), and the run ends with one sentence saying what happened and what was kept."""
+    from tqdm import tqdm
+
+    from towndrive.data.episodes import next_episode_path
+    from towndrive.data.stopping import Stopped, StopSignals, describe_os_error
+    from towndrive.envs.drive_env import DriveEnv
+
+    config = make_config(args)
+    if args.workers > 1 or args.ray:
+        return _record_parallel(args, config)
+    human = args.driver in ("keyboard", "gamepad")
+    env = DriveEnv(config)
+    driver = make_named_driver(args)
+    kept: list[Path] = []
+    current: RecordEpisode | None = None
+    t0 = time.perf_counter()
+    frames = 0
+    failure: tuple[str, int] | None = None  # what stopped the recording, and the exit code
+    stop = StopSignals().__enter__()
+    try:
+        for k in tqdm(range(args.episodes), desc="recording", unit="episode", disable=human, mininterval=2.0):
+            current = RecordEpisode(k, args.seed + k, episode_options(args, k), config, next_episode_path(args.record),
+                                    bool(args.noise))
+            path, steps = current.record(env, driver, stop)
+            kept.append(path)
+            frames += steps
+            current = None
     except KeyboardInterrupt:
         failure = ("Interrupted", 130)
     except Stopped as exc:
         failure = (f"Stopped by {exc.name}", exc.exit_code)
     except OSError as exc:
-        where = writer.tmp if writer is not None else args.record
+        where = current.path.with_name(current.path.name + ".partial") if current is not None else args.record
         failure = (f"Stopped because {describe_os_error(exc)} writing {where}", 1)
     finally:
         stop.restore()
-        if writer is not None:  # first the file, then the renderer: nothing half-closed is left for exit
-            writer.discard()
         env.close()
         if hasattr(driver, "close"):
             driver.close()
@@ -314,20 +395,77 @@ def record(args: argparse.Namespace) -> int:
     return 0
 
 
+def _record_parallel(args: argparse.Namespace, config: Any) -> int:
+    """``record --workers N``: episode k becomes ``episode_<first + k>.h5`` (the serial run's name) on whichever
+    worker records it; each is renamed into place when it finishes."""
+    from towndrive.data.episodes import next_episode_path
+    from towndrive.data.stopping import StopSignals
+    from towndrive.envs.parallel import Interrupted, RunSummary, run_items
+
+    spec = driver_spec(args)
+    first = int(next_episode_path(args.record).stem.split("_")[1])
+    args.record.mkdir(parents=True, exist_ok=True)
+    items = [RecordEpisode(k, args.seed + k, episode_options(args, k), config,
+                           args.record / f"episode_{first + k:05d}.h5", bool(args.noise)) for k in range(args.episodes)]
+    summary = RunSummary()
+    t0 = time.perf_counter()
+    with StopSignals() as stop:
+        try:
+            results = run_items(items, spec, args.workers, f"recording ({args.workers} workers)",
+                                lambda: stop.requested, summary, args.ray)
+        except Interrupted as exc:
+            kept = [r for r in exc.results.values() if r["path"]]
+            signum = stop.signum or signal.SIGINT
+            name = "Interrupted" if signum == signal.SIGINT else f"Stopped by {signal.Signals(signum).name}"
+            code = 128 + signum
+            print(f"\n{name}: stopped {args.workers} workers; kept {len(kept)} finished episode(s) of {exc.total} in "
+                  f"{args.record}; dropped the ones in progress.", file=sys.stderr)
+            return code
+    kept = [r for r in results if r["path"]]
+    frames = sum(r["frames"] for r in results)
+    wall = time.perf_counter() - t0
+    print(f"recorded {len(kept)} episode(s), {frames} frames in {wall:.1f} s ({frames / max(wall, 1e-9):.1f} frames/s) "
+          f"on {args.workers} workers into {args.record}")
+    for r in results:
+        print(f"  {r['path']}" if r["path"] else f"  failed after a retry: {r['error']}")
+    if summary.failed:
+        print(f"{len(summary.failed)} episode(s) could not be recorded (each was tried twice); see above.", file=sys.stderr)
+        return 1
+    return 0
+
+
 def evaluate(args: argparse.Namespace) -> int:
     from collections import deque
 
     import cv2
     import imageio.v2 as imageio
 
+    from towndrive.data.stopping import StopSignals
     from towndrive.envs.evaluation import evaluate as run
+    from towndrive.envs.parallel import Interrupted
 
     out = args.out or Path("out/eval")
     config = make_config(args)
     rules = rules_from_arguments(args)
     replay = args.until is not None
-    metrics = run(make_named_driver(args), config, args.episodes, args.seed, out, video=not args.no_video or replay,
-                  options=lambda k: episode_options(args, k), rules=rules, until_s=args.until, plots=not replay)
+    spec = driver_spec(args)
+    # With workers, SIGTERM and SIGHUP stop the run as Ctrl-C does (the finished episodes are reported); the serial
+    # run keeps Python's own handling.
+    parallel = args.workers > 1 or args.ray is not None
+    stop = StopSignals() if parallel else contextlib.nullcontext()
+    try:
+        with stop:
+            metrics = run(spec if parallel else spec.build(), config, args.episodes, args.seed, out,
+                          video=not args.no_video or replay, options=functools.partial(episode_options, args),
+                          rules=rules, until_s=args.until, plots=not replay, workers=args.workers,
+                          should_stop=(lambda: stop.requested) if isinstance(stop, StopSignals) else None,
+                          ray=args.ray)
+    except Interrupted as exc:
+        signum = getattr(stop, "signum", None) or signal.SIGINT
+        what = "Interrupted" if signum == signal.SIGINT else f"Stopped by {signal.Signals(signum).name}"
+        print(f"\n{what}: stopped {args.workers} workers; kept {len(exc.results)} finished episode(s) of "
+              f"{exc.total}, reported in {out / 'metrics.json'}.", file=sys.stderr)
+        return 128 + signum
     if replay:  # the moment itself, as a picture
         with imageio.get_reader(out / "video.mp4") as reader:
             tail = deque(reader, maxlen=1)
@@ -339,19 +477,23 @@ def evaluate(args: argparse.Namespace) -> int:
     m = metrics["mean"]
     print(f"driving score {m['driving_score']:.2f}, route completion {m['route_completion']:.2f}%, "
           f"autonomy {m['autonomy']:.2f}%, infractions {m['infractions'] or 'none'}; reports in {out}")
+    if m.get("failed"):
+        print(f"{m['failed']} episode(s) could not be run (each was tried twice) and count as 0; table.md says why.",
+              file=sys.stderr)
+        return 1
     return 0
 
 
 def scenarios(args: argparse.Namespace) -> int:
-    from towndrive.envs.scenarios import SCENARIOS, format_results, run_scenario
+    from towndrive.envs.scenarios import SCENARIOS, format_results, run_scenarios
 
     names = list(SCENARIOS) if args.scenario == "all" else [args.scenario]
     unknown = [n for n in names if n not in SCENARIOS]
     if unknown:
         raise ValueError(f"Unknown scenario {unknown[0]!r}; choose one of {', '.join(SCENARIOS)} or 'all'.")
     out = args.out or Path("out/scenarios")
-    results = [run_scenario(name, make_named_driver(args), make_config(args), out, video=not args.no_video)
-               for name in names]
+    results = run_scenarios(names, driver_spec(args), make_config(args), out, video=not args.no_video,
+                            workers=min(args.workers, len(names)), ray=args.ray)
     print(format_results(args.driver, results))
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps([r.__dict__ for r in results], indent=2, default=str))
@@ -397,7 +539,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
         if args.scenario:
             return scenarios(args)
         return demo(args)
-    except (ValueError, RuntimeError, FileNotFoundError) as exc:
+    except (ValueError, RuntimeError, FileNotFoundError, MissingExtra) as exc:
         print(f"{prog or 'drive.py'}: {exc}", file=sys.stderr)
         return 2
 

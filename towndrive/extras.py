@@ -15,6 +15,7 @@ EXTRA_OF = {  # top-level module -> the extra that installs it
     "stable_baselines3": "rl",
     "serial": "deploy",
     "motmetrics": "eval",
+    "ray": "cluster",
 }
 
 

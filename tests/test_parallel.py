@@ -1,0 +1,143 @@
+"""Episodes on worker processes (envs/parallel.py): the serial run's report and files, retries and failures.
+
+Short blind autopilot episodes keep these fast; each parallel run still spawns two processes (a few seconds).
+The drivers below are built by module-level factories, so the spawned workers can import them from this file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+import pytest
+
+from towndrive.agent.autopilot import Autopilot
+from towndrive.agent.drivers import make_driver
+from towndrive.envs.drive_env import DriveConfig
+from towndrive.envs.evaluation import evaluate
+from towndrive.envs.parallel import DriverSpec, RunSummary, parse_workers
+
+BLIND = DriveConfig(render_camera=False, max_time_s=6.0)
+
+
+def options(k: int) -> dict[str, Any]:
+    return {"town_seed": k % 2, "weather": ("noon", "dusk")[k % 2]}
+
+
+class FaultyAutopilot:
+    """The autopilot, except in episode ``bad``: there it kills its own process (once, the first time, leaving
+    ``marker``) or raises (every time)."""
+
+    name, privileged = "autopilot", True
+
+    def __init__(self, bad: int, how: str, marker: str | None = None) -> None:
+        self.inner, self.bad, self.how, self.marker = Autopilot(), bad, how, marker
+        self.index, self.steps = -1, 0
+
+    def set_episode_index(self, index: int) -> None:
+        self.index = index
+        self.inner.set_episode_index(index)
+
+    def reset(self, env: Any) -> None:
+        self.inner.reset(env)
+        self.steps = 0
+
+    def act(self, observation: dict[str, Any]) -> np.ndarray:
+        self.steps += 1
+        if self.index == self.bad and self.steps == 20:
+            if self.how == "raise":
+                raise RuntimeError(f"the test driver crashes in episode {self.bad}")
+            if self.marker is not None and not os.path.exists(self.marker):
+                Path(self.marker).touch()
+                os.kill(os.getpid(), signal.SIGKILL)  # mid-episode, no clean-up: as the OOM killer does
+        return self.inner.act(observation)
+
+
+def faulty_driver(name: str, **kwargs: Any) -> FaultyAutopilot:
+    return FaultyAutopilot(**kwargs)
+
+
+def run(out: Path, driver: Any, workers: int, episodes: int = 3) -> dict:
+    return evaluate(driver, BLIND, episodes, 500, out, video=False, options=options, plots=False, workers=workers)
+
+
+@pytest.fixture(scope="module")
+def serial(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    return run(tmp_path_factory.mktemp("serial"), make_driver("autopilot"), 1)
+
+
+def test_workers_flag():
+    assert parse_workers("3") == 3 and parse_workers("auto") == len(os.sched_getaffinity(0))
+    for bad in ("0", "-1", "many"):
+        with pytest.raises(ValueError, match="--workers"):
+            parse_workers(bad)
+
+
+def test_two_workers_give_the_serial_report(serial, tmp_path):
+    parallel = run(tmp_path, DriverSpec.of(make_driver, "autopilot"), 2)
+    assert json.dumps(parallel, sort_keys=True) == json.dumps(serial, sort_keys=True)
+    assert [e["seed"] for e in parallel["episodes"]] == [500, 501, 502]
+    assert (tmp_path / "table.md").read_text().startswith("# Closed-loop evaluation: autopilot")
+
+
+def test_a_killed_worker_s_episode_is_retried_and_the_report_is_complete(serial, tmp_path):
+    marker = tmp_path / "killed_once"
+    summary = RunSummary()
+    spec = DriverSpec.of(faulty_driver, "autopilot", bad=1, how="kill", marker=str(marker))
+    parallel = evaluate(spec, BLIND, 3, 500, tmp_path / "out", video=False, options=options, plots=False, workers=2,
+                        summary=summary)
+    assert marker.exists() and summary.retried == 1 and not summary.failed
+    assert json.dumps(parallel, sort_keys=True) == json.dumps(serial, sort_keys=True)
+
+
+def test_an_episode_that_always_crashes_is_reported_failed_and_counted_as_zero(serial, tmp_path):
+    summary = RunSummary()
+    spec = DriverSpec.of(faulty_driver, "autopilot", bad=1, how="raise")
+    metrics = evaluate(spec, BLIND, 3, 500, tmp_path, video=False, options=options, plots=False, workers=2,
+                       summary=summary)
+    failed = metrics["episodes"][1]
+    assert "RuntimeError: the test driver crashes in episode 1" in failed["failed"]
+    assert failed["driving_score"] == 0.0 and failed["route_completion"] == 0.0 and failed["seed"] == 501
+    assert summary.retried == 1 and list(summary.failed) == [1]
+    assert [metrics["episodes"][k] for k in (0, 2)] == [serial["episodes"][k] for k in (0, 2)]
+    assert metrics["mean"]["failed"] == 1 and metrics["mean"]["episodes"] == 3
+    assert "FAILED (counted as 0): RuntimeError" in (tmp_path / "table.md").read_text()
+
+
+def test_two_workers_record_the_serial_run_s_episode_files(tmp_path):
+    from towndrive.drive_cli import main
+
+    flags = ["--driver", "autopilot", "--episodes", "3", "--seconds", "5", "--width", "64", "--height", "48",
+             "--noise", "--seed", "7", "--towns", "2"]
+    assert main(["--record", str(tmp_path / "serial"), *flags]) == 0
+    assert main(["--record", str(tmp_path / "parallel"), *flags, "--workers", "2"]) == 0
+    names = sorted(p.name for p in (tmp_path / "serial").iterdir())
+    assert names == ["episode_00000.h5", "episode_00001.h5", "episode_00002.h5"]
+    assert sorted(p.name for p in (tmp_path / "parallel").iterdir()) == names
+    for name in names:
+        with h5py.File(tmp_path / "serial" / name) as a, h5py.File(tmp_path / "parallel" / name) as b:
+            for key in ("frames", "actions", "speed", "command"):
+                assert np.array_equal(a[key][()], b[key][()]), (name, key)
+            assert a.attrs["seed"] == b.attrs["seed"] and a.attrs["town_seed"] == b.attrs["town_seed"]
+
+
+def test_ray_gives_the_serial_report_and_retries_a_killed_worker(serial, tmp_path):
+    """The same items as Ray tasks on a local 2-CPU cluster (skipped without towndrive[cluster])."""
+    pytest.importorskip("ray", reason="--ray needs towndrive[cluster]")
+    import sys
+
+    from ray import cloudpickle
+
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])  # Ray's workers need not find this test file
+    marker = tmp_path / "killed_once"
+    summary = RunSummary()
+    spec = DriverSpec.of(faulty_driver, "autopilot", bad=2, how="kill", marker=str(marker))
+    metrics = evaluate(spec, BLIND, 3, 500, tmp_path / "out", video=False, options=options, plots=False, workers=2,
+                       summary=summary, ray="local")
+    assert marker.exists() and summary.retried == 1 and not summary.failed
+    assert json.dumps(metrics, sort_keys=True) == json.dumps(serial, sort_keys=True)
