@@ -14,6 +14,7 @@ torch's generator seeded per epoch.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import json
 import math
@@ -39,6 +40,16 @@ from towndrive.agent.perception.pilotnet import (
     parameter_count,
     to_tensor,
 )
+from towndrive.agent.training.devices import (
+    Distributed,
+    autocast,
+    backward_step,
+    distributed_from_env,
+    grad_scaler,
+    init_distributed,
+    resolve_device,
+    to_device,
+)
 from towndrive.agent.training.outputs import replace_shipped
 from towndrive.agent.training.pilotnet_args import add_arguments as pilotnet_arguments
 from towndrive.agent.training.pilotnet_data import Augment, Augmenter, FrameSet, balance_weights, load_frames, split_by_episode
@@ -52,7 +63,21 @@ add_arguments = pilotnet_arguments  # the flags live in a light module (help ans
 def save_checkpoint(path: Path, model: torch.nn.Module, extra: dict[str, Any]) -> None:
     from towndrive.agent.perception.checkpoints import save_checkpoint as save
 
-    save(path, {"state_dict": model.state_dict(), **extra})
+    model = getattr(model, "module", model)  # DistributedDataParallel: the model inside
+    content = {"state_dict": model.state_dict(), **extra}
+    if any(p.device.type != "cpu" for p in model.parameters()):
+        content = _to_cpu(content)  # a GPU run's checkpoint loads on any machine
+    save(path, content)
+
+
+def _to_cpu(value: Any) -> Any:
+    if isinstance(value, torch.Tensor):
+        return value.detach().cpu()
+    if isinstance(value, dict):
+        return {k: _to_cpu(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_to_cpu(v) for v in value]
+    return value
 
 
 def export(model: torch.nn.Module, meta: dict[str, Any], pt_path: Path) -> float:
@@ -75,11 +100,14 @@ def export(model: torch.nn.Module, meta: dict[str, Any], pt_path: Path) -> float
 # --------------------------------------------------------------------------- training
 def predict(model: torch.nn.Module, images: np.ndarray, command: np.ndarray, batch: int = 256) -> np.ndarray:
     out = []
+    model = getattr(model, "module", model)
+    device = next(model.parameters()).device
     with torch.no_grad():
         for i in range(0, len(images), batch):
-            x = to_tensor(images[i:i + batch])
-            y = model(x, torch.from_numpy(command[i:i + batch])) if model.conditional else model(x)
-            out.append(y[:, 0].numpy())
+            x = to_device(to_tensor(images[i:i + batch]), device)
+            c = to_device(torch.from_numpy(command[i:i + batch]), device)
+            y = model(x, c) if model.conditional else model(x)
+            out.append(y[:, 0].float().cpu().numpy())
     return np.concatenate(out) if out else np.zeros(0, np.float32)
 
 
@@ -103,9 +131,16 @@ def _batches(rng: np.random.Generator, train: FrameSet, weights: np.ndarray, sam
 
 def fit(model: torch.nn.Module, train: FrameSet, val: FrameSet, args: argparse.Namespace, out: Path,
         first_epoch: int = 0, optimizer_state: dict | None = None, best_val: float = math.inf,
-        epochs: int | None = None, meta: dict[str, Any] | None = None) -> float:
-    """Train for ``epochs`` epochs from ``first_epoch``; checkpoint every epoch; return the best val loss."""
+        epochs: int | None = None, meta: dict[str, Any] | None = None, dist: Distributed | None = None) -> float:
+    """Train for ``epochs`` epochs from ``first_epoch``; checkpoint every epoch; return the best val loss.
+
+    ``model`` may be wrapped in DistributedDataParallel (``dist`` enabled): each rank then draws its own share of
+    the epoch's samples from a seed of its own, and only rank 0 validates, logs and writes checkpoints."""
     epochs = args.epochs if epochs is None else epochs
+    dist = dist or Distributed()
+    net = getattr(model, "module", model)
+    device = next(net.parameters()).device
+    scaler = grad_scaler(device) if _cuda_mixed(args, device) else None
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     if optimizer_state:
         opt.load_state_dict(optimizer_state)
@@ -114,37 +149,56 @@ def fit(model: torch.nn.Module, train: FrameSet, val: FrameSet, args: argparse.N
         opt, lambda e: 0.5 * (1 + math.cos(math.pi * min(e + first_epoch, total) / max(total, 1))))
     weights = balance_weights(train.steer)
     samples = args.samples_per_epoch or len(train)
+    if dist.enabled:  # every rank the same number of batches, so that their all-reduces pair up
+        samples = math.ceil(samples / dist.world_size)
     augmenter = None if args.no_augment else Augmenter(
         CameraConfig(), Augment(flip_p=0.0 if args.no_flip else 0.5))
     log_path = out / "log.csv"
     new_log = not log_path.exists() or first_epoch == 0
-    with log_path.open("w" if new_log else "a", newline="") as fh:
-        log = csv.writer(fh)
-        if new_log:
+    with log_path.open("w" if new_log else "a", newline="") if dist.is_main else contextlib.nullcontext() as fh:
+        log = csv.writer(fh) if fh is not None else None
+        if new_log and log is not None:
             log.writerow(["epoch", "train_loss", "val_loss", "val_mae", "lr", "frames_per_s", "seconds"])
         for epoch in range(first_epoch, first_epoch + epochs):
-            rng = np.random.default_rng((args.seed, epoch))
-            torch.manual_seed(args.seed * 1000 + epoch)
+            if dist.enabled:  # a shard of its own per rank
+                rng = np.random.default_rng((args.seed, epoch, dist.rank))
+                torch.manual_seed(args.seed * 1000 + epoch + 7919 * dist.rank)
+            else:
+                rng = np.random.default_rng((args.seed, epoch))
+                torch.manual_seed(args.seed * 1000 + epoch)
             model.train()
             t0, losses = time.perf_counter(), []
             bar = tqdm(_batches(rng, train, weights, samples, args.batch, augmenter), total=math.ceil(samples / args.batch),
-                       desc=f"epoch {epoch + 1}/{total}", unit="batch", mininterval=2.0, file=sys.stderr)
+                       desc=f"epoch {epoch + 1}/{total}", unit="batch", mininterval=2.0, file=sys.stderr,
+                       disable=not dist.is_main)
             for x, cmd, y in bar:
-                with torch.autocast("cpu", dtype=torch.bfloat16, enabled=use_bf16(args)):
-                    pred = model(x, cmd) if model.conditional else model(x)
-                loss = torch.nn.functional.mse_loss(pred[:, 0].float(), y)
-                opt.zero_grad()
-                loss.backward()
-                opt.step()
+                if device.type == "cpu":
+                    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=use_bf16(args)):
+                        pred = model(x, cmd) if net.conditional else model(x)
+                    loss = torch.nn.functional.mse_loss(pred[:, 0].float(), y)
+                    opt.zero_grad()
+                    loss.backward()
+                    opt.step()
+                else:  # pinned, non-blocking copies; autocast (bf16, or fp16 with a GradScaler) unless --precision fp32
+                    x, cmd, y = to_device(x, device), to_device(cmd, device), to_device(y, device)
+                    with autocast(device) if _cuda_mixed(args, device) else contextlib.nullcontext():
+                        pred = model(x, cmd) if net.conditional else model(x)
+                    loss = torch.nn.functional.mse_loss(pred[:, 0].float(), y)
+                    opt.zero_grad()
+                    backward_step(loss, opt, scaler)
                 losses.append(loss.item())
                 bar.set_postfix(loss=f"{np.mean(losses[-50:]):.4f}")
             sched.step()
             seconds = time.perf_counter() - t0
+            if not dist.is_main:
+                dist.barrier()  # rank 0 validates and writes the epoch's checkpoints
+                continue
             model.eval()
             val_pred = predict(model, val.images, val.command)
             val_loss = float(np.mean((val_pred - val.steer) ** 2)) if len(val) else float("nan")
             val_mae = float(np.mean(np.abs(val_pred - val.steer))) if len(val) else float("nan")
-            row = [epoch + 1, np.mean(losses), val_loss, val_mae, opt.param_groups[0]["lr"], samples / seconds, seconds]
+            frames = samples * dist.world_size
+            row = [epoch + 1, np.mean(losses), val_loss, val_mae, opt.param_groups[0]["lr"], frames / seconds, seconds]
             log.writerow([f"{v:.6g}" if isinstance(v, float) else v for v in row])
             fh.flush()
             state = {**(meta or {}), "epoch": epoch + 1, "val_loss": val_loss, "val_mae": val_mae}
@@ -153,9 +207,16 @@ def fit(model: torch.nn.Module, train: FrameSet, val: FrameSet, args: argparse.N
                 save_checkpoint(out / "best.pt", model, state)
             save_checkpoint(out / "last.pt", model, {**state, "optimizer": opt.state_dict(), "best_val": best_val})
             print(f"epoch {epoch + 1}: train {np.mean(losses):.4f} val {val_loss:.4f} (MAE {val_mae:.3f}) "
-                  f"{samples / seconds:.0f} frames/s", file=sys.stderr)
-    plot_log(log_path, out / "loss.png")
+                  f"{frames / seconds:.0f} frames/s", file=sys.stderr)
+            dist.barrier()
+    if dist.is_main:
+        plot_log(log_path, out / "loss.png")
     return best_val
+
+
+def _cuda_mixed(args: argparse.Namespace, device: torch.device) -> bool:
+    """Mixed precision on CUDA unless --precision fp32."""
+    return device.type == "cuda" and getattr(args, "precision", "auto") != "fp32"
 
 
 def use_bf16(args: argparse.Namespace) -> bool:
@@ -191,9 +252,27 @@ def plot_log(log_path: Path, png: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    dist = distributed_from_env()  # torchrun sets RANK, WORLD_SIZE, LOCAL_RANK
+    try:
+        device = resolve_device(getattr(args, "device", "cpu"), dist.local_rank if dist.enabled else None)
+    except ValueError as exc:
+        print(f"train.py pilotnet: {exc}", file=sys.stderr)
+        return 2
+    if dist.enabled and args.dagger:
+        print("train.py pilotnet: DAgger rounds run in one process; train with torchrun, then run --dagger "
+              "with --resume without torchrun.", file=sys.stderr)
+        return 2
     if args.threads:
         torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
+    init_distributed(dist, device)
+    try:
+        return _run(args, device, dist)
+    finally:
+        dist.close()
+
+
+def _run(args: argparse.Namespace, device: torch.device, dist: Distributed) -> int:
     out: Path = args.out
     if args.model is None:
         args.model = out / "pilotnet.pt"
@@ -221,10 +300,18 @@ def run(args: argparse.Namespace) -> int:
         model.load_state_dict(ckpt["state_dict"])
         first_epoch, opt_state, best = int(ckpt["epoch"]), ckpt.get("optimizer"), float(ckpt.get("best_val", math.inf))
         print(f"resuming after epoch {first_epoch} (best validation loss {best:.4f})", file=sys.stderr)
-    print(f"{'conditional ' if conditional else ''}PilotNet, {parameter_count(model):,} parameters", file=sys.stderr)
+    print(f"{'conditional ' if conditional else ''}PilotNet, {parameter_count(model):,} parameters, on {device}"
+          + (f", rank {dist.rank} of {dist.world_size}" if dist.enabled else ""), file=sys.stderr)
     remaining = max(0, args.epochs - first_epoch)
     if remaining:
-        fit(model, train, val, args, out, first_epoch, opt_state, best, remaining, meta)
+        model = model.to(device)
+        trained: torch.nn.Module = model
+        if dist.enabled:  # the same initial weights on every rank (broadcast from rank 0), gradients averaged
+            trained = torch.nn.parallel.DistributedDataParallel(
+                model, device_ids=[device.index] if device.type == "cuda" else None)
+        fit(trained, train, val, args, out, first_epoch, opt_state, best, remaining, meta, dist)
+    if not dist.is_main:
+        return 0  # rank 0 exports
     best_model, best_meta = load_model(out / "best.pt")
     if args.dagger:
         from towndrive.agent.training.pilotnet_dagger import dagger

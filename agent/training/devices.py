@@ -1,0 +1,122 @@
+"""Where training runs: ``--device auto|cpu|cuda|cuda:K``, mixed precision on CUDA, and torchrun's processes.
+
+``resolve_device`` turns the flag into a ``torch.device`` (auto: CUDA when torch sees one). ``Distributed``
+reads the environment ``torchrun`` sets (RANK, WORLD_SIZE, LOCAL_RANK) and starts the process group: nccl
+on CUDA, gloo on the CPU. Nothing here changes the single-process CPU path.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+from dataclasses import dataclass
+
+import torch
+
+DEVICE_HELP = "where to train: auto (CUDA when present), cpu, cuda or cuda:K"
+
+
+def add_device_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--device", default="auto", help=DEVICE_HELP)
+
+
+def resolve_device(text: str = "auto", local_rank: int | None = None) -> torch.device:
+    """``auto``/``cpu``/``cuda``/``cuda:K`` as a device; ValueError in one sentence when it is not there."""
+    text = (text or "auto").strip().lower()
+    if text == "auto":
+        text = "cuda" if torch.cuda.is_available() else "cpu"
+    if text == "cpu":
+        return torch.device("cpu")
+    if text == "cuda" or text.startswith("cuda:"):
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if text == "cuda":
+            index = local_rank if local_rank is not None else 0
+        else:
+            try:
+                index = int(text.split(":", 1)[1])
+            except ValueError:
+                raise ValueError(f"--device {text}: expected auto, cpu, cuda or cuda:K with K a number") from None
+        if index >= count:
+            seen = f"{count} CUDA device{'s' if count != 1 else ''}" if count else "no CUDA device"
+            raise ValueError(f"--device {text}: torch sees {seen} here (torch {torch.__version__}, "
+                             f"CUDA build {torch.version.cuda or 'none'}); use --device cpu or auto")
+        return torch.device("cuda", index)
+    raise ValueError(f"--device {text}: expected auto, cpu, cuda or cuda:K")
+
+
+def autocast(device: torch.device, dtype: torch.dtype | None = None):
+    """Mixed precision on CUDA (bf16 where supported, else fp16); a no-op context elsewhere."""
+    if device.type != "cuda":
+        return contextlib.nullcontext()
+    return torch.autocast("cuda", dtype=dtype or cuda_amp_dtype(device))
+
+
+def cuda_amp_dtype(device: torch.device) -> torch.dtype:
+    return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
+
+
+def grad_scaler(device: torch.device) -> torch.amp.GradScaler | None:
+    """A GradScaler for fp16 autocast on CUDA; None where none is needed (CPU, bf16)."""
+    if device.type == "cuda" and cuda_amp_dtype(device) == torch.float16:
+        return torch.amp.GradScaler("cuda")
+    return None
+
+
+def backward_step(loss: torch.Tensor, opt: torch.optim.Optimizer, scaler: torch.amp.GradScaler | None) -> None:
+    """``loss.backward(); opt.step()``, through the scaler when there is one."""
+    if scaler is None:
+        loss.backward()
+        opt.step()
+    else:
+        scaler.scale(loss).backward()
+        scaler.step(opt)
+        scaler.update()
+
+
+def to_device(t: torch.Tensor, device: torch.device) -> torch.Tensor:
+    """Move a CPU batch: pinned and non-blocking on CUDA, untouched on the CPU."""
+    if device.type != "cuda":
+        return t
+    return t.pin_memory().to(device, non_blocking=True)
+
+
+@dataclass(frozen=True)
+class Distributed:
+    rank: int = 0
+    world_size: int = 1
+    local_rank: int = 0
+
+    @property
+    def enabled(self) -> bool:
+        return self.world_size > 1
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+    def barrier(self) -> None:
+        if self.enabled and torch.distributed.is_initialized():
+            torch.distributed.barrier()
+
+    def close(self) -> None:
+        if self.enabled and torch.distributed.is_initialized():
+            torch.distributed.destroy_process_group()
+
+
+def distributed_from_env() -> Distributed:
+    """The torchrun process this is (rank 0 of 1 when not started by torchrun)."""
+    world = int(os.environ.get("WORLD_SIZE", "1") or 1)
+    if world <= 1 or "RANK" not in os.environ:
+        return Distributed()
+    return Distributed(int(os.environ["RANK"]), world, int(os.environ.get("LOCAL_RANK", os.environ["RANK"])))
+
+
+def init_distributed(dist: Distributed, device: torch.device) -> None:
+    """Start the process group: nccl for CUDA devices, gloo on the CPU."""
+    if not dist.enabled or torch.distributed.is_initialized():
+        return
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+    torch.distributed.init_process_group("nccl" if device.type == "cuda" else "gloo",
+                                         rank=dist.rank, world_size=dist.world_size)
