@@ -53,6 +53,30 @@ def test_train_py_rl_trains_saves_and_the_driver_loads_it(tmp_path):
     env.close()
 
 
+def test_train_py_rl_with_several_envs_steps_them_in_subprocesses(tmp_path, monkeypatch):
+    import json
+
+    from stable_baselines3.common import vec_env
+
+    import train
+
+    made = []
+    original = vec_env.SubprocVecEnv.__init__
+
+    def spy(self, env_fns, start_method=None):
+        made.append((len(env_fns), start_method))
+        original(self, env_fns, start_method=start_method)
+
+    monkeypatch.setattr(vec_env.SubprocVecEnv, "__init__", spy)
+    model = tmp_path / "rl_ppo.zip"
+    assert train.main(["rl", "--algo", "ppo", "--steps", "256", "--envs", "2", "--eval-every", "100000",
+                       "--out", str(tmp_path / "run"), "--model", str(model), "--episode-seconds", "5",
+                       "--device", "cpu"]) == 0
+    assert made == [(2, "forkserver")] or made == [(2, "spawn")]
+    record = json.loads(model.with_suffix(".json").read_text())
+    assert record["envs"] == 2 and record["device"] == "cpu"
+
+
 def test_rl_driver_without_a_model_is_one_clear_error(tmp_path):
     from towndrive.agent.drivers import make_driver
 

@@ -30,7 +30,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--algo", choices=["ppo", "sac"], default="ppo", help="stable-baselines3 algorithm")
     p.add_argument("--observation", choices=["state", "camera"], default="state", help="policy input: state features or camera")
     p.add_argument("--steps", type=int, default=300_000, help="environment steps in total")
-    p.add_argument("--envs", type=int, default=4, help="parallel environments (a vector env)")
+    p.add_argument("--envs", type=int, default=4,
+                   help="parallel environments: one process each (SB3's SubprocVecEnv) when more than 1")
+    p.add_argument("--device", default="cpu",
+                   help="where the policy trains: cpu (default: the small MLP is fastest there), auto, cuda or cuda:K")
     p.add_argument("--seed", type=int, default=0, help="seed of the environments and the policy")
     p.add_argument("--town-seed", type=int, default=1, help="first training town (towns cycle over --towns)")
     p.add_argument("--towns", type=int, default=8, help="number of training towns (from --town-seed on)")
@@ -153,15 +156,22 @@ def plot_learning_curve(out: Path) -> Path:
 def run(args: argparse.Namespace) -> int:
     import torch
     from stable_baselines3 import PPO, SAC
-    from stable_baselines3.common.callbacks import CheckpointCallback, EvalCallback
     from stable_baselines3.common.logger import configure
-    from stable_baselines3.common.vec_env import DummyVecEnv
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    from towndrive.agent.training.devices import resolve_device
 
     out = args.out or Path(f"out/rl_{args.algo}")
     model_path = args.model or out / f"rl_{args.algo}.zip"
     out.mkdir(parents=True, exist_ok=True)
+    try:
+        device = str(resolve_device(args.device))
+    except ValueError as exc:
+        raise SystemExit(str(exc)) from None
     torch.set_num_threads(1)
-    venv = DummyVecEnv([make_env(args, k) for k in range(args.envs)])
+    builders = [make_env(args, k) for k in range(args.envs)]
+    # one process per environment when there are several (forkserver: no forked torch or pygame state)
+    venv = SubprocVecEnv(builders, start_method=_start_method()) if args.envs > 1 else DummyVecEnv(builders)
     venv.seed(args.seed)
     eval_env = DummyVecEnv([make_env(args, 0, evaluation=True)])
     eval_env.seed(args.seed + 10_000)
@@ -170,13 +180,33 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"--init: no saved policy at {args.init}")
     if args.algo == "ppo":
         model = PPO(policy, venv, seed=args.seed, n_steps=512, batch_size=256, learning_rate=3e-4, gamma=0.99,
-                    ent_coef=0.0, verbose=0, device="cpu")
+                    ent_coef=0.0, verbose=0, device=device)
     else:
         model = SAC(policy, venv, seed=args.seed, buffer_size=200_000, learning_starts=5_000, batch_size=256,
-                    verbose=0, device="cpu")
+                    verbose=0, device=device)
     if args.init is not None:  # weights and optimiser state only: never the pickled objects of SB3's load()
-        model.set_parameters(str(args.init), exact_match=True, device="cpu")
+        model.set_parameters(str(args.init), exact_match=True, device=device)
     model.set_logger(configure(str(out), ["csv"]))
+    try:
+        return _learn(model, args, venv, eval_env, out, model_path)
+    finally:
+        venv.close()
+        eval_env.close()
+
+
+def _start_method() -> str:
+    import multiprocessing
+
+    return "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+
+
+def _learn(model, args: argparse.Namespace, venv, eval_env, out: Path, model_path: Path) -> int:
+    import warnings
+
+    from stable_baselines3.common.callbacks import CheckpointCallback, EvalCallback
+
+    # evaluation runs in this process (a DummyVecEnv) while training may use subprocesses: that is intended
+    warnings.filterwarnings("ignore", message="Training and eval env are not of the same type")
     callbacks = [
         EvalCallback(eval_env, n_eval_episodes=4, eval_freq=max(1, args.eval_every // args.envs), log_path=str(out),
                      best_model_save_path=str(out), deterministic=True, verbose=0),
@@ -191,6 +221,7 @@ def run(args: argparse.Namespace) -> int:
     shutil.copy(best if best.exists() else out / "final_model.zip", model_path)
     curve = plot_learning_curve(out)
     record = {"algo": args.algo, "observation": args.observation, "steps": args.steps, "envs": args.envs,
+              "device": str(model.device),
               "seed": args.seed, "towns": [args.town_seed, args.town_seed + args.towns - 1], "traffic": args.traffic,
               "shaping": not args.no_shaping, "init": str(args.init) if args.init else None,
               "command": "python train.py " + " ".join(sys.argv[1:]),
