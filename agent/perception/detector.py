@@ -153,7 +153,8 @@ def decode(maps: list[torch.Tensor], strides: tuple[int, ...] = STRIDES) -> torc
     for m, stride in zip(maps, strides, strict=True):
         n, ch, h, w = m.shape
         t = m.permute(0, 2, 3, 1).reshape(n, h * w, ch)
-        gy, gx = torch.meshgrid(torch.arange(h, dtype=m.dtype), torch.arange(w, dtype=m.dtype), indexing="ij")
+        gy, gx = torch.meshgrid(torch.arange(h, dtype=m.dtype, device=m.device),
+                                torch.arange(w, dtype=m.dtype, device=m.device), indexing="ij")
         grid = torch.stack([gx.reshape(-1), gy.reshape(-1)], 1)
         xy = (torch.sigmoid(t[..., :2]) * 2 - 0.5 + grid) * stride
         wh = torch.exp(t[..., 2:4].clamp(-6, 6)) * stride

@@ -15,6 +15,7 @@ import argparse
 import copy
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -28,6 +29,7 @@ from towndrive.agent.perception.checkpoints import save_checkpoint as save
 from towndrive.agent.perception.classes import CLASSES
 from towndrive.agent.perception.detector import INPUT_HW, STRIDES, DecodedDetector, Detector, DetectorConfig, postprocess
 from towndrive.agent.training.detector_eval import Sample, detection_report, load_split, read_rgb
+from towndrive.agent.training.devices import autocast, grad_scaler, resolve_device, to_device
 
 LOSS_WEIGHTS = {"box": 0.05, "obj": 0.2, "cls": 0.04}
 # Objectness weight per stride, proportional to the number of cells (YOLOv5's P3:P4 = 4:1), so every cell weighs
@@ -156,14 +158,15 @@ def yolo_loss(maps: list[torch.Tensor], targets: list[list[dict[str, np.ndarray]
     for level, (m, s) in enumerate(zip(maps, strides, strict=True)):
         n, ch, gh, gw = m.shape
         t = m.permute(0, 2, 3, 1).reshape(n, gh * gw, ch)
-        weight = torch.from_numpy(np.stack([tg[level]["weight"] for tg in targets]))
-        obj_target = torch.zeros(n, gh * gw)
+        weight = torch.from_numpy(np.stack([tg[level]["weight"] for tg in targets])).to(m.device)
+        obj_target = torch.zeros(n, gh * gw, device=m.device)
         img_idx = np.concatenate([np.full(len(tg[level]["pos"]), i) for i, tg in enumerate(targets)])
         pos = np.concatenate([tg[level]["pos"] for tg in targets])
         if len(pos):
-            ii, pp = torch.from_numpy(img_idx.astype(np.int64)), torch.from_numpy(pos.astype(np.int64))
-            tbox = torch.from_numpy(np.concatenate([tg[level]["box"] for tg in targets]))
-            tcls = torch.from_numpy(np.concatenate([tg[level]["cls"] for tg in targets]).astype(np.int64))
+            ii = torch.from_numpy(img_idx.astype(np.int64)).to(m.device)
+            pp = torch.from_numpy(pos.astype(np.int64)).to(m.device)
+            tbox = torch.from_numpy(np.concatenate([tg[level]["box"] for tg in targets])).to(m.device)
+            tcls = torch.from_numpy(np.concatenate([tg[level]["cls"] for tg in targets]).astype(np.int64)).to(m.device)
             p = t[ii, pp]
             grid = torch.stack([pp % gw, pp // gw], 1).float()
             xy = (torch.sigmoid(p[:, :2]) * 2 - 0.5 + grid) * s
@@ -236,17 +239,18 @@ class EMA:
 def evaluate_model(model: Detector, images: np.ndarray, samples: list[Sample]) -> dict:
     """Detection report of a model on preloaded images (batched torch inference, score threshold 0.01)."""
     dec = DecodedDetector(model).eval()
+    device = next(model.parameters()).device
     dets = []
     with torch.no_grad():
         for i in range(0, len(samples), 32):
             x = torch.from_numpy(np.ascontiguousarray(images[i:i + 32].transpose(0, 3, 1, 2))).float().div_(255.0)
-            for row in dec(x).numpy():
+            for row in dec(to_device(x, device)).float().cpu().numpy():
                 dets.append(postprocess(row, 0.01))
     return detection_report(samples, dets)
 
 
 def save_checkpoint(path: Path, model: Detector, meta: dict) -> None:
-    state = {k: v.clone() for k, v in model.state_dict().items()}
+    state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
     config = {"width": model.config.width, "num_classes": model.config.num_classes, "strides": list(model.config.strides)}
     if model.config.s4_blocks:  # only when used, so older readers still load the models without them
         config["s4_blocks"] = model.config.s4_blocks
@@ -258,6 +262,11 @@ def save_checkpoint(path: Path, model: Detector, meta: dict) -> None:
 # --------------------------------------------------------------------------- training
 def train(args: argparse.Namespace) -> int:
     """``train.py detector train``: AdamW, cosine schedule, EMA, best checkpoint by val mAP@0.5."""
+    try:  # before any work: a missing GPU is one sentence
+        device = resolve_device(getattr(args, "device", "cpu"))
+    except ValueError as exc:
+        print(f"train.py detector train: {exc}", file=sys.stderr)
+        return 2
     torch.manual_seed(args.seed)
     torch.set_num_threads(max(1, args.threads))
     rng = np.random.default_rng(args.seed)
@@ -292,6 +301,8 @@ def train(args: argparse.Namespace) -> int:
                              f"{cfg.get('s4_pixels', False)}; pass the same --strides, --width, --s4-blocks and "
                              "--s4-pixels (or --init to warm-start a different shape).")
         model.load_state_dict(ckpt["state_dict"])
+    model.to(device)
+    scaler = grad_scaler(device)
     ema = EMA(model)
     decay, no_decay = [], []
     for name, p in model.named_parameters():
@@ -307,7 +318,7 @@ def train(args: argparse.Namespace) -> int:
     best, t0, step = -1.0, time.perf_counter(), 0
     history = []
     print(f"train {len(train_s)} frames, val {len(val_s)} frames, {steps_per_epoch} steps/epoch, "
-          f"{sum(p.numel() for p in model.parameters())} parameters, {torch.get_num_threads()} thread(s)")
+          f"{sum(p.numel() for p in model.parameters())} parameters, {torch.get_num_threads()} thread(s), on {device}")
     stop = False
     for epoch in range(args.epochs):
         model.train()
@@ -320,11 +331,27 @@ def train(args: argparse.Namespace) -> int:
             for g in opt.param_groups:
                 g["lr"] = lr
             x, tgs = make_batch(train_x, train_s, order[b * args.batch:(b + 1) * args.batch], rng, strides, scale_prob)
-            loss, parts = yolo_loss(model(x), tgs, strides, obj_iou, box_l1)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
-            opt.step()
+            if device.type == "cpu":
+                loss, parts = yolo_loss(model(x), tgs, strides, obj_iou, box_l1)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+                opt.step()
+            else:  # pinned non-blocking copy, autocast forward, the loss in fp32, fp16 through a GradScaler
+                with autocast(device):
+                    maps = model(to_device(x, device))
+                loss, parts = yolo_loss([m.float() for m in maps], tgs, strides, obj_iou, box_l1)
+                opt.zero_grad(set_to_none=True)
+                if scaler is None:
+                    loss.backward()
+                    torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+                    opt.step()
+                else:
+                    scaler.scale(loss).backward()
+                    scaler.unscale_(opt)
+                    torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+                    scaler.step(opt)
+                    scaler.update()
             ema.update(model)
             step += 1
             for k in run:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -40,6 +41,7 @@ from towndrive.agent.perception.ped_refiner import (
 )
 from towndrive.agent.perception.tracking import iou_matrix
 from towndrive.agent.training.detector_eval import Sample, class_ap, load_split, read_rgb
+from towndrive.agent.training.devices import autocast, backward_step, grad_scaler, resolve_device, to_device
 
 SCORE_WEIGHTS = (0.3, 0.4, 0.5, 0.6, 0.7)
 NMS_IOUS = (0.5, 0.7, 1.0)  # 1.0: no second NMS
@@ -50,14 +52,15 @@ CANDIDATE_SCORES = (0.01, 0.003, 0.001, 0.0003, 0.0001)
 
 
 def detector_candidates(detector_path: str, samples: list[Sample], images: list[np.ndarray],
-                        score: float) -> list[list[Detection]]:
+                        score: float, device: torch.device | None = None) -> list[list[Detection]]:
     """The detector's detections of every frame at a low threshold (torch, batches of 32)."""
-    model = DecodedDetector(load_detector(detector_path)).eval()
+    device = device or torch.device("cpu")
+    model = DecodedDetector(load_detector(detector_path)).eval().to(device)
     out: list[list[Detection]] = []
     with torch.no_grad():
         for i in tqdm(range(0, len(samples), 32), desc="detect", unit="batch", leave=False):
             x = torch.from_numpy(np.stack(images[i:i + 32]).transpose(0, 3, 1, 2).copy()).float() / 255.0
-            out.extend(postprocess(r, score) for r in model(x).numpy())
+            out.extend(postprocess(r, score) for r in model(to_device(x, device)).cpu().numpy())
     return out
 
 
@@ -117,11 +120,12 @@ def _flip(crops: np.ndarray, cand: np.ndarray, target: np.ndarray, flip: np.ndar
 
 def refiner_loss(out: torch.Tensor, cand: np.ndarray, target: np.ndarray, label: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
     """BCE of the pedestrian logit, and for positives L1 of the edges in units of the candidate's own size."""
-    lab = torch.from_numpy(label)
+    lab = torch.from_numpy(label).to(out.device)
     cls = nn.functional.binary_cross_entropy_with_logits(out[:, 4], lab)
     pos = lab > 0
     size = np.stack([cand[:, 2] - cand[:, 0], cand[:, 3] - cand[:, 1]] * 2, 1)
-    err = (out[:, :4] - torch.from_numpy(target - cand)).abs() / torch.from_numpy(size).clamp(min=0.02)
+    err = ((out[:, :4] - torch.from_numpy(target - cand).to(out.device)).abs()
+           / torch.from_numpy(size).to(out.device).clamp(min=0.02))
     box = err[pos].mean() if bool(pos.any()) else out.sum() * 0.0
     return cls, box
 
@@ -130,10 +134,11 @@ def val_ped_ap(samples: list[Sample], images: list[np.ndarray], dets: list[list[
                config: RefinerConfig) -> dict[str, float]:
     """Pedestrian AP within 40 m of detector + refiner on val."""
     model.eval()
+    device = next(model.parameters()).device
 
     def run(x: np.ndarray) -> np.ndarray:
         with torch.no_grad():
-            return model(torch.from_numpy(x)).numpy()
+            return model(to_device(torch.from_numpy(x), device)).float().cpu().numpy()
 
     refine = Refine(run, config)
     refined = [refine(rgb, ds, 0.0) for rgb, ds in zip(images, dets, strict=True)]
@@ -142,6 +147,11 @@ def val_ped_ap(samples: list[Sample], images: list[np.ndarray], dets: list[list[
 
 
 def train_refiner(args: argparse.Namespace) -> int:
+    try:  # before any work: a missing GPU is one sentence
+        device = resolve_device(getattr(args, "device", "cpu"))
+    except ValueError as exc:
+        print(f"train.py detector refiner: {exc}", file=sys.stderr)
+        return 2
     torch.manual_seed(args.seed)
     torch.set_num_threads(args.threads)
     rng = np.random.default_rng(args.seed)
@@ -160,17 +170,19 @@ def train_refiner(args: argparse.Namespace) -> int:
     for k in range(0, len(train_samples), 2000):  # in chunks: the frames are decoded once and then let go
         chunk = train_samples[k:k + 2000]
         images = [read_rgb(s.image) for s in chunk]
-        part = build_samples(chunk, images, detector_candidates(args.detector, chunk, images, config.candidate_score),
+        part = build_samples(chunk, images, detector_candidates(args.detector, chunk, images, config.candidate_score,
+                                                                device),
                              config, args.jitter, rng)
         for key, v in part.items():
             data.setdefault(key, []).append(v)
     tr = {key: np.concatenate(v) for key, v in data.items()}
     val_images = [read_rgb(s.image) for s in val_samples]
-    val_dets = detector_candidates(args.detector, val_samples, val_images, config.candidate_score)
+    val_dets = detector_candidates(args.detector, val_samples, val_images, config.candidate_score, device)
     n = len(tr["label"])
     print(f"{n} candidates ({int(tr['label'].sum())} pedestrians) from {len(train_samples)} frames, "
           f"{time.perf_counter() - t0:.0f} s", flush=True)
-    model = PedRefiner(config)
+    model = PedRefiner(config).to(device)
+    scaler = grad_scaler(device)
     opt = torch.optim.AdamW(model.parameters(), args.lr, weight_decay=1e-4)
     steps = n // args.batch
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, args.lr, total_steps=args.epochs * steps)
@@ -187,10 +199,18 @@ def train_refiner(args: argparse.Namespace) -> int:
             idx = np.sort(perm[i * args.batch:(i + 1) * args.batch])
             crops, cand, target = _flip(tr["crops"][idx], tr["cand"][idx], tr["target"][idx],
                                         rng.random(len(idx)) < 0.5)
-            cls, box = refiner_loss(model(torch.from_numpy(refiner_inputs(crops, cand))), cand, target, tr["label"][idx])
-            opt.zero_grad()
-            (cls + box).backward()
-            opt.step()
+            inputs = torch.from_numpy(refiner_inputs(crops, cand))
+            if device.type == "cpu":
+                cls, box = refiner_loss(model(inputs), cand, target, tr["label"][idx])
+                opt.zero_grad()
+                (cls + box).backward()
+                opt.step()
+            else:  # pinned non-blocking copy, autocast forward, the loss in fp32
+                with autocast(device):
+                    pred = model(to_device(inputs, device))
+                cls, box = refiner_loss(pred.float(), cand, target, tr["label"][idx])
+                opt.zero_grad()
+                backward_step(cls + box, opt, scaler)
             sched.step()
             sums += (cls.item(), box.item())
         val = val_ped_ap(val_samples, val_images, val_dets, model, config)
@@ -201,10 +221,12 @@ def train_refiner(args: argparse.Namespace) -> int:
         log.flush()
         if val["ap50"] > best:
             best = val["ap50"]
-            save_checkpoint(out, {"kind": "ped_refiner", "config": asdict(config), "state_dict": model.state_dict(),
+            state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+            save_checkpoint(out, {"kind": "ped_refiner", "config": asdict(config), "state_dict": state,
                                   "epoch": epoch, "detector": str(args.detector), "seed": args.seed})
     log.close()
     ckpt = load_checkpoint(out, "pedestrian refiner")
+    model = model.cpu()  # choosing the score blend and the NMS runs on the CPU, as deployed
     model.load_state_dict(ckpt["state_dict"])
     ckpt["config"], ap = tune(model, config, val_samples, val_images, val_dets, args.detector, out.with_suffix(".log.jsonl"))
     save_checkpoint(out, ckpt)
