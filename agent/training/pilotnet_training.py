@@ -3,6 +3,7 @@
   python train.py pilotnet --data data/episodes/autopilot --out out/pilotnet --epochs 12 --seed 0
   python train.py pilotnet --data ... --resume                 # continue from out/pilotnet/last.pt
   python train.py pilotnet --data ... --dagger 2               # then DAgger rounds (see agent.training.pilotnet_dagger)
+  torchrun --standalone --nproc_per_node 2 train.py pilotnet --data ...   # DistributedDataParallel, one process per GPU
 
 A run folder holds ``last.pt`` (every epoch, for resuming), ``best.pt`` (lowest validation loss),
 ``log.csv`` and ``loss.png``. At the end the best checkpoint is written to ``--model`` (default
