@@ -265,7 +265,7 @@ def train(args: argparse.Namespace) -> int:
     try:  # before any work: a missing GPU is one sentence
         device = resolve_device(getattr(args, "device", "cpu"))
     except ValueError as exc:
-        print(f"train.py detector train: {exc}", file=sys.stderr)
+        print(f"towndrive train detector train: {exc}", file=sys.stderr)
         return 2
     torch.manual_seed(args.seed)
     torch.set_num_threads(max(1, args.threads))

@@ -150,7 +150,7 @@ def train_refiner(args: argparse.Namespace) -> int:
     try:  # before any work: a missing GPU is one sentence
         device = resolve_device(getattr(args, "device", "cpu"))
     except ValueError as exc:
-        print(f"train.py detector refiner: {exc}", file=sys.stderr)
+        print(f"towndrive train detector refiner: {exc}", file=sys.stderr)
         return 2
     torch.manual_seed(args.seed)
     torch.set_num_threads(args.threads)

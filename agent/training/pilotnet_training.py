@@ -257,10 +257,10 @@ def run(args: argparse.Namespace) -> int:
     try:
         device = resolve_device(getattr(args, "device", "cpu"), dist.local_rank if dist.enabled else None)
     except ValueError as exc:
-        print(f"train.py pilotnet: {exc}", file=sys.stderr)
+        print(f"towndrive train pilotnet: {exc}", file=sys.stderr)
         return 2
     if dist.enabled and args.dagger:
-        print("train.py pilotnet: DAgger rounds run in one process; train with torchrun, then run --dagger "
+        print("towndrive train pilotnet: DAgger rounds run in one process; train with torchrun, then run --dagger "
               "with --resume without torchrun.", file=sys.stderr)
         return 2
     if args.threads:
@@ -281,7 +281,7 @@ def _run(args: argparse.Namespace, device: torch.device, dist: Distributed) -> i
     try:
         frames = load_frames(args.data, side_cameras=not args.no_side_cameras)
     except EpisodeError as exc:
-        print(f"train.py pilotnet: {exc}", file=sys.stderr)
+        print(f"towndrive train pilotnet: {exc}", file=sys.stderr)
         return 2
     train, val = split_by_episode(frames, args.validation, args.seed)
     print(f"{len(frames)} frames from {len(frames.episode_paths)} episodes: {len(train)} train, {len(val)} validation "
@@ -295,7 +295,7 @@ def _run(args: argparse.Namespace, device: torch.device, dist: Distributed) -> i
     if args.resume:
         last = out / "last.pt"
         if not last.is_file():
-            print(f"train.py pilotnet: nothing to resume: {last} does not exist.", file=sys.stderr)
+            print(f"towndrive train pilotnet: nothing to resume: {last} does not exist.", file=sys.stderr)
             return 2
         ckpt = load_checkpoint(last, "PilotNet training")
         model.load_state_dict(ckpt["state_dict"])
