@@ -246,7 +246,6 @@ class AgentDriver:
         st = self.stages
         for stage in (st.blind_spot, st.objects, st.memory, st.odometry, st.junction):
             stage.reset()
-        st.junction.line = self.controller.line  # the controller's reset made a new track
         self._lights: list[Detection] = []
 
     # Stage shortcuts kept for overlays, profiles and tests.

@@ -254,15 +254,17 @@ class DriveEnv(gym.Env):
         """The camera frame scaled to 320 px wide next to a matching top-down crop."""
         import cv2
 
-        world = self._require_world()
-        if self._topdown is None:
-            self._topdown = TopDownMap(world.town, pixels_per_m=3.0)
         cam = self.frame.rgb if self.frame is not None else np.zeros((160, 320, 3), np.uint8)
         h = int(round(cam.shape[0] * 320 / cam.shape[1]))
         cam = cv2.resize(cam, (320, h), interpolation=cv2.INTER_LINEAR)
-        side = h
-        top = self._topdown.render_around(world, size_px=side, radius_m=35.0)
-        return np.concatenate([cam, top], axis=1)
+        return np.concatenate([cam, self.map_view(h)], axis=1)
+
+    def map_view(self, size_px: int) -> np.ndarray:
+        """The top-down map, 35 m around the car, ``size_px`` square (the ground truth beside the camera)."""
+        world = self._require_world()
+        if self._topdown is None:
+            self._topdown = TopDownMap(world.town, pixels_per_m=3.0)
+        return self._topdown.render_around(world, size_px=size_px, radius_m=35.0)
 
     def _show(self, image: np.ndarray) -> None:
         import pygame

@@ -112,10 +112,9 @@ def video_frame(env: DriveEnv, driver: Driver, info: dict[str, Any], extra: str 
         return draw_hud(env.composite(), info, driver.name, extra)
     picture = picture.copy()
     _label(picture, "camera + perception", 6, picture.shape[0] - 8, 0.35)  # left of the steering bar
-    composite = env.composite()
-    side = composite.shape[0]
+    side = picture.shape[0] // 2  # the overlay is the camera frame at twice its size: the bottom row is one frame high
     width = picture.shape[1]
-    tile = composite[:, -side:].copy()  # the top-down map around the car
+    tile = env.map_view(side)  # the top-down map around the car
     _label(tile, "map (ground truth)", 4, side - 6, 0.35)
     row = np.concatenate([tile, truth_panel(info, driver.name, max(width - side, 1), side, extra)], axis=1)
     return np.concatenate([picture, row[:, :width]], axis=0)
@@ -348,12 +347,6 @@ def plot_trace(town: Any, tr: EpisodeTrace, out: Path) -> list[str]:
     plt.close(fig)
     written.append(name)
     return written
-
-
-def plot_traces(env: DriveEnv, traces: list[EpisodeTrace], out: Path) -> list[str]:
-    """``plot_trace`` for each trace, all on the env's current town."""
-    assert env.world is not None
-    return [name for tr in traces for name in plot_trace(env.world.town, tr, out)]
 
 
 @dataclass(frozen=True)

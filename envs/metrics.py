@@ -134,20 +134,19 @@ def infraction_multiplier(infraction: dict[str, Any]) -> float:
     return float(infraction.get("penalty", PENALTY.get(infraction["kind"], 1.0)))
 
 
-def penalty_of_counts(counts: dict[str, int]) -> float:
-    """The infraction penalty (the driving score's multiplier) of infractions counted by kind, at their weights."""
+def infraction_penalty(infractions: list[dict[str, Any]]) -> float:
+    """The infraction penalty (the driving score's multiplier, before take-overs): the product of the multipliers."""
     penalty = 1.0
-    for kind, n in counts.items():
-        penalty *= PENALTY.get(kind, 1.0) ** n
+    for inf in infractions:
+        penalty *= infraction_multiplier(inf)
     return penalty
 
 
 def episode_metrics(trace: EpisodeTrace) -> dict[str, Any]:
     counts: dict[str, int] = {}
-    penalty = 1.0
     for inf in trace.infractions:
         counts[inf["kind"]] = counts.get(inf["kind"], 0) + 1
-        penalty *= infraction_multiplier(inf)
+    penalty = infraction_penalty(trace.infractions)
     penalty *= trace.takeover_penalty ** len(trace.interventions)
     completion = 100.0 * min(1.0, trace.route_progress_m / max(trace.route_total_m, 1e-6))
     km = trace.distance_m / 1000.0

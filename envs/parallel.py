@@ -93,6 +93,14 @@ class DriverSpec:
         return self.factory(self.name, **dict(self.kwargs))
 
 
+def start_episode(driver: Any, index: int) -> None:
+    """Tell the driver which episode of the run comes next: a driver with per-episode randomness (the autopilot's
+    steering noise) seeds it from the index, so an episode is the same on any worker, and serially."""
+    hook = getattr(driver, "set_episode_index", None)
+    if callable(hook):
+        hook(index)
+
+
 class Worker:
     """What one worker process keeps between episodes: its driver and its one simulator."""
 
@@ -112,11 +120,7 @@ class Worker:
         return self._env
 
     def start_episode(self, index: int) -> None:
-        """Tell the driver which episode of the run comes next: a driver with per-episode randomness (the
-        autopilot's steering noise) seeds it from the index, so an episode is the same on any worker."""
-        hook = getattr(self.driver, "set_episode_index", None)
-        if callable(hook):
-            hook(index)
+        start_episode(self.driver, index)
 
     def close(self) -> None:
         if self._env is not None:
@@ -323,7 +327,6 @@ def run_ray(items: Sequence[WorkItem], driver: DriverSpec, workers: int, address
                 books.settle(index, payload if kind == "done" else None, payload if kind == "error" else None)
                 idle.append(actor)
     except KeyboardInterrupt:
-        books.close()
         raise Interrupted(books.results, n) from None
     finally:
         books.close()

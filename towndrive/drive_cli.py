@@ -31,7 +31,7 @@ from towndrive.agent.drivers import BUILTIN
 from towndrive.cli import HelpFormatter
 from towndrive.envs.rules_cli import add_rule_arguments, rules_from_arguments
 from towndrive.extras import MissingExtra
-from towndrive.sim.spec import WEATHERS
+from towndrive.sim.spec import EPISODE_S, WEATHERS
 
 
 def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argparse.Namespace:
@@ -166,7 +166,7 @@ def make_config(args: argparse.Namespace) -> Any:
     if args.traffic != 1.0:
         world = replace(world, npc_count=round(world.npc_count * args.traffic),
                         pedestrian_count=round(world.pedestrian_count * args.traffic))
-    seconds = args.seconds if args.seconds is not None else (180.0 if args.evaluate else 60.0)
+    seconds = args.seconds if args.seconds is not None else (EPISODE_S if args.evaluate else 60.0)
     return DriveConfig(world=world, camera=CameraConfig(width=args.width, height=args.height),
                        town_seed=args.town_seed, weather=args.weather, max_time_s=seconds,
                        observe_depth=args.depth, observe_segmentation=args.segmentation, observe_stereo=args.stereo,
@@ -192,7 +192,7 @@ def driver_spec(args: argparse.Namespace) -> Any:
     from towndrive.envs.parallel import DriverSpec
 
     if getattr(args, "profile", None):
-        if args.driver not in ("autopilot", "agent"):  # autopilot: the default, so --driver was not given
+        if args.driver != "agent":
             raise ValueError(f"--profile runs the agent driver, not {args.driver}; drop --driver.")
         return DriverSpec.of(_profiled_agent, "agent", profile=str(args.profile))
 
@@ -201,10 +201,9 @@ def driver_spec(args: argparse.Namespace) -> Any:
         raise ValueError("--noise is for the autopilot only.")
     if args.driver in ("pilotnet", "rl", "agent") and args.model is not None:
         kwargs["model"] = args.model
-    if args.driver == "agent":
+    if args.driver in ("agent", "pilotnet"):  # the profiles' name for ONNX Runtime is PilotNetModel's "onnx"
         kwargs["backend"] = {"onnxruntime": "onnx"}.get(args.backend, args.backend)
     if args.driver == "pilotnet":
-        kwargs["backend"] = {"onnxruntime": "onnx"}.get(args.backend, args.backend)
         if args.target_speed is not None:
             kwargs["target_speed_mps"] = args.target_speed
     elif args.target_speed is not None:
@@ -234,9 +233,11 @@ def demo(args: argparse.Namespace) -> int:
     writer = None if args.no_video else video_writer(out / "video.mp4", env.metadata["render_fps"])
     t0 = time.perf_counter()
     saved, k, terminated = [], 0, False
+    infractions: list[dict[str, Any]] = []  # each as the step reported it (the driving score's penalty)
     try:
         for k in tqdm(range(steps), desc="driving", unit="step", mininterval=1.0):
             obs, _, terminated, truncated, info = env.step(driver.act(obs))
+            infractions += info["infractions"]
             if writer is not None:
                 writer.append_data(video_frame(env, driver, info))
             if k in save_at:
@@ -250,7 +251,7 @@ def demo(args: argparse.Namespace) -> int:
             writer.close()
         env.close()
     wall = time.perf_counter() - t0
-    from towndrive.envs.metrics import penalty_of_counts
+    from towndrive.envs.metrics import infraction_penalty
 
     completion = float(info["route"]["completion"])
     counts = info["infraction_counts"]
@@ -264,7 +265,7 @@ def demo(args: argparse.Namespace) -> int:
                    "driven (--seconds sets it)")
     summary = {
         "driver": driver.name, "seed": args.seed, "town_seed": args.town_seed, "weather": args.weather,
-        "driving_score": round(100.0 * completion * penalty_of_counts(counts), 2),
+        "driving_score": round(100.0 * completion * infraction_penalty(infractions), 2),
         "route_completion_pct": round(100.0 * completion, 2), "infractions": counts, "limited_by": limited,
         "distance_m": round(info["distance_m"], 1), "sim_time_s": info["time_s"], "steps": k + 1,
         "wall_time_s": round(wall, 2), "steps_per_s": round((k + 1) / wall, 1),
@@ -303,10 +304,9 @@ class RecordEpisode:
         """Drive the episode into its file (``.partial`` until it finishes, then renamed); its path and frames.
         Anything that stops it (an error, Ctrl-C, a worker's SIGTERM) discards the ``.partial``."""
         from towndrive.data.episodes import EpisodeWriter
+        from towndrive.envs.parallel import start_episode
 
-        hook = getattr(driver, "set_episode_index", None)
-        if callable(hook):
-            hook(self.index)
+        start_episode(driver, self.index)
         obs, info = env.reset(seed=self.seed, options=self.options)
         driver.reset(env)
         assert env.world is not None

@@ -164,12 +164,13 @@ class Controller:
         self.road = road  # the road-design priors (where lights stand beyond the stop line)
         self.vehicle_accel = max_accel_mps2  # what throttle 1 gives
         self.vehicle_brake = max_brake_mps2  # what brake 1 (throttle_brake -1) gives
+        self.line = StopLineTrack(self.config, self.road)  # the stop bar ahead (shared with the junction guidance)
         self.reset()
 
     def reset(self) -> None:
         self.last_steer = 0.0
         self.last_accel = 0.0
-        self.line = StopLineTrack(self.config, self.road)  # the stop bar ahead (shared with the junction guidance)
+        self.line.reset()
         self.light_state: str | None = None
         self._light_candidate: str | None = None
         self._light_count = 0

@@ -29,7 +29,7 @@ from towndrive.agent.perception.checkpoints import save_checkpoint as save
 from towndrive.agent.perception.classes import CLASSES
 from towndrive.agent.perception.detector import INPUT_HW, STRIDES, DecodedDetector, Detector, DetectorConfig, postprocess
 from towndrive.agent.training.detector_eval import Sample, detection_report, load_split, read_rgb
-from towndrive.agent.training.devices import autocast, grad_scaler, resolve_device, to_device
+from towndrive.agent.training.devices import autocast, backward_step, grad_scaler, resolve_device, to_device
 
 LOSS_WEIGHTS = {"box": 0.05, "obj": 0.2, "cls": 0.04}
 # Objectness weight per stride, proportional to the number of cells (YOLOv5's P3:P4 = 4:1), so every cell weighs
@@ -331,27 +331,13 @@ def train(args: argparse.Namespace) -> int:
             for g in opt.param_groups:
                 g["lr"] = lr
             x, tgs = make_batch(train_x, train_s, order[b * args.batch:(b + 1) * args.batch], rng, strides, scale_prob)
-            if device.type == "cpu":
-                loss, parts = yolo_loss(model(x), tgs, strides, obj_iou, box_l1)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
-                opt.step()
-            else:  # pinned non-blocking copy, autocast forward, the loss in fp32, fp16 through a GradScaler
-                with autocast(device):
-                    maps = model(to_device(x, device))
-                loss, parts = yolo_loss([m.float() for m in maps], tgs, strides, obj_iou, box_l1)
-                opt.zero_grad(set_to_none=True)
-                if scaler is None:
-                    loss.backward()
-                    torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
-                    opt.step()
-                else:
-                    scaler.scale(loss).backward()
-                    scaler.unscale_(opt)
-                    torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
-                    scaler.step(opt)
-                    scaler.update()
+            # On CUDA: a pinned non-blocking copy, an autocast forward, the loss in fp32, fp16 through a GradScaler;
+            # on the CPU each of these is a no-op (float() of an fp32 map is the map itself).
+            with autocast(device):
+                maps = model(to_device(x, device))
+            loss, parts = yolo_loss([m.float() for m in maps], tgs, strides, obj_iou, box_l1)
+            opt.zero_grad(set_to_none=True)
+            backward_step(loss, opt, scaler, clip=(model.parameters(), 10.0))
             ema.update(model)
             step += 1
             for k in run:

@@ -18,6 +18,7 @@ import json
 import time
 from pathlib import Path
 
+from towndrive.agent.training.devices import add_device_argument
 from towndrive.agent.training.outputs import add_replace_shipped
 
 DEFAULT_DATA = "data/datasets/detector"
@@ -72,7 +73,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="also save every epoch's EMA weights next to --out (NAME.eN.pt), to choose by another val figure")
     p.add_argument("--scale-prob", type=float, default=1.0,
                    help="share of training frames rescaled (0.75-1.3x); the rest are shifted by whole pixels")
-    p.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda or cuda:K; mixed precision on CUDA")
+    add_device_argument(p)
 
     p = sub.add_parser("refiner", help="train the second-stage pedestrian refiner on the detector's candidates")
     p.add_argument("--data", default=DEFAULT_DATA, help="dataset root")
@@ -87,7 +88,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--channels", default="24,48,96", help="the refiner's conv widths at its three scales")
     p.add_argument("--hidden", type=int, default=256, help="units of its hidden linear layer")
-    p.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda or cuda:K; mixed precision on CUDA")
+    add_device_argument(p)
     p.add_argument("--tune-only", action="store_true", help="no training: choose the score blend, the second NMS "
                    "and the candidate depth on val for the refiner at --out again, and write them into it")
 

@@ -10,19 +10,25 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import torch
+if TYPE_CHECKING:  # torch is imported where it is used: the flags' modules must load without it (fast --help)
+    import torch
 
-DEVICE_HELP = "where to train: auto (CUDA when present), cpu, cuda or cuda:K"
+DEVICE_HELP = "auto (CUDA when present), cpu, cuda or cuda:K; mixed precision on CUDA"
 
 
-def add_device_argument(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--device", default="auto", help=DEVICE_HELP)
+def add_device_argument(p: argparse.ArgumentParser, default: str = "auto", more: str = "") -> None:
+    """``--device``, the same for every training command (``more``: what this command adds to the help)."""
+    p.add_argument("--device", default=default, help=f"where to train: {DEVICE_HELP}" + (f". {more}" if more else ""))
 
 
 def resolve_device(text: str = "auto", local_rank: int | None = None) -> torch.device:
     """``auto``/``cpu``/``cuda``/``cuda:K`` as a device; ValueError in one sentence when it is not there."""
+    import torch
+
     text = (text or "auto").strip().lower()
     if text == "auto":
         text = "cuda" if torch.cuda.is_available() else "cpu"
@@ -47,29 +53,45 @@ def resolve_device(text: str = "auto", local_rank: int | None = None) -> torch.d
 
 def autocast(device: torch.device, dtype: torch.dtype | None = None):
     """Mixed precision on CUDA (bf16 where supported, else fp16); a no-op context elsewhere."""
+    import torch
+
     if device.type != "cuda":
         return contextlib.nullcontext()
     return torch.autocast("cuda", dtype=dtype or cuda_amp_dtype(device))
 
 
 def cuda_amp_dtype(device: torch.device) -> torch.dtype:
+    import torch
+
     return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
 
 
 def grad_scaler(device: torch.device) -> torch.amp.GradScaler | None:
     """A GradScaler for fp16 autocast on CUDA; None where none is needed (CPU, bf16)."""
+    import torch
+
     if device.type == "cuda" and cuda_amp_dtype(device) == torch.float16:
         return torch.amp.GradScaler("cuda")
     return None
 
 
-def backward_step(loss: torch.Tensor, opt: torch.optim.Optimizer, scaler: torch.amp.GradScaler | None) -> None:
-    """``loss.backward(); opt.step()``, through the scaler when there is one."""
+def backward_step(loss: torch.Tensor, opt: torch.optim.Optimizer, scaler: torch.amp.GradScaler | None,
+                  clip: tuple[Iterable[torch.Tensor], float] | None = None) -> None:
+    """``loss.backward()``, then (``clip``: parameters and a max norm) gradients clipped, unscaled first, then
+    ``opt.step()``; through the scaler when there is one. Without a scaler (the CPU, bf16) these are exactly the
+    plain steps."""
+    import torch
+
     if scaler is None:
         loss.backward()
+        if clip is not None:
+            torch.nn.utils.clip_grad_norm_(*clip)
         opt.step()
     else:
         scaler.scale(loss).backward()
+        if clip is not None:
+            scaler.unscale_(opt)
+            torch.nn.utils.clip_grad_norm_(*clip)
         scaler.step(opt)
         scaler.update()
 
@@ -96,10 +118,14 @@ class Distributed:
         return self.rank == 0
 
     def barrier(self) -> None:
+        import torch
+
         if self.enabled and torch.distributed.is_initialized():
             torch.distributed.barrier()
 
     def close(self) -> None:
+        import torch
+
         if self.enabled and torch.distributed.is_initialized():
             torch.distributed.destroy_process_group()
 
@@ -114,6 +140,8 @@ def distributed_from_env() -> Distributed:
 
 def init_distributed(dist: Distributed, device: torch.device) -> None:
     """Start the process group: nccl for CUDA devices, gloo on the CPU."""
+    import torch
+
     if not dist.enabled or torch.distributed.is_initialized():
         return
     if device.type == "cuda":

@@ -200,17 +200,11 @@ def train_refiner(args: argparse.Namespace) -> int:
             crops, cand, target = _flip(tr["crops"][idx], tr["cand"][idx], tr["target"][idx],
                                         rng.random(len(idx)) < 0.5)
             inputs = torch.from_numpy(refiner_inputs(crops, cand))
-            if device.type == "cpu":
-                cls, box = refiner_loss(model(inputs), cand, target, tr["label"][idx])
-                opt.zero_grad()
-                (cls + box).backward()
-                opt.step()
-            else:  # pinned non-blocking copy, autocast forward, the loss in fp32
-                with autocast(device):
-                    pred = model(to_device(inputs, device))
-                cls, box = refiner_loss(pred.float(), cand, target, tr["label"][idx])
-                opt.zero_grad()
-                backward_step(cls + box, opt, scaler)
+            with autocast(device):  # on CUDA: pinned non-blocking copy, autocast forward; no-ops on the CPU
+                pred = model(to_device(inputs, device))
+            cls, box = refiner_loss(pred.float(), cand, target, tr["label"][idx])  # the loss in fp32
+            opt.zero_grad()
+            backward_step(cls + box, opt, scaler)
             sched.step()
             sums += (cls.item(), box.item())
         val = val_ped_ap(val_samples, val_images, val_dets, model, config)

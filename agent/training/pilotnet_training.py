@@ -173,20 +173,12 @@ def fit(model: torch.nn.Module, train: FrameSet, val: FrameSet, args: argparse.N
                        desc=f"epoch {epoch + 1}/{total}", unit="batch", mininterval=2.0, file=sys.stderr,
                        disable=not dist.is_main)
             for x, cmd, y in bar:
-                if device.type == "cpu":
-                    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=use_bf16(args)):
-                        pred = model(x, cmd) if net.conditional else model(x)
-                    loss = torch.nn.functional.mse_loss(pred[:, 0].float(), y)
-                    opt.zero_grad()
-                    loss.backward()
-                    opt.step()
-                else:  # pinned, non-blocking copies; autocast (bf16, or fp16 with a GradScaler) unless --precision fp32
-                    x, cmd, y = to_device(x, device), to_device(cmd, device), to_device(y, device)
-                    with autocast(device) if _cuda_mixed(args, device) else contextlib.nullcontext():
-                        pred = model(x, cmd) if net.conditional else model(x)
-                    loss = torch.nn.functional.mse_loss(pred[:, 0].float(), y)
-                    opt.zero_grad()
-                    backward_step(loss, opt, scaler)
+                x, cmd, y = to_device(x, device), to_device(cmd, device), to_device(y, device)  # CUDA: pinned copies
+                with _precision(args, device):
+                    pred = model(x, cmd) if net.conditional else model(x)
+                loss = torch.nn.functional.mse_loss(pred[:, 0].float(), y)
+                opt.zero_grad()
+                backward_step(loss, opt, scaler)
                 losses.append(loss.item())
                 bar.set_postfix(loss=f"{np.mean(losses[-50:]):.4f}")
             sched.step()
@@ -218,6 +210,14 @@ def fit(model: torch.nn.Module, train: FrameSet, val: FrameSet, args: argparse.N
 def _cuda_mixed(args: argparse.Namespace, device: torch.device) -> bool:
     """Mixed precision on CUDA unless --precision fp32."""
     return device.type == "cuda" and getattr(args, "precision", "auto") != "fp32"
+
+
+def _precision(args: argparse.Namespace, device: torch.device) -> Any:
+    """The forward pass's arithmetic: bf16 autocast on a CPU that has it (``use_bf16``); on CUDA autocast (bf16, or
+    fp16 with a GradScaler) unless --precision fp32."""
+    if device.type == "cpu":
+        return torch.autocast("cpu", dtype=torch.bfloat16, enabled=use_bf16(args))
+    return autocast(device) if _cuda_mixed(args, device) else contextlib.nullcontext()
 
 
 def use_bf16(args: argparse.Namespace) -> bool:

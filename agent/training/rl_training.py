@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from towndrive.agent.training.devices import add_device_argument  # noqa: E402
 from towndrive.agent.training.outputs import add_replace_shipped, replace_shipped  # noqa: E402
 
 
@@ -32,8 +33,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--steps", type=int, default=300_000, help="environment steps in total")
     p.add_argument("--envs", type=int, default=4,
                    help="parallel environments: one process each (SB3's SubprocVecEnv) when more than 1")
-    p.add_argument("--device", default="cpu",
-                   help="where the policy trains: cpu (its small MLP is fastest there), auto, cuda or cuda:K")
+    add_device_argument(p, default="cpu", more="The default is cpu: the policy's small MLP is fastest there")
     p.add_argument("--seed", type=int, default=0, help="seed of the environments and the policy")
     p.add_argument("--town-seed", type=int, default=1, help="first training town (towns cycle over --towns)")
     p.add_argument("--towns", type=int, default=8, help="number of training towns (from --town-seed on)")
