@@ -1,5 +1,6 @@
-"""Dataset tools: ``python -m data summary DIR [--png PATH] [--json]``, ``python -m data import-udacity SRC DST``,
-``python -m data export-udacity SRC DST``. Errors print one sentence to stderr and exit with status 2."""
+"""Dataset tools: ``python -m data summary DIR [--png PATH] [--json]``, ``import-udacity SRC DST``,
+``export-udacity SRC DST``, ``export-lerobot SRC DST``, ``import-lerobot SRC DST``, ``export-minari SRC NAME``.
+Errors print one sentence to stderr and exit with status 2 (a missing optional extra included)."""
 
 from __future__ import annotations
 
@@ -27,8 +28,21 @@ def main(argv: list[str] | None = None, prog: str = "towndrive data") -> int:
     p = sub.add_parser("export-udacity", help="write episodes as a Udacity recording (driving_log.csv + IMG/)")
     p.add_argument("src", type=Path, help="dataset folder or one episode_*.h5 file")
     p.add_argument("dst", type=Path, help="empty output folder")
+    p = sub.add_parser("export-lerobot", help="write episodes as a LeRobotDataset v3 folder (parquet + MP4 video)")
+    p.add_argument("src", type=Path, help="dataset folder or one episode_*.h5 file")
+    p.add_argument("dst", type=Path, help="new or empty output folder")
+    p.add_argument("--crf", type=int, default=18, help="H.264 quality: lower is larger and closer to the frames")
+    p.add_argument("--gop", type=int, default=10, help="a keyframe at least every this many frames")
+    p = sub.add_parser("import-lerobot", help="convert a LeRobotDataset v3 folder (camera, steering, throttle) to episodes")
+    p.add_argument("src", type=Path, help="LeRobot dataset folder (holding meta/info.json)")
+    p.add_argument("dst", type=Path, help="new or empty dataset folder")
+    p.add_argument("--camera", help="the video feature to import (default observation.images.front, or the only one)")
+    p = sub.add_parser("export-minari", help="write episodes as a Minari dataset (pip install 'towndrive[minari]')")
+    p.add_argument("src", type=Path, help="dataset folder or one episode_*.h5 file")
+    p.add_argument("name", help="Minari dataset id, e.g. towndrive/autopilot-v0 (stored under MINARI_DATASETS_PATH)")
     args = parser.parse_args(argv)
     from towndrive.data.stopping import Stopped, StopSignals, describe_os_error
+    from towndrive.extras import MissingExtra
 
     signals = StopSignals()
     if args.command != "summary":  # writers stop between frames; summary writes nothing, so Ctrl-C stops it at once
@@ -57,11 +71,32 @@ def main(argv: list[str] | None = None, prog: str = "towndrive data") -> int:
 
             frames = export_udacity(args.src, args.dst, progress=True, stop=signals.check)
             print(f"exported {frames} frame(s) to {args.dst}")
+        elif args.command == "export-lerobot":
+            from towndrive.data.lerobot import LeRobotSettings, export_lerobot
+            from towndrive.data.video import VideoSettings
+
+            if args.crf < 0 or args.gop < 1:
+                raise ValueError(f"--crf must be 0 or more and --gop 1 or more, got {args.crf} and {args.gop}.")
+            done = export_lerobot(args.src, args.dst, LeRobotSettings(video=VideoSettings(crf=args.crf, gop_frames=args.gop)),
+                                  progress=True, stop=signals.check)
+            videos = ", ".join(f"{k} {v / 2**10:.0f} KiB" for k, v in done["video_bytes"].items())
+            print(f"exported {done['episodes']} episode(s), {done['frames']} frame(s) at {done['fps']} fps to "
+                  f"{args.dst} ({videos})")
+        elif args.command == "import-lerobot":
+            from towndrive.data.lerobot import import_lerobot
+
+            paths = import_lerobot(args.src, args.dst, camera=args.camera, progress=True, stop=signals.check)
+            print(f"imported {len(paths)} episode(s) into {args.dst}")
+        elif args.command == "export-minari":
+            from towndrive.data.minari_export import export_minari
+
+            where = export_minari(args.src, args.name, progress=True, stop=signals.check)
+            print(f"exported to Minari dataset {args.name} at {where}; load it with minari.load_dataset({args.name!r})")
     except BrokenPipeError:  # output piped into head & co.: stop quietly
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
-    except (ValueError, FileNotFoundError, PermissionError, IsADirectoryError, NotADirectoryError) as exc:
-        print(f"error: {exc}", file=sys.stderr)  # EpisodeError and UdacityError are ValueErrors
+    except (ValueError, FileNotFoundError, PermissionError, IsADirectoryError, NotADirectoryError, MissingExtra) as exc:
+        print(f"error: {exc}", file=sys.stderr)  # EpisodeError, UdacityError, LeRobotError are ValueErrors
         return 2
     except OSError as exc:  # a full disk, an I/O error: what this command wrote is removed again
         where = f" writing {exc.filename}" if exc.filename else ""

@@ -14,6 +14,12 @@ Layout of an episode file (``T`` steps; ``frames[t]`` is what the driver saw whe
   truth/<name>    float32 (T,)          per-step ground truth (see ``TRUTH_FIELDS``)
   attrs           seed, town_seed, weather, driver, camera (JSON), project_version, dt_s, steps, ...
 
+Every dataset carries its own description as attributes (layout version 2; ``DATASET_ATTRS``): ``unit``,
+``dims`` (what each axis is), ``description``, and for codes ``codes`` (JSON: code -> meaning), so a file read
+with any HDF5 tool says what it holds without this module. Why attributes on each dataset and not a table in
+a document: a file outlives the code that wrote it and travels alone. Version 1 files (no dataset attributes)
+still open; ``dataset_attrs`` answers for them from the same table.
+
 A writer fills ``<name>.partial`` next to the final path and renames it when the episode ends, so a
 half-written episode never carries an episode's name, and an interrupted recording keeps every
 episode that finished. A ``.partial`` that is still there was left by a process that was killed (SIGKILL,
@@ -40,10 +46,49 @@ from typing import Any
 import h5py
 import numpy as np
 
+from towndrive.sim.spec import COMMAND_NAMES  # the route command's codes
+
 TRUTH_FIELDS = ("ego_x", "ego_y", "ego_heading", "lane_offset_m", "route_progress_m", "next_light_state",
                 "next_light_distance_m", "time_s")
 EPISODE_GLOB = "episode_*.h5"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: every dataset carries unit, dims, description (and codes); 1: bare datasets
+LIGHT_STATE_NAMES = {0: "green", 1: "yellow", 2: "red", -1: "none"}  # truth/next_light_state (NaN: unknown)
+_IMAGE_DIMS = "time, row (top to bottom), column (left to right), channel (R, G, B)"
+_SERIES_DIMS = "time"
+
+# What each dataset of an episode file holds: written as the dataset's attributes (layout version 2).
+DATASET_ATTRS: dict[str, dict[str, Any]] = {
+    "frames": {"unit": "8-bit sRGB", "dims": _IMAGE_DIMS,
+               "description": "centre camera (the left one of the stereo pair), what the driver saw at each step"},
+    "depth": {"unit": "m", "dims": "time, row, column",
+              "description": "metric depth along the camera axis of the centre camera"},
+    "segmentation": {"unit": "code", "dims": "time, row, column, (semantic class, object id)",
+                     "description": "per-pixel semantic class (sim/objects.py SemanticClass) and object id (-1: none)"},
+    "stereo_right": {"unit": "8-bit sRGB", "dims": _IMAGE_DIMS,
+                     "description": "right camera of the stereo pair, camera.stereo_baseline_m right of frames"},
+    "side_left": {"unit": "8-bit sRGB", "dims": _IMAGE_DIMS,
+                  "description": "side camera side_camera_offset_m left of the centre camera, same heading"},
+    "side_right": {"unit": "8-bit sRGB", "dims": _IMAGE_DIMS,
+                   "description": "side camera side_camera_offset_m right of the centre camera, same heading"},
+    "actions": {"unit": "1 (fraction of full range)", "dims": "time, (steer, throttle_brake)",
+                "description": "the action at each step: steer in [-1, 1] (positive right, 1 = full lock), "
+                               "throttle_brake in [-1, 1] (positive throttle, negative brake)"},
+    "speed": {"unit": "m/s", "dims": _SERIES_DIMS, "description": "ego speed"},
+    "command": {"unit": "code", "dims": _SERIES_DIMS, "codes": COMMAND_NAMES,
+                "description": "route command at each step"},
+    "truth/ego_x": {"unit": "m", "dims": _SERIES_DIMS, "description": "ego position east, town map frame"},
+    "truth/ego_y": {"unit": "m", "dims": _SERIES_DIMS, "description": "ego position north, town map frame"},
+    "truth/ego_heading": {"unit": "rad", "dims": _SERIES_DIMS,
+                          "description": "ego heading, counter-clockwise from east, town map frame"},
+    "truth/lane_offset_m": {"unit": "m", "dims": _SERIES_DIMS,
+                            "description": "signed distance of the ego from its lane centre (NaN: off any lane)"},
+    "truth/route_progress_m": {"unit": "m", "dims": _SERIES_DIMS, "description": "distance driven along the route"},
+    "truth/next_light_state": {"unit": "code", "dims": _SERIES_DIMS, "codes": LIGHT_STATE_NAMES,
+                               "description": "state of the next traffic light on the route (NaN: unknown)"},
+    "truth/next_light_distance_m": {"unit": "m", "dims": _SERIES_DIMS,
+                                    "description": "distance to the next light's stop line (NaN: no light)"},
+    "truth/time_s": {"unit": "s", "dims": _SERIES_DIMS, "description": "simulated time since the episode began"},
+}
 
 
 class EpisodeError(ValueError):
@@ -171,10 +216,14 @@ class EpisodeWriter:
         if compress:
             kwargs.update(compression="gzip", compression_opts=1, shuffle=True)
         ds = self._datasets[name] = self._file.create_dataset(name, shape=shape, dtype=sample.dtype, **kwargs)
+        for key, value in describe(name).items():
+            ds.attrs[key] = json.dumps({str(k): v for k, v in value.items()}) if isinstance(value, dict) else value
         return ds
 
-    def append(self, observation: dict[str, Any], action: np.ndarray, info: dict[str, Any]) -> None:
-        """Add one step: the observation the driver saw, the action it took, and the step's ground truth."""
+    def append(self, observation: dict[str, Any], action: np.ndarray, info: dict[str, Any] | None = None,
+               truth: dict[str, float] | None = None) -> None:
+        """Add one step: the observation the driver saw, the action it took, and the step's ground truth, from
+        the env's ``info`` or given as ``truth`` (a value per ``TRUTH_FIELDS`` name, NaN where unknown)."""
         rows: dict[str, tuple[np.ndarray, bool]] = {
             "frames": (np.asarray(observation["image"], np.uint8), True),
             "actions": (np.asarray(action, np.float32).reshape(2), False),
@@ -190,7 +239,11 @@ class EpisodeWriter:
         if "side" in observation:
             rows["side_left"] = (np.asarray(observation["side"][0], np.uint8), True)
             rows["side_right"] = (np.asarray(observation["side"][1], np.uint8), True)
-        for key, value in truth_from_info(info).items():
+        if truth is None:
+            if info is None:
+                raise ValueError("append needs the step's info or its truth.")
+            truth = truth_from_info(info)
+        for key, value in truth.items():
             rows[f"truth/{key}"] = (np.asarray(value, np.float32).reshape(()), False)
         for name, (value, compress) in rows.items():
             ds = self._dataset(name, value, compress)
@@ -273,6 +326,27 @@ def read_episode(path: Path, load_frames: bool = True) -> Episode:
                            "re-record or delete it.") from exc
 
 
+def describe(name: str) -> dict[str, Any]:
+    """What dataset ``name`` of an episode holds (unit, dims, description, codes); a name not in the layout
+    (a dataset added by a later version) gets an empty description."""
+    return dict(DATASET_ATTRS.get(name, {}))
+
+
+def dataset_attrs(path: Path) -> dict[str, dict[str, Any]]:
+    """Each dataset's description in an episode file: its own attributes (version 2 and later), or, for a
+    version 1 file, which carries none, the layout's description of the same name."""
+    path = Path(path)
+    try:
+        with h5py.File(path, "r") as f:
+            names: list[str] = []
+            f.visititems(lambda name, obj: names.append(name) if isinstance(obj, h5py.Dataset) else None)
+            found = {name: {k: _attr(v) for k, v in f[name].attrs.items()} for name in names}
+    except OSError as exc:
+        raise EpisodeError(f"{path}: cannot read this episode ({exc}); the file is corrupt or not HDF5, "
+                           "re-record or delete it.") from exc
+    return {name: attrs or describe(name) for name, attrs in found.items()}
+
+
 def _attr(value: Any) -> Any:
     if isinstance(value, bytes):
         value = value.decode()
@@ -284,6 +358,19 @@ def _attr(value: Any) -> Any:
     if isinstance(value, np.generic):
         return value.item()
     return value
+
+
+def episode_sources(src: Path) -> list[Path]:
+    """The episodes a converter reads: every finished episode of a folder, or one episode file."""
+    src = Path(src)
+    if src.is_dir():
+        paths = list_episodes(src)
+        if not paths:
+            raise EpisodeError(f"{src}: no {EPISODE_GLOB} files to export.")
+        return paths
+    if src.is_file():
+        return [src]
+    raise EpisodeError(f"{src}: no such episode file or dataset folder.")
 
 
 def list_episodes(folder: Path) -> list[Path]:

@@ -16,11 +16,10 @@ from typing import Any
 import h5py
 import numpy as np
 
-from towndrive.data.episodes import EpisodeError, list_episodes, list_partials, read_episode
+from towndrive.data.episodes import COMMAND_NAMES, EpisodeError, list_episodes, list_partials, read_episode
 
 DEFAULT_DT_S = 0.05
 STEER_BINS = 21
-COMMAND_NAMES = {0: "follow", 1: "left", 2: "right", 3: "straight"}
 
 
 def summarize(folder: Path, progress: bool = False, check_frames: bool = True) -> dict[str, Any]:

@@ -33,7 +33,7 @@ import cv2
 import h5py
 import numpy as np
 
-from towndrive.data.episodes import EPISODE_GLOB, EpisodeError, EpisodeWriter, list_episodes, next_episode_path, read_episode
+from towndrive.data.episodes import EpisodeError, EpisodeWriter, episode_sources, next_episode_path, read_episode
 from towndrive.sim.checks import check_number
 
 MPH_TO_MPS = 0.44704
@@ -252,15 +252,7 @@ def export_udacity(src: Path, dst_folder: Path, progress: bool = False, stop: Ca
     """
     from tqdm import tqdm
 
-    src = Path(src)
-    if src.is_dir():
-        paths = list_episodes(src)
-        if not paths:
-            raise EpisodeError(f"{src}: no {EPISODE_GLOB} files to export.")
-    elif src.is_file():
-        paths = [src]
-    else:
-        raise EpisodeError(f"{src}: no such episode file or dataset folder.")
+    paths = episode_sources(src)
     dst = Path(dst_folder).resolve()
     log = dst / LOG_NAME
     if log.exists():

@@ -21,7 +21,7 @@ COMMANDS = {
     "scenario": "run a scenario of the suite by name, or 'all'",
     "train": "train a model: pilotnet, detector or rl",
     "export": "export a deployment profile's models (ONNX, TensorRT scripts)",
-    "data": "inspect and convert recorded episodes (summary, Udacity import and export)",
+    "data": "inspect and convert recorded episodes (summary; Udacity, LeRobot and Minari)",
 }
 
 

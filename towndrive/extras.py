@@ -16,6 +16,10 @@ EXTRA_OF = {  # top-level module -> the extra that installs it
     "serial": "deploy",
     "motmetrics": "eval",
     "ray": "cluster",
+    "pyarrow": "dataset",
+    "pandas": "dataset",
+    "av": "dataset",
+    "minari": "minari",
 }
 
 
