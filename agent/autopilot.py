@@ -100,7 +100,7 @@ class Autopilot:
             return current
         if world.command() not in (Command.LEFT, Command.RIGHT):
             return current
-        allowed = lanes_for(town.lane_info[(*world.route[world.route_index + 1], 0)].command)
+        allowed = lanes_for(town.lane_info[(*world.route[world.route_index + 1], 0)].command, town.lane_count(edge))
         if current in allowed:
             return current
         target = town.network.graph[edge[0]][edge[1]][allowed[0]]
@@ -121,11 +121,12 @@ class Autopilot:
         path = []
         self._path_lanes = []
         total = 0.0
+        index: tuple[str, str, int] | None = None
         for frm, to in world.route[world.route_index:world.route_index + 4]:
             lanes = graph[frm][to]
-            k = min(lane_id, len(lanes) - 1)
-            path.append((lanes[k], total))
-            self._path_lanes.append((frm, to, k))
+            index = (frm, to, min(lane_id, len(lanes) - 1)) if index is None else world.town.next_lane(index, (frm, to))
+            path.append((lanes[index[2]], total))
+            self._path_lanes.append(index)
             total += lanes[0].length
         s0 = float(path[0][0].local_coordinates(world.ego.position)[0])
         return path, s0

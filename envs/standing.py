@@ -57,11 +57,13 @@ def _route_path(world: World) -> tuple[list, list[tuple[str, str, int]], float]:
     edges = world.route[world.route_index:world.route_index + 3]
     edges = [here, *edges] if here not in edges else edges[edges.index(here):]
     path, lanes, total = [], [], 0.0
+    index: tuple[str, str, int] | None = None
     for frm, to in edges:
         options = graph[frm][to]
-        lane = options[min(k, len(options) - 1)]
+        index = (frm, to, min(k, len(options) - 1)) if index is None else world.town.next_lane(index, (frm, to))
+        lane = options[index[2]]
         path.append((lane, total))
-        lanes.append((frm, to, min(k, len(options) - 1)))
+        lanes.append(index)
         total += lane.length
     s0 = float(path[0][0].local_coordinates(world.ego.position)[0])
     return path, lanes, s0

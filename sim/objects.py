@@ -28,6 +28,11 @@ class SemanticClass(IntEnum):
     PEDESTRIAN = 14
 
 
+CAR_COLORS = [  # body colours of cars, moving and parked
+    (0.75, 0.08, 0.08), (0.08, 0.20, 0.60), (0.92, 0.92, 0.90), (0.10, 0.10, 0.11), (0.55, 0.56, 0.58),
+    (0.85, 0.65, 0.10), (0.10, 0.42, 0.20), (0.35, 0.55, 0.80), (0.60, 0.30, 0.10), (0.95, 0.45, 0.65),
+]
+
 LIGHT_ID_BASE = 10000  # segmentation object id of approach k's traffic light: LIGHT_ID_BASE + k
 
 

@@ -103,6 +103,10 @@ class PedestrianCrowd:
         return links
 
     def walk_allowed(self, cw: Crosswalk, lights: TrafficLights, crossing_time_s: float) -> bool:
+        """At a signalled crossing, while the traffic it crosses has red long enough to get across; at an
+        unsignalled one always (the pedestrian still waits for a gap in the traffic, ``_vehicle_blocks``)."""
+        if cw.approach < 0:
+            return True
         return lights.red_remaining_s(cw.approach) > crossing_time_s
 
     @staticmethod

@@ -30,11 +30,6 @@ from towndrive.sim.path_filter import clearly_nearest_lane, lanes_may_hold, path
 from towndrive.sim.routes import random_next_edge
 from towndrive.sim.town import OPPOSITE, Approach, Command, Town, lanes_for
 
-CAR_COLORS = [
-    (0.75, 0.08, 0.08), (0.08, 0.20, 0.60), (0.92, 0.92, 0.90), (0.10, 0.10, 0.11), (0.55, 0.56, 0.58),
-    (0.85, 0.65, 0.10), (0.10, 0.42, 0.20), (0.35, 0.55, 0.80), (0.60, 0.30, 0.10), (0.95, 0.45, 0.65),
-]
-
 
 @dataclass(frozen=True)
 class Agents:
@@ -298,14 +293,16 @@ class TownVehicle(IDMVehicle):
         path = [(lane, 0.0, (frm, to, k))]
         total = lane.length
         started = False
+        index = (frm, to, k)
         for rf, rt, _ in self.route:
             if (rf, rt) == (frm, to):
                 started = True
                 continue
             if not started or total - s0 > lookahead_m:
                 continue
-            nxt = self.town.network.graph[rf][rt][k]
-            path.append((nxt, total, (rf, rt, k)))
+            index = self.town.next_lane(index, (rf, rt))
+            nxt = self.town.lane(index)
+            path.append((nxt, total, index))
             total += nxt.length
         return path, s0
 
@@ -328,9 +325,10 @@ class TownVehicle(IDMVehicle):
         lane = self.town.lane(self.target_lane_index)
         remaining = lane.length - self._lane_coords(lane)[0]
         move = self._next_move()
-        allowed = lanes_for(move[1]) if move is not None else (0, 1)
+        count = self.town.lane_count((frm, to))
+        allowed = lanes_for(move[1], count) if move is not None else tuple(range(count))
         if k in allowed:
-            if len(allowed) == 2 and remaining >= 30.0 and self.enable_lane_change:
+            if len(allowed) > 1 and remaining >= 30.0 and self.enable_lane_change:
                 super().change_lane_policy()
             return
         if remaining >= 30.0:
@@ -340,7 +338,7 @@ class TownVehicle(IDMVehicle):
         assert move is not None
         index = move[0]
         options = sorted(self.town.network.graph[to].keys())
-        fits = [o for o in options if k in lanes_for(self.town.lane_info[(to, o, 0)].command)]
+        fits = [o for o in options if k in lanes_for(self.town.lane_info[(to, o, 0)].command, count)]
         self.route[index] = (to, fits[int(self.rng.integers(len(fits)))], None)
         del self.route[index + 1:]
         self._extend_route()

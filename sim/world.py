@@ -18,13 +18,13 @@ from highway_env.road.road import Road
 from towndrive.sim.ego import EgoVehicle
 from towndrive.sim.geometry import circle_polygon_intersect, polygons_intersect, rect_corners, wrap_to_pi
 from towndrive.sim.lights import LightTiming, TrafficLights
-from towndrive.sim.objects import LightState, ObjectSnapshot, SemanticClass
+from towndrive.sim.objects import CAR_COLORS, LightState, ObjectSnapshot, SemanticClass
 from towndrive.sim.path_filter import points_within
 from towndrive.sim.pedestrians import PedestrianCrowd
 from towndrive.sim.routes import command_at, edge_length, random_route, route_length, shortest_route
 from towndrive.sim.spec import STEP_S
 from towndrive.sim.town import Approach, Command, Edge, LaneLocation, Town, TownConfig, generate_town
-from towndrive.sim.traffic import CAR_COLORS, Agents, TownVehicle, step_vehicles
+from towndrive.sim.traffic import Agents, TownVehicle, step_vehicles
 
 PEDESTRIAN_ID_BASE = 1000
 EGO_ID = 999
@@ -366,14 +366,14 @@ class World:
         lane, at a standstill, facing along the lane."""
         frm, to = self.route[self.route_index]
         lane_id = self.ego_lane[0][2] if self.ego_lane is not None and self.ego_lane[0][:2] == (frm, to) else 0
-        lane = self.town.network.graph[frm][to][lane_id]
+        lane = self.town.lane((frm, to, lane_id))
         s = float(np.clip(lane.local_coordinates(self.ego.position)[0], 0.0, lane.length))
         # Back off along the route (this edge, then the one before) until the car stands clear of
         # every other car and person; a car stalled in a junction is not the safety driver's to move.
         candidates = [(self.route_index, lane, s - back) for back in np.arange(0.0, s + 0.01, 1.0)]
         if self.route_index > 0:
             pfrm, pto = self.route[self.route_index - 1]
-            plane = self.town.network.graph[pfrm][pto][lane_id]
+            plane = self.town.lane((pfrm, pto, min(lane_id, self.town.lane_count((pfrm, pto)) - 1)))
             candidates += [(self.route_index - 1, plane, plane.length - back) for back in np.arange(0.0, 40.0, 1.0)]
         for index, cand, cs in candidates:
             if cs < 0:
