@@ -41,7 +41,7 @@ from towndrive.sim.render import LIGHTING_PRESETS, CameraConfig, CameraFrame, Sc
 from towndrive.sim.render_kernels import object_boxes
 from towndrive.sim.spec import EPISODE_S, MIRRORS
 from towndrive.sim.topdown import TopDownMap
-from towndrive.sim.town import Command
+from towndrive.sim.town import Command, TownConfig
 from towndrive.sim.world import TERMINAL_INFRACTIONS, World, WorldConfig, cached_town
 
 INFRACTION_REWARD = {"red_light": -5.0, "wrong_way": -2.0, "route_deviation": -2.0}
@@ -143,9 +143,10 @@ class DriveEnv(gym.Env):
 
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[dict, dict]:
-        """Start an episode. ``options`` may set ``town_seed``, ``weather``, ``traffic_density``
-        (multiplies NPCs and pedestrians), ``start`` (lane index), ``goal`` (edge) and ``world``
-        (a ready-made World, used by scenarios)."""
+        """Start an episode. ``options`` may set ``town_seed``, ``town_style`` (``sim.town_style``: the
+        style's town config replaces the configured one), ``weather``, ``traffic_density`` (multiplies NPCs
+        and pedestrians), ``start`` (lane index), ``goal`` (edge) and ``world`` (a ready-made World, used by
+        scenarios)."""
         self._require_open()
         if seed is not None:
             check_number("seed", seed, 0, MAX_TOWN_SEED, integer=True)
@@ -155,6 +156,8 @@ class DriveEnv(gym.Env):
         town_seed = options.get("town_seed", self.config.town_seed)
         self.weather = options.get("weather", self.config.weather)
         wcfg = self.config.world
+        if "town_style" in options and options["town_style"] != wcfg.town.style:
+            wcfg = replace(wcfg, town=TownConfig.of_style(options["town_style"]))
         density = options.get("traffic_density", 1.0)
         if density != 1.0:
             wcfg = replace(wcfg, npc_count=int(round(wcfg.npc_count * density)),

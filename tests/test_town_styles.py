@@ -1,0 +1,219 @@
+"""Town styles: the classic town unchanged, the other styles' streets, junction controls, signs,
+parked cars and turn lanes well formed, every town reproducible from its (style, seed)."""
+
+from __future__ import annotations
+
+import hashlib
+import math
+
+import numpy as np
+import pytest
+
+from towndrive.sim.fillet_lane import FilletLane
+from towndrive.sim.routes import shortest_route
+from towndrive.sim.splits import TOWN_SPLITS, split_of, split_towns
+from towndrive.sim.town import (
+    OPPOSITE,
+    PARKING_CLEAR_M,
+    Control,
+    SignKind,
+    Town,
+    TownConfig,
+    generate_town,
+)
+from towndrive.sim.town_style import STYLES, style_named
+
+STYLED = ("downtown", "suburb")
+SEEDS = (4000, 4001, 4002)  # validation towns: what these tests look at is no test split
+
+
+def digest(town: Town) -> str:
+    """A hash of the town's lanes, controls, signs, parked cars and scenery."""
+    m = hashlib.sha256()
+    for frm, tos in sorted(town.network.graph.items()):
+        for to, lanes in sorted(tos.items()):
+            for k, lane in enumerate(lanes):
+                m.update(f"{frm}{to}{k}{type(lane).__name__}{town.lane_info[(frm, to, k)]}".encode())
+                for s in np.linspace(0, lane.length, 5):
+                    m.update(np.asarray(lane.position(s, 0.3), float).tobytes())
+    for e in town.entries:
+        m.update(repr((e.index, e.node, int(e.arm), e.edge, int(e.control), e.approach)).encode())
+    for ap in town.approaches:
+        m.update(np.concatenate([ap.light_pole, ap.light_head, [ap.head_height_m]]).tobytes() + ap.mount.encode())
+    for sign in town.signs:
+        m.update(repr((int(sign.kind), sign.edge, sign.value_kmh, sign.facing)).encode() + sign.position.tobytes())
+    for car in town.parked_cars:
+        m.update(car.position.tobytes() + repr((car.heading, car.length_m, car.color)).encode())
+    for b in town.buildings:
+        m.update(b.footprint.tobytes() + repr((b.height_m, b.color)).encode())
+    for t in town.trees:
+        m.update(t.position.tobytes())
+    for kind, quads in sorted(town.markings.items()):
+        for q in quads:
+            m.update(kind.encode() + q.tobytes())
+    return m.hexdigest()
+
+
+@pytest.fixture(scope="module")
+def towns() -> dict[tuple[str, int], Town]:
+    return {(style, seed): generate_town(TownConfig.of_style(style), seed) for style in STYLED for seed in SEEDS}
+
+
+def test_classic_is_the_default_and_stays_the_original_design(town):
+    assert TownConfig().style == "classic" and TownConfig.of_style("classic") == TownConfig()
+    assert town.lane_width == 3.5 and not town.signs and not town.parked_cars and not town.speed_limits_kmh
+    assert all(town.lane_count(edge) == 2 for edge in {k[:2] for k in town.lane_info})
+    assert {e.control for e in town.entries} == {Control.SIGNAL}
+    assert len(town.entries) == len(town.approaches) and {ap.mount for ap in town.approaches} == {"mast_arm"}
+    assert not town.exit_lanes and not town.markings["yield_line"]
+    for ap in town.approaches:  # the stop bar's setback: 12 m from the junction centre, plus the bar
+        assert float(np.linalg.norm(ap.stop_line_center - town.node_position(ap.node))) == pytest.approx(
+            math.hypot(12.5, 3.5))
+
+
+def test_the_same_style_and_seed_make_the_same_town_and_others_differ():
+    a = generate_town(TownConfig.of_style("suburb"), 4001)
+    b = generate_town(TownConfig.of_style("suburb"), 4001)
+    assert digest(a) == digest(b)
+    assert digest(a) != digest(generate_town(TownConfig.of_style("suburb"), 4002))
+    assert digest(a) != digest(generate_town(TownConfig.of_style("downtown"), 4001))
+
+
+def test_styles_differ_in_streets_controls_and_scenery(towns):
+    def share(style: str, test) -> float:
+        items = [x for (s, _), t in towns.items() if s == style for x in test(t)]
+        return sum(items) / len(items)
+
+    single = {s: share(s, lambda t: [t.lane_count(k[:2]) == 1 for k, i in t.lane_info.items() if i.kind == "road"])
+              for s in STYLED}
+    assert single["suburb"] > single["downtown"] > 0.0  # suburbs are mostly residential streets
+    signals = {s: share(s, lambda t: [e.control == Control.SIGNAL for e in t.entries]) for s in STYLED}
+    assert signals["downtown"] > signals["suburb"]
+    height = {s: share(s, lambda t: [b.height_m for b in t.buildings]) for s in STYLED}
+    assert height["downtown"] > 2 * height["suburb"]
+    assert all(t.signs for t in towns.values())
+    assert all(t.parked_cars for (style, _), t in towns.items() if style == "suburb")
+    widths = {t.lane_width for t in towns.values()}
+    assert len(widths) > 1 and all(3.0 <= w <= 3.75 for w in widths)
+
+
+def test_every_junction_has_one_coherent_control(towns):
+    for town in towns.values():
+        by_node: dict[tuple[int, int], list] = {}
+        for e in town.entries:
+            by_node.setdefault(e.node, []).append(e)
+        for node, entries in by_node.items():
+            kinds = {e.control for e in entries}
+            if Control.SIGNAL in kinds or Control.ALL_WAY_STOP in kinds:
+                assert len(kinds) == 1, (node, kinds)
+                continue
+            # priority junction: one street has priority (its arms face each other), the other stops or yields
+            major = [e.arm for e in entries if e.control == Control.PRIORITY]
+            minor = {e.control for e in entries if e.control != Control.PRIORITY}
+            assert major and len(minor) == 1 and minor <= {Control.STOP, Control.YIELD}, (node, kinds)
+            assert len(major) == 1 or OPPOSITE[major[0]] == major[1]
+        for e in town.entries:
+            assert (e.approach >= 0) == (e.control == Control.SIGNAL)
+            assert town.entry_for_edge(e.edge) is e
+
+
+def test_stop_and_yield_entries_have_their_sign_beside_the_road_facing_the_traffic(towns):
+    want = {Control.STOP: SignKind.STOP, Control.ALL_WAY_STOP: SignKind.STOP, Control.YIELD: SignKind.YIELD}
+    for town in towns.values():
+        signs = {(s.edge, s.kind): s for s in town.signs}
+        for e in town.entries:
+            if e.control in want:
+                sign = signs[(e.edge, want[e.control])]
+                assert sign.facing == pytest.approx(e.travel_heading)
+                # before the line, on the traffic's right, off the asphalt
+                rel = sign.position - e.line_center
+                ahead = np.array([math.cos(e.travel_heading), math.sin(e.travel_heading)])
+                right = np.array([-ahead[1], ahead[0]])
+                assert rel @ ahead < 0 and rel @ right > 0
+                assert not town.on_road(sign.position, margin_m=0.3)
+        for s in town.signs:
+            if s.kind == SignKind.SPEED_LIMIT:
+                assert s.value_kmh in (30, 50) and town.speed_limit_kmh(s.edge) == s.value_kmh
+
+
+def test_every_lane_runs_into_the_lane_its_successor_names(towns):
+    for town in towns.values():
+        graph = town.network.graph
+        for frm, tos in graph.items():
+            for to, lanes in tos.items():
+                for k, lane in enumerate(lanes):
+                    for nxt in graph.get(to, {}):
+                        follow = town.lane(town.next_lane((frm, to, k), (to, nxt)))
+                        gap = np.linalg.norm(lane.position(lane.length, 0) - follow.position(0, 0))
+                        turn = math.remainder(lane.heading_at(lane.length) - follow.heading_at(0), 2 * math.pi)
+                        assert gap < 1e-6 and abs(turn) < 1e-6, (frm, to, k, nxt)
+
+
+def test_left_turns_start_inside_and_right_turns_outside_on_mixed_streets(towns):
+    mixed = [(index, out) for town in towns.values() for index, out in town.exit_lanes.items()]
+    assert mixed, "the styled towns have junctions of one- and two-lane streets"
+    for town in towns.values():
+        for (frm, to, k), out in town.exit_lanes.items():
+            assert out == min(out, town.lane_count((to, next(iter(town.network.graph[to])))) - 1)
+
+
+def test_every_road_reaches_every_other(towns):
+    for town in towns.values():
+        roads = sorted({k[:2] for k, i in town.lane_info.items() if i.kind == "road"})
+        for goal in roads[1::7]:
+            route = shortest_route(town, roads[0], goal)
+            assert route[0] == roads[0] and route[-1] == goal
+
+
+def test_parked_cars_stand_in_the_parking_strip_clear_of_lanes_and_junctions(towns):
+    for town in towns.values():
+        for car in town.parked_cars:
+            loc = town.locate(car.position)
+            assert loc is None, "a parked car stands off every lane"
+            ahead = np.array([math.cos(car.heading), math.sin(car.heading)])
+            for e in town.entries:  # clear of the junction's mouth
+                assert np.linalg.norm(car.position - e.line_center) > PARKING_CLEAR_M - 1.0 or \
+                    abs((car.position - e.line_center) @ ahead) > PARKING_CLEAR_M - 1.0
+
+
+def test_fillet_lane_joins_its_poses_smoothly_and_maps_points_back():
+    lane = FilletLane(np.array([0.0, 0.0]), 0.0, np.array([14.0, 9.0]), math.pi / 2, 3.25)
+    assert np.allclose(lane.position(0, 0), [0, 0]) and np.allclose(lane.position(lane.length, 0), [14, 9])
+    assert lane.heading_at(0) == pytest.approx(0) and lane.heading_at(lane.length) == pytest.approx(math.pi / 2)
+    ss = np.linspace(0, lane.length, 400)
+    headings = np.unwrap([lane.heading_at(s) for s in ss])
+    assert np.all(np.diff(headings) >= -1e-9) and np.max(np.diff(headings)) < 0.02  # turns one way, no jumps
+    for s in np.linspace(0.1, lane.length - 0.1, 37):
+        for lat in (-1.2, 0.0, 1.2):
+            back = lane.local_coordinates(lane.position(s, lat))
+            assert back == pytest.approx((s, lat), abs=1e-6)
+    with pytest.raises(ValueError, match="ahead"):
+        FilletLane(np.array([0.0, 0.0]), 0.0, np.array([-5.0, 9.0]), math.pi / 2, 3.0)
+
+
+def test_style_names_and_splits_are_checked_in_one_sentence():
+    assert set(STYLES) == {"classic", "downtown", "suburb"}
+    with pytest.raises(ValueError, match="the styles are classic, downtown, suburb"):
+        style_named("uptown")
+    with pytest.raises(ValueError, match="styles"):
+        TownConfig(style="uptown")
+    ranges = list(TOWN_SPLITS.values())
+    assert all(a.stop <= b.start for a, b in zip(ranges, ranges[1:], strict=False))
+    assert split_of(101) == "train" and split_of(4500) == "validation" and split_of(5999) == "test"
+    assert list(split_towns("test", 3)) == [5000, 5001, 5002]
+    with pytest.raises(ValueError, match="has 1000 towns"):
+        split_towns("test", 1001)
+
+
+def test_reset_option_town_style_builds_that_style(tmp_path):
+    from towndrive.envs.drive_env import DriveConfig, DriveEnv
+
+    env = DriveEnv(DriveConfig(render_camera=False))
+    try:
+        env.reset(seed=1, options={"town_seed": 4003, "town_style": "suburb"})
+        assert env.world.town.config.style == "suburb" and env.world.town.seed == 4003
+        with pytest.raises(ValueError, match="unknown town style"):
+            env.reset(seed=1, options={"town_style": "village"})
+        assert env.world.town.config.style == "suburb"  # the bad option changed nothing
+    finally:
+        env.close()
