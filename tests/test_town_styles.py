@@ -15,6 +15,7 @@ from towndrive.sim.splits import TOWN_SPLITS, split_of, split_towns
 from towndrive.sim.town import (
     OPPOSITE,
     PARKING_CLEAR_M,
+    Command,
     Control,
     SignKind,
     Town,
@@ -149,12 +150,19 @@ def test_every_lane_runs_into_the_lane_its_successor_names(towns):
                         assert gap < 1e-6 and abs(turn) < 1e-6, (frm, to, k, nxt)
 
 
-def test_left_turns_start_inside_and_right_turns_outside_on_mixed_streets(towns):
-    mixed = [(index, out) for town in towns.values() for index, out in town.exit_lanes.items()]
-    assert mixed, "the styled towns have junctions of one- and two-lane streets"
+def test_left_turns_keep_to_the_inner_lanes_and_right_turns_to_the_outer_ones(towns):
+    assert any(town.exit_lanes for town in towns.values()), "the styled towns join one- and two-lane streets"
     for town in towns.values():
-        for (frm, to, k), out in town.exit_lanes.items():
-            assert out == min(out, town.lane_count((to, next(iter(town.network.graph[to])))) - 1)
+        for (frm, to, k), info in town.lane_info.items():
+            if info.kind != "connector" or info.command not in (Command.LEFT, Command.RIGHT):
+                continue
+            n_in = town.lane_count((frm, to))
+            out_edge = (to, next(iter(town.network.graph[to])))
+            n_out = town.lane_count(out_edge)
+            if info.command == Command.LEFT and k == 0:
+                assert town.next_lane((frm, to, k), out_edge)[2] == 0
+            if info.command == Command.RIGHT and k == n_in - 1:
+                assert town.next_lane((frm, to, k), out_edge)[2] == n_out - 1
 
 
 def test_every_road_reaches_every_other(towns):
