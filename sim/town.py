@@ -20,7 +20,7 @@ style (``sim.town_style``) sets the mix; the classic style is arterials and sign
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import IntEnum
 
 import numpy as np
@@ -32,6 +32,7 @@ from towndrive.sim.geometry import right_of, wrap_to_pi
 from towndrive.sim.objects import CAR_COLORS
 from towndrive.sim.path_filter import ROW_SIZE, lane_row, lanes_may_hold
 from towndrive.sim.spec import COMMAND_NAMES, ROAD
+from towndrive.sim.town_skew import Shear, skew_town
 from towndrive.sim.town_style import CLASSIC, TownStyle, style_named
 
 LaneIndex = tuple[str, str, int]
@@ -252,6 +253,7 @@ class Town:
     exit_lanes: dict[LaneIndex, int] = field(default_factory=dict)  # connector lane -> lane of the road it joins
     #   (only where the two streets have different lane counts; elsewhere a lane keeps its number)
     lane_width_m: float = 0.0  # every lane's width (drawn per town by the style; 0: the config's)
+    skew_deg: float = 0.0  # the columns lean by this angle (sim.town_skew): junctions meet at 90 +- it
     _entry_by_edge: dict[Edge, Entry] = field(default_factory=dict, repr=False)
     _grid: dict[tuple[int, int], list[LaneIndex]] = field(default_factory=dict, repr=False)
     _approach_by_edge: dict[Edge, Approach] = field(default_factory=dict, repr=False)
@@ -383,13 +385,22 @@ class Town:
         return [k for k, v in self.lane_info.items() if v.kind == "road"]
 
     def node_position(self, node: tuple[int, int]) -> np.ndarray:
-        return np.array([self.xs[node[0]], self.ys[node[1]]])
+        """A junction's or bend's centre (where its streets' centre lines cross)."""
+        x, y = float(self.xs[node[0]]), float(self.ys[node[1]])
+        if self.skew_deg:
+            x += (y - float(self.ys[-1]) / 2) * math.tan(math.radians(self.skew_deg))
+        return np.array([x, y])
 
     @property
     def extent(self) -> tuple[float, float, float, float]:
         """(xmin, ymin, xmax, ymax) of the whole scene, scenery included."""
         m = 60.0
-        return (float(self.xs[0] - m), float(self.ys[0] - m), float(self.xs[-1] + m), float(self.ys[-1] + m))
+        if not self.skew_deg:
+            return (float(self.xs[0] - m), float(self.ys[0] - m), float(self.xs[-1] + m), float(self.ys[-1] + m))
+        corners = np.array([self.node_position(n) for n in ((0, 0), (len(self.xs) - 1, 0), (0, len(self.ys) - 1),
+                                                            (len(self.xs) - 1, len(self.ys) - 1))])
+        lo, hi = corners.min(axis=0) - m, corners.max(axis=0) + m
+        return (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
 
 
 # --------------------------------------------------------------------------- generation
@@ -506,20 +517,25 @@ LIMIT_SIGN_AFTER_M = 8.0  # a limit sign stands this far into the road it govern
 LIMIT_REPEAT_CHANCE = 0.3  # chance of a limit sign on a road where the limit does not change
 
 
-def _streets(style: TownStyle, config: TownConfig, mix: np.random.Generator) -> tuple[list[_Street], list[_Street]]:
-    """The street of every column line (x = xs[i]) and row line (y = ys[j]); the ring's lines share one."""
-    nx, ny = config.blocks_x, config.blocks_y
-    w = config.lane_width_m if style.name == CLASSIC.name else round(float(mix.uniform(*style.lane_width_range_m)), 2)
-    arterial = _Street(2, w, 0.0, style.arterial_limit_kmh)
-    residential = _Street(1, w, style.parking_strip_m, style.residential_limit_kmh)
-    ring = arterial if style.ring_arterial else residential
+def _streets(style: TownStyle, config: TownConfig, w: float, column_scale: float,
+             mix: np.random.Generator) -> tuple[list[_Street], list[_Street]]:
+    """The street of every column line (x = xs[i]) and row line (y = ys[j]); the ring's lines share one.
 
-    def line(k: int, last: int) -> _Street:
+    ``column_scale``: columns are built this much wider across x, so that the skew (``sim.town_skew``), which
+    leans them, leaves them their true width."""
+    nx, ny = config.blocks_x, config.blocks_y
+
+    def kinds(scale: float) -> tuple[_Street, _Street]:
+        return (_Street(2, w * scale, 0.0, style.arterial_limit_kmh),
+                _Street(1, w * scale, style.parking_strip_m * scale, style.residential_limit_kmh))
+
+    def line(k: int, last: int, scale: float) -> _Street:
+        arterial, residential = kinds(scale)
         if k in (0, last):
-            return ring
+            return arterial if style.ring_arterial else residential
         return arterial if mix.random() < style.arterial_share else residential
 
-    return [line(i, nx) for i in range(nx + 1)], [line(j, ny) for j in range(ny + 1)]
+    return [line(i, nx, column_scale) for i in range(nx + 1)], [line(j, ny, 1.0) for j in range(ny + 1)]
 
 
 def _street_of(arm: Arm, node: tuple[int, int], cols: list[_Street], rows: list[_Street]) -> _Street:
@@ -572,8 +588,9 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
     rng = np.random.default_rng(seed)
     mix = np.random.default_rng([seed, 30])
     nx, ny = config.blocks_x, config.blocks_y
-    cols, rows = _streets(style, config, mix)
-    w = cols[0].lane_width_m
+    w = config.lane_width_m if style.name == CLASSIC.name else round(float(mix.uniform(*style.lane_width_range_m)), 2)
+    skew = float(mix.uniform(*style.skew_deg)) * (1.0 if mix.random() < 0.5 else -1.0) if style.skew_deg[1] > 0 else 0.0
+    cols, rows = _streets(style, config, w, 1.0 / math.cos(math.radians(skew)), mix)
     sw = config.sidewalk_width_m
     rc = config.bend_radius_m
     palette = list(style.building_colors) or BUILDING_COLORS
@@ -624,11 +641,12 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
         """Markings of one direction of a road: its half of the centre line, lane dividers and edge line
         (at the lane's edge where a parking strip lies beyond it)."""
         lane0, outer = lanes[0], lanes[-1]
+        lw = street.lane_width_m
         if with_centre:
-            markings["solid_yellow"] += _strip_quads(lane0, -w / 2 + 0.06, -w / 2 + 0.06 + 2 * line_half, 0, lane0.length, 2.0)
+            markings["solid_yellow"] += _strip_quads(lane0, -lw / 2 + 0.06, -lw / 2 + 0.06 + 2 * line_half, 0, lane0.length, 2.0)
         for k in range(1, len(lanes)):
-            markings["dashed_white"] += _dashes(lanes[k - 1], w / 2, line_half, 3.0, 6.0)
-        edge = w / 2 - 2 * line_half if street.parking_m > 0 else w / 2 - 0.35
+            markings["dashed_white"] += _dashes(lanes[k - 1], lw / 2, line_half, 3.0, 6.0)
+        edge = lw / 2 - 2 * line_half if street.parking_m > 0 else lw / 2 - 0.35
         markings["solid_white"] += _strip_quads(outer, edge, edge + 2 * line_half, 0, outer.length, 2.0)
 
     # Roads between neighbouring nodes, both directions.
@@ -642,14 +660,15 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
             a = centre(node) + d * attach(node, arm)
             b = centre(nbr) - d * attach(nbr, OPPOSITE[arm])
             r = right_of(d)
-            lanes = [StraightLane(a + r * (k + 0.5) * w, b + r * (k + 0.5) * w, width=w,
+            lw = street.lane_width_m
+            lanes = [StraightLane(a + r * (k + 0.5) * lw, b + r * (k + 0.5) * lw, width=w,
                                   line_types=(LineType.NONE, LineType.NONE)) for k in range(street.lanes)]
             frm, to = _node_name(node, arm, "o"), _node_name(nbr, OPPOSITE[arm], "i")
             street_of_edge[(frm, to)] = street
             for k, lane in enumerate(lanes):
                 network.add_lane(frm, to, lane)
                 lane_info[(frm, to, k)] = LaneInfo("road", None, Command.FOLLOW)
-            road_polys += _strip_quads(lanes[0], -w / 2, street.half_width_m - w / 2, 0, lanes[0].length, 2.0)
+            road_polys += _strip_quads(lanes[0], -lw / 2, street.half_width_m - lw / 2, 0, lanes[0].length, 2.0)
             add_markings(lanes, street, with_centre=True)
             if street.limit_kmh is not None:
                 speed_limits[(frm, to)] = street.limit_kmh
@@ -666,12 +685,12 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
         bend = _is_bend(node, nx, ny)
         for a in arms:
             travel = -ARM_VEC[a]
-            n_in = _street_of(a, node, cols, rows).lanes
+            n_in, w_in = _street_of(a, node, cols, rows).lanes, _street_of(a, node, cols, rows).lane_width_m
             for b in arms:
                 if b == a:
                     continue
                 out_dir = ARM_VEC[b]
-                n_out = _street_of(b, node, cols, rows).lanes
+                n_out, w_out = _street_of(b, node, cols, rows).lanes, _street_of(b, node, cols, rows).lane_width_m
                 if np.allclose(out_dir, travel):
                     command = Command.STRAIGHT
                 elif np.allclose(out_dir, right_of(travel)):
@@ -682,8 +701,8 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
                 for k in range(n_in):
                     # Left turns keep to the inner lanes, right turns to the outer ones.
                     k_out = min(k, n_out - 1) if command != Command.RIGHT else min(max(k + n_out - n_in, 0), n_out - 1)
-                    start = c + ARM_VEC[a] * attach(node, a) + right_of(travel) * (k + 0.5) * w
-                    end = c + out_dir * attach(node, b) + right_of(out_dir) * (k_out + 0.5) * w
+                    start = c + ARM_VEC[a] * attach(node, a) + right_of(travel) * (k + 0.5) * w_in
+                    end = c + out_dir * attach(node, b) + right_of(out_dir) * (k_out + 0.5) * w_out
                     if command == Command.STRAIGHT:
                         lane: AbstractLane = StraightLane(start, end, width=w, line_types=(LineType.NONE, LineType.NONE))
                     else:
@@ -697,7 +716,7 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
                 if bend:
                     street = _street_of(a, node, cols, rows)
                     lanes = [network.graph[frm][to][k] for k in range(n_in)]
-                    road_polys += _strip_quads(lanes[0], -w / 2, street.half_width_m - w / 2, 0, lanes[0].length, 2.0)
+                    road_polys += _strip_quads(lanes[0], -w_in / 2, street.half_width_m - w_in / 2, 0, lanes[0].length, 2.0)
                     add_markings(lanes, street, with_centre=True)
         if bend:
             continue
@@ -717,10 +736,11 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
             # Stop bar (or give-way line) across the incoming lanes, on the approach side of the lane end.
             near = c + u * (dist + ROAD.stop_bar_depth_m)
             far = c + u * dist
-            inner, outer = tr * 0.1, tr * (street.lanes * w - 0.1)
+            lanes_w = street.lanes * street.lane_width_m  # the incoming lanes, together
+            inner, outer = tr * 0.1, tr * (lanes_w - 0.1)
             if control == Control.YIELD:
                 markings["yield_line"] += [np.array([far + tr * t, near + tr * (t + 0.3), near + tr * (t + 0.6)])
-                                           for t in np.arange(0.15, street.lanes * w - 0.6, 0.9)]
+                                           for t in np.arange(0.15, lanes_w - 0.6, 0.9)]
             elif control != Control.PRIORITY:
                 markings["stop_line"].append(np.array([far + inner, near + inner, near + outer, far + outer]))
             # Zebra across the whole arm, between the crossing street and the stop bar.
@@ -732,13 +752,13 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
             kerb = half_arm + sw / 2
             approach_edge = (_node_name((node[0] + int(u[0]), node[1] + int(u[1])), OPPOSITE[a], "o"),
                              _node_name(node, a, "i"))
-            line_centre = c + u * (dist + ROAD.stop_bar_depth_m) + tr * (street.lanes * w / 2)
+            line_centre = c + u * (dist + ROAD.stop_bar_depth_m) + tr * (lanes_w / 2)
             approach_index = -1
             if control == Control.SIGNAL:
                 mount = mounts[node]
                 far_corner = c + travel * (half_cross + sw / 2) + tr * (half_arm + sw / 2)
                 if mount == "mast_arm":  # over the middle of the incoming lanes, from the far-right corner
-                    pole, head, height = far_corner, c + travel * (half_cross + sw / 2) + tr * (street.lanes * w / 2), \
+                    pole, head, height = far_corner, c + travel * (half_cross + sw / 2) + tr * (lanes_w / 2), \
                         ROAD.signal_head_height_m
                 elif mount == "far_pole":
                     pole, head, height = far_corner, far_corner - tr * 0.45, POLE_HEAD_HEIGHT_M
@@ -776,7 +796,7 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
                 d = ARM_VEC[b]
                 edge = (_node_name(node, b, "o"), _node_name((node[0] + int(d[0]), node[1] + int(d[1])), OPPOSITE[b], "i"))
                 lane = network.graph[edge[0]][edge[1]][0]
-                at = lane.position(LIMIT_SIGN_AFTER_M, street.half_width_m - w / 2 + 0.7)
+                at = lane.position(LIMIT_SIGN_AFTER_M, street.half_width_m - street.lane_width_m / 2 + 0.7)
                 signs.append(Sign(len(signs), SignKind.SPEED_LIMIT, at, math.atan2(d[1], d[0]), edge, street.limit_kmh))
         for frm, tos in network.graph.items():
             for to in tos:
@@ -805,7 +825,7 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
                 if mix.random() < chance:
                     length = float(mix.uniform(4.0, 4.8))
                     jitter = float(mix.uniform(-0.4, 0.4))
-                    pos = lane.position(s + PARKED_SLOT_M / 2 + jitter, w / 2 + street.parking_m / 2)
+                    pos = lane.position(s + PARKED_SLOT_M / 2 + jitter, street.lane_width_m / 2 + street.parking_m / 2)
                     color = CAR_COLORS[int(mix.integers(len(CAR_COLORS)))]
                     parked.append(ParkedCar(pos, float(lane.heading_at(s)), length, 1.85, 1.5, color))
                 s += PARKED_SLOT_M
@@ -817,7 +837,7 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
     trees: list[Tree] = []
     centre_xy = np.array([xs[-1] / 2, ys[-1] / 2])
     max_r = float(np.linalg.norm(centre_xy)) + 1.0
-    ring_half = cols[0].half_width_m
+    ring_half = rows[0].half_width_m  # the ring's half width (its columns are wider across x when skewed)
 
     def bend_of(node: tuple[int, int]) -> np.ndarray | None:
         """``[arc centre, inward]`` of a bend node, None for junctions."""
@@ -906,7 +926,8 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
             add_street_trees(np.array([x1 - kerb, y0 + dy0]), np.array([x1 - kerb, y1 - dy1]), forbid)
 
     # Outside the ring road: a sidewalk along it and a row of buildings facing it.
-    X0, X1, Y0, Y1 = xs[0] - ring_half, xs[-1] + ring_half, ys[0] - ring_half, ys[-1] + ring_half
+    X0, X1 = xs[0] - cols[0].half_width_m, xs[-1] + cols[-1].half_width_m
+    Y0, Y1 = ys[0] - ring_half, ys[-1] + ring_half
     outer_sides = [
         _rect(xs[0] + rc, Y0 - sw, xs[-1] - rc, Y0),
         _rect(xs[0] + rc, Y1, xs[-1] - rc, Y1 + sw),
@@ -934,11 +955,14 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
     # Trees are not allowed on the asphalt (bend inner corners, junction stubs), nor on a sign or a parked car.
     town = Town(config, seed, xs, ys, network, lane_info, approaches, crosswalks, buildings, [],
                 road_polys, slab_polys, grass_polys, markings, poles, entries, signs, parked, speed_limits, exit_lanes, w)
+    if skew:
+        skew_town(town, skew)
+        trees = [replace(t, position=Shear(skew, float(ys[-1]) / 2).point(t.position)) for t in trees]
     _index_lanes(town)
     town.trees = [t for t in trees if not town.on_road(t.position, margin_m=0.4)
-                  and not any(float(np.linalg.norm(t.position - g.position)) < 1.0 for g in signs)]
-    town._approach_by_edge = {ap.edge: ap for ap in approaches}
-    town._entry_by_edge = {e.edge: e for e in entries}
+                  and not any(float(np.linalg.norm(t.position - g.position)) < 1.0 for g in town.signs)]
+    town._approach_by_edge = {ap.edge: ap for ap in town.approaches}
+    town._entry_by_edge = {e.edge: e for e in town.entries}
     return town
 
 

@@ -65,6 +65,7 @@ class TownStyle:
     building_colors: tuple[tuple[float, float, float], ...] = ()  # empty: the classic palette
     tree_spacing_m: float = 16.0
     park_probability: float = 0.15
+    skew_deg: tuple[float, float] = (0.0, 0.0)  # columns lean by this much (either way): junctions meet at 90 +- it
 
     def __post_init__(self) -> None:
         lo, hi = self.lane_width_range_m
@@ -72,6 +73,8 @@ class TownStyle:
         check_number(f"style {self.name} lane width", hi, lo, 4.0)
         check_number(f"style {self.name} arterial_share", self.arterial_share, 0.0, 1.0)
         check_number(f"style {self.name} parking_strip_m", self.parking_strip_m, 0.0, 3.0)
+        check_number(f"style {self.name} skew", self.skew_deg[0], 0.0, 25.0)
+        check_number(f"style {self.name} skew", self.skew_deg[1], self.skew_deg[0], 25.0)
 
 
 CLASSIC = TownStyle("classic")
@@ -97,6 +100,7 @@ DOWNTOWN = TownStyle(
                      (0.80, 0.78, 0.72), (0.62, 0.52, 0.46), (0.30, 0.33, 0.38), (0.58, 0.66, 0.74)),
     tree_spacing_m=22.0,
     park_probability=0.08,
+    skew_deg=(0.0, 12.0),
 )
 
 SUBURB = TownStyle(
@@ -120,6 +124,7 @@ SUBURB = TownStyle(
                      (0.72, 0.60, 0.48), (0.88, 0.80, 0.70), (0.70, 0.76, 0.66), (0.95, 0.93, 0.90)),
     tree_spacing_m=11.0,
     park_probability=0.22,
+    skew_deg=(4.0, 18.0),
 )
 
 STYLES: dict[str, TownStyle] = {s.name: s for s in (CLASSIC, DOWNTOWN, SUBURB)}

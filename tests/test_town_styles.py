@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from towndrive.sim.fillet_lane import FilletLane
+from towndrive.sim.polyline_lane import PolylineLane
 from towndrive.sim.routes import shortest_route
 from towndrive.sim.splits import TOWN_SPLITS, split_of, split_towns
 from towndrive.sim.town import (
@@ -197,6 +198,38 @@ def test_fillet_lane_joins_its_poses_smoothly_and_maps_points_back():
             assert back == pytest.approx((s, lat), abs=1e-6)
     with pytest.raises(ValueError, match="ahead"):
         FilletLane(np.array([0.0, 0.0]), 0.0, np.array([-5.0, 9.0]), math.pi / 2, 3.0)
+
+
+def test_skewed_towns_meet_at_other_angles_and_keep_their_lane_widths(towns):
+    skewed = [t for t in towns.values() if abs(t.skew_deg) > 3]
+    assert skewed
+    for town in skewed:
+        headings = {round(math.degrees(e.travel_heading)) % 180 for e in town.entries}
+        assert len(headings) == 2 and abs(abs(headings.pop() - headings.pop()) - 90) == pytest.approx(
+            abs(town.skew_deg), abs=0.6)
+        for (frm, to, k), info in town.lane_info.items():
+            if info.kind == "road" and k == 1:  # the two lanes of an arterial lie one lane width apart
+                a, b = town.lane((frm, to, 0)), town.lane((frm, to, 1))
+                s, lat = a.local_coordinates(b.position(b.length / 2, 0.0))
+                assert lat == pytest.approx(town.lane_width, abs=1e-6)
+        for ap in town.approaches:  # the stop line still lies across its lanes
+            lane = town.lane((*ap.edge, 0))
+            assert abs(lane.local_coordinates(ap.stop_line_center)[0] - lane.length) < 1.0
+
+
+def test_polyline_lane_follows_its_curve_with_exact_end_headings():
+    arc = FilletLane(np.array([0.0, 0.0]), 0.0, np.array([20.0, 20.0]), math.pi / 2, 3.0)
+    ss = np.linspace(0, arc.length, 34)
+    lane = PolylineLane(np.array([arc.position(s, 0) for s in ss]), np.array([arc.heading_at(s) for s in ss]), 3.0)
+    assert lane.heading_at(0) == pytest.approx(0) and lane.heading_at(lane.length) == pytest.approx(math.pi / 2)
+    headings = [lane.heading_at(s) for s in np.linspace(0, lane.length, 500)]
+    assert np.max(np.abs(np.diff(headings))) < 0.01  # no jumps between samples
+    for s in np.linspace(1, arc.length - 1, 23):
+        for lat in (-1.5, 0.0, 1.5):
+            p = arc.position(s, lat)
+            s2, lat2 = lane.local_coordinates(p)
+            assert lat2 == pytest.approx(lat, abs=0.05) and s2 == pytest.approx(s, abs=0.05)
+            assert np.linalg.norm(lane.position(s2, lat2) - p) < 0.05
 
 
 def test_style_names_and_splits_are_checked_in_one_sentence():
