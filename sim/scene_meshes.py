@@ -337,7 +337,7 @@ def build_static_groups(town: Town, seed: int = 0) -> list[MeshGroup]:
     # Kerb faces only: the flat layers (asphalt, markings, sidewalk and park tops, grass) are the
     # ground map below, drawn in numpy.
     kerb = group("kerb", SemanticClass.SIDEWALK, KERB_RGB)
-    for poly in town.slab_polygons:
+    for poly in town.kerb_outlines or town.slab_polygons:  # a bent town's slabs are cut in pieces: kerbs go round
         kerb.prism_sides(poly, Z_ROAD - 0.02, Z_SLAB, max_len_m=8.0)
 
     def rank(g: MeshGroup) -> int:

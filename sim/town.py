@@ -32,8 +32,8 @@ from towndrive.sim.geometry import right_of, wrap_to_pi
 from towndrive.sim.objects import CAR_COLORS
 from towndrive.sim.path_filter import ROW_SIZE, lane_row, lanes_may_hold
 from towndrive.sim.spec import COMMAND_NAMES, ROAD
-from towndrive.sim.town_skew import Shear, skew_town
 from towndrive.sim.town_style import CLASSIC, TownStyle, style_named
+from towndrive.sim.town_warp import TownWarp, warp_town
 
 LaneIndex = tuple[str, str, int]
 LaneLocation = tuple[LaneIndex, float, float]  # lane index, longitudinal s, lateral offset
@@ -253,7 +253,8 @@ class Town:
     exit_lanes: dict[LaneIndex, int] = field(default_factory=dict)  # connector lane -> lane of the road it joins
     #   (only where the two streets have different lane counts; elsewhere a lane keeps its number)
     lane_width_m: float = 0.0  # every lane's width (drawn per town by the style; 0: the config's)
-    skew_deg: float = 0.0  # the columns lean by this angle (sim.town_skew): junctions meet at 90 +- it
+    warp: TownWarp | None = None  # how the square layout was bent (sim.town_warp); None: square
+    kerb_outlines: list[np.ndarray] = field(default_factory=list)  # a bent town's slab outlines (else the slabs')
     _entry_by_edge: dict[Edge, Entry] = field(default_factory=dict, repr=False)
     _grid: dict[tuple[int, int], list[LaneIndex]] = field(default_factory=dict, repr=False)
     _approach_by_edge: dict[Edge, Approach] = field(default_factory=dict, repr=False)
@@ -386,16 +387,14 @@ class Town:
 
     def node_position(self, node: tuple[int, int]) -> np.ndarray:
         """A junction's or bend's centre (where its streets' centre lines cross)."""
-        x, y = float(self.xs[node[0]]), float(self.ys[node[1]])
-        if self.skew_deg:
-            x += (y - float(self.ys[-1]) / 2) * math.tan(math.radians(self.skew_deg))
-        return np.array([x, y])
+        centre = np.array([float(self.xs[node[0]]), float(self.ys[node[1]])])
+        return centre if self.warp is None else self.warp.point(centre)
 
     @property
     def extent(self) -> tuple[float, float, float, float]:
         """(xmin, ymin, xmax, ymax) of the whole scene, scenery included."""
         m = 60.0
-        if not self.skew_deg:
+        if self.warp is None:
             return (float(self.xs[0] - m), float(self.ys[0] - m), float(self.xs[-1] + m), float(self.ys[-1] + m))
         corners = np.array([self.node_position(n) for n in ((0, 0), (len(self.xs) - 1, 0), (0, len(self.ys) - 1),
                                                             (len(self.xs) - 1, len(self.ys) - 1))])
@@ -514,6 +513,7 @@ STOP_BAR_GAP_M = 0.5  # zebra to the stop bar, at least
 PARKED_SLOT_M = 6.0  # one parked car's share of the kerb
 PARKING_CLEAR_M = 10.0  # no parking this near a road's ends (the junction's mouth)
 LIMIT_SIGN_AFTER_M = 8.0  # a limit sign stands this far into the road it governs
+STOP_SIGN_BEFORE_M = 2.5  # a stop or yield sign stands this far before the line (oblique junctions need room)
 LIMIT_REPEAT_CHANCE = 0.3  # chance of a limit sign on a road where the limit does not change
 
 
@@ -521,7 +521,7 @@ def _streets(style: TownStyle, config: TownConfig, w: float, column_scale: float
              mix: np.random.Generator) -> tuple[list[_Street], list[_Street]]:
     """The street of every column line (x = xs[i]) and row line (y = ys[j]); the ring's lines share one.
 
-    ``column_scale``: columns are built this much wider across x, so that the skew (``sim.town_skew``), which
+    ``column_scale``: columns are built this much wider across x, so that the skew (``sim.town_warp``), which
     leans them, leaves them their true width."""
     nx, ny = config.blocks_x, config.blocks_y
 
@@ -590,6 +590,8 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
     nx, ny = config.blocks_x, config.blocks_y
     w = config.lane_width_m if style.name == CLASSIC.name else round(float(mix.uniform(*style.lane_width_range_m)), 2)
     skew = float(mix.uniform(*style.skew_deg)) * (1.0 if mix.random() < 0.5 else -1.0) if style.skew_deg[1] > 0 else 0.0
+    bows = tuple(float(mix.uniform(*style.bow_m)) * (1.0 if mix.random() < 0.5 else -1.0)
+                 if style.bow_m[1] > 0 else 0.0 for _ in range(2))
     cols, rows = _streets(style, config, w, 1.0 / math.cos(math.radians(skew)), mix)
     sw = config.sidewalk_width_m
     rc = config.bend_radius_m
@@ -774,7 +776,7 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
                                  control, approach_index, street.lanes))
             if control in (Control.STOP, Control.ALL_WAY_STOP, Control.YIELD):
                 kind = SignKind.YIELD if control == Control.YIELD else SignKind.STOP
-                signs.append(Sign(len(signs), kind, c + u * (dist + ROAD.stop_bar_depth_m + 1.2) + tr * (half_arm + 0.7),
+                signs.append(Sign(len(signs), kind, c + u * (dist + ROAD.stop_bar_depth_m + STOP_SIGN_BEFORE_M) + tr * (half_arm + 0.7),
                                   math.atan2(travel[1], travel[0]), approach_edge))
             crosswalks.append(Crosswalk(len(crosswalks), node, a, mid - r * kerb, mid + r * kerb,
                                         np.array([c + u * cw0 - r * half_arm, c + u * cw1 - r * half_arm,
@@ -955,9 +957,10 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
     # Trees are not allowed on the asphalt (bend inner corners, junction stubs), nor on a sign or a parked car.
     town = Town(config, seed, xs, ys, network, lane_info, approaches, crosswalks, buildings, [],
                 road_polys, slab_polys, grass_polys, markings, poles, entries, signs, parked, speed_limits, exit_lanes, w)
-    if skew:
-        skew_town(town, skew)
-        trees = [replace(t, position=Shear(skew, float(ys[-1]) / 2).point(t.position)) for t in trees]
+    if skew or bows != (0.0, 0.0):
+        warp = TownWarp(skew, bows[0], bows[1], (float(xs[0]), float(ys[0]), float(xs[-1]), float(ys[-1])))
+        warp_town(town, warp)
+        trees = [replace(t, position=warp.point(t.position)) for t in trees]
     _index_lanes(town)
     town.trees = [t for t in trees if not town.on_road(t.position, margin_m=0.4)
                   and not any(float(np.linalg.norm(t.position - g.position)) < 1.0 for g in town.signs)]

@@ -66,6 +66,7 @@ class TownStyle:
     tree_spacing_m: float = 16.0
     park_probability: float = 0.15
     skew_deg: tuple[float, float] = (0.0, 0.0)  # columns lean by this much (either way): junctions meet at 90 +- it
+    bow_m: tuple[float, float] = (0.0, 0.0)  # rows and columns arch by this much (either way) mid-town
 
     def __post_init__(self) -> None:
         lo, hi = self.lane_width_range_m
@@ -75,6 +76,8 @@ class TownStyle:
         check_number(f"style {self.name} parking_strip_m", self.parking_strip_m, 0.0, 3.0)
         check_number(f"style {self.name} skew", self.skew_deg[0], 0.0, 25.0)
         check_number(f"style {self.name} skew", self.skew_deg[1], self.skew_deg[0], 25.0)
+        check_number(f"style {self.name} bow", self.bow_m[0], 0.0, 30.0)
+        check_number(f"style {self.name} bow", self.bow_m[1], self.bow_m[0], 30.0)
 
 
 CLASSIC = TownStyle("classic")
@@ -124,7 +127,7 @@ SUBURB = TownStyle(
                      (0.72, 0.60, 0.48), (0.88, 0.80, 0.70), (0.70, 0.76, 0.66), (0.95, 0.93, 0.90)),
     tree_spacing_m=11.0,
     park_probability=0.22,
-    skew_deg=(4.0, 18.0),
+    bow_m=(8.0, 20.0),  # winding streets (a bow's slope narrows a street by cos(slope): 2 % at most)
 )
 
 STYLES: dict[str, TownStyle] = {s.name: s for s in (CLASSIC, DOWNTOWN, SUBURB)}
