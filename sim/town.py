@@ -776,7 +776,8 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
                                  control, approach_index, street.lanes))
             if control in (Control.STOP, Control.ALL_WAY_STOP, Control.YIELD):
                 kind = SignKind.YIELD if control == Control.YIELD else SignKind.STOP
-                signs.append(Sign(len(signs), kind, c + u * (dist + ROAD.stop_bar_depth_m + STOP_SIGN_BEFORE_M) + tr * (half_arm + 0.7),
+                post = c + u * (dist + ROAD.stop_bar_depth_m + STOP_SIGN_BEFORE_M) + tr * (half_arm + 0.7)
+                signs.append(Sign(len(signs), kind, post,
                                   math.atan2(travel[1], travel[0]), approach_edge))
             crosswalks.append(Crosswalk(len(crosswalks), node, a, mid - r * kerb, mid + r * kerb,
                                         np.array([c + u * cw0 - r * half_arm, c + u * cw1 - r * half_arm,
