@@ -386,6 +386,7 @@ class DriveEnv(gym.Env):
             "distance_m": world.distance_m,
             "weather": self.weather,
             "town_seed": world.town.seed,
+            "town_style": world.town.config.style,
         }
 
 

@@ -103,6 +103,7 @@ class EpisodeTrace:
     distance_m: float = 0.0
     town_seed: int = 0
     weather: str = "noon"
+    town_style: str = "classic"
 
     def add_step(self, info: dict[str, Any], action: np.ndarray, standing_clear: bool = False) -> None:
         """Keep one step's figures; ``standing_clear``: the car stood with nothing in its path (``envs.standing``)."""
@@ -155,6 +156,7 @@ def episode_metrics(trace: EpisodeTrace) -> dict[str, Any]:
     return {
         "seed": trace.seed,
         "town_seed": trace.town_seed,
+        "town_style": trace.town_style,
         "weather": trace.weather,
         "route_completion": round(completion, 3),
         "infraction_penalty": round(penalty, 6),
