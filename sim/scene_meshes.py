@@ -206,7 +206,7 @@ def build_ground_map(town: Town, texels_per_m: float = 10.0) -> GroundMap:
     for poly in town.grass_polygons:
         fill(poly, Surface.PARK)
     kinds = {"dashed_white": Surface.WHITE, "solid_white": Surface.WHITE, "solid_yellow": Surface.YELLOW,
-             "stop_line": Surface.STOP, "crosswalk": Surface.CROSSWALK}
+             "stop_line": Surface.STOP, "crosswalk": Surface.CROSSWALK, "yield_line": Surface.STOP}
     for kind, quads in town.markings.items():
         for quad in quads:
             fill(quad, kinds[kind])

@@ -262,3 +262,46 @@ def test_reset_option_town_style_builds_that_style(tmp_path):
         assert env.world.town.config.style == "suburb"  # the bad option changed nothing
     finally:
         env.close()
+
+
+def _styled_rollout(style: str, seed: int, steps: int = 25) -> tuple[list[np.ndarray], list[str]]:
+    from towndrive.envs.drive_env import DriveConfig, DriveEnv
+    from towndrive.sim.render import CameraConfig
+    from towndrive.sim.world import WorldConfig
+
+    config = DriveConfig(camera=CameraConfig(width=200, height=66), observe_segmentation=True, town_seed=4004,
+                         world=WorldConfig(town=TownConfig.of_style(style)))
+    env = DriveEnv(config)
+    try:
+        obs, info = env.reset(seed=seed)
+        rng = np.random.default_rng(7)
+        frames, infos = [obs["image"].copy(), obs["segmentation"].copy()], [repr(info)]
+        for _ in range(steps):
+            obs, _, term, trunc, info = env.step(rng.uniform(-0.2, 1.0, 2).astype(np.float32))
+            frames += [obs["image"].copy(), obs["segmentation"].copy()]
+            infos.append(repr(info))
+            if term or trunc:
+                break
+    finally:
+        env.close()
+    return frames, infos
+
+
+@pytest.mark.parametrize("style", STYLED)
+def test_every_style_passes_the_env_checker_and_repeats_frames_and_info(style):
+    from gymnasium.utils.env_checker import check_env
+
+    from towndrive.envs.drive_env import DriveConfig, DriveEnv
+    from towndrive.sim.render import CameraConfig
+    from towndrive.sim.world import WorldConfig
+
+    env = DriveEnv(DriveConfig(camera=CameraConfig(width=200, height=66), town_seed=4004,
+                               world=WorldConfig(town=TownConfig.of_style(style))))
+    check_env(env, skip_render_check=True)
+    env.close()
+    a, a_info = _styled_rollout(style, 3)
+    b, b_info = _styled_rollout(style, 3)
+    assert len(a) == len(b) and all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+    assert a_info == b_info
+    c, _ = _styled_rollout(style, 4)
+    assert not all(np.array_equal(x, y) for x, y in zip(a, c, strict=False))
