@@ -19,7 +19,8 @@ if TYPE_CHECKING:
 
 LIGHT_BGR = {0: (60, 200, 60), 1: (40, 210, 240), 2: (50, 50, 230)}  # green, yellow, red (BGR)
 MARKING_RGB = {"dashed_white": (235, 235, 235), "solid_white": (235, 235, 235),
-               "solid_yellow": (240, 200, 40), "stop_line": (250, 250, 250), "crosswalk": (250, 250, 250)}
+               "solid_yellow": (240, 200, 40), "stop_line": (250, 250, 250), "crosswalk": (250, 250, 250),
+               "yield_line": (250, 250, 250)}
 
 
 class TopDownMap:
