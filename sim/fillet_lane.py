@@ -1,11 +1,13 @@
 """A turn lane that is a straight lead-in, a circular arc and a straight lead-out.
 
 Why: a junction turn is a quarter circle only when its start and end lie at the same distance from
-the corner where the two lane lines meet. Where a two-lane street meets a one-lane one, the inner
-lanes' turns and the outer lanes' turns cannot all be such circles with one stop-line setback per
-arm. A fillet (the largest arc tangent to both lane lines that fits, joined to them by straight
-pieces) connects any start pose to any end pose whose lines cross ahead, and it is what road
-designers draw. It keeps highway-env's four-method lane contract, so vehicles drive it unchanged.
+the corner where the two lane lines meet, and then its radius grows with the stop lines' setback: a
+junction whose stop lines stand well back would have right turns that sweep over the kerb corner.
+Real turns follow the kerb: straight on past the stop line, round the corner on a radius set by the
+kerb, straight out. A fillet (an arc of a chosen radius tangent to both lane lines, joined to them by
+straight pieces) is that path; it connects any start pose to any end pose whose lines cross ahead,
+also where a two-lane street meets a one-lane one. It keeps highway-env's four-method lane contract,
+so vehicles drive it unchanged.
 """
 
 from __future__ import annotations
@@ -21,9 +23,11 @@ _NONE = (LineType.NONE, LineType.NONE)
 
 
 class FilletLane(AbstractLane):
-    """From ``start`` heading ``heading_in`` to ``end`` heading ``heading_out``, turning less than 180 degrees."""
+    """From ``start`` heading ``heading_in`` to ``end`` heading ``heading_out``, turning less than 180 degrees,
+    on an arc of ``radius_m`` (None, or more than fits: the largest arc that fits)."""
 
-    def __init__(self, start: np.ndarray, heading_in: float, end: np.ndarray, heading_out: float, width: float) -> None:
+    def __init__(self, start: np.ndarray, heading_in: float, end: np.ndarray, heading_out: float, width: float,
+                 radius_m: float | None = None) -> None:
         super().__init__()
         self.width = width
         self.line_types = list(_NONE)
@@ -41,6 +45,8 @@ class FilletLane(AbstractLane):
             raise ValueError("a fillet lane needs its end ahead of its start, on a line crossing its own ahead")
         half_tan = math.tan(abs(turn) / 2)
         tangent = min(a, b)  # the arc touches both lines at this distance from where they cross
+        if radius_m is not None:
+            tangent = min(tangent, radius_m * half_tan)
         radius = tangent / half_tan
         corner = np.asarray(start, float) + a * d0
         arc_start, arc_end = corner - tangent * d0, corner + tangent * d1

@@ -569,13 +569,18 @@ def _junction_controls(style: TownStyle, node: tuple[int, int], arms: list[Arm],
     return {a: Control.PRIORITY if (a in (Arm.E, Arm.W)) == major_row else kind for a in arms}
 
 
+LEFT_TURN_RADIUS_M = 10.0  # a left turn's arc: this plus the lane's offset from the centre line
+
+
 def _turn_lane(corner_centre: np.ndarray, start: np.ndarray, heading_in: float, end: np.ndarray, heading_out: float,
-               width: float) -> AbstractLane:
-    """A quarter circle about ``corner_centre`` where start and end lie on one (the classic junctions), else a
-    fillet of arc and straights."""
-    if abs(float(np.linalg.norm(start - corner_centre)) - float(np.linalg.norm(end - corner_centre))) < 1e-9:
+               width: float, radius_m: float | None) -> AbstractLane:
+    """A fillet of ``radius_m`` (straight on past the stop line, round the corner, straight out); with no radius
+    (classic junctions, bends) the quarter circle about ``corner_centre`` where start and end lie on one, else
+    the largest fillet."""
+    if radius_m is None and abs(float(np.linalg.norm(start - corner_centre)) -
+                                float(np.linalg.norm(end - corner_centre))) < 1e-9:
         return _arc_lane(corner_centre, start, end, width)
-    return FilletLane(start, heading_in, end, heading_out, width)
+    return FilletLane(start, heading_in, end, heading_out, width, radius_m)
 
 
 def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
@@ -630,6 +635,19 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
 
     def attach(node: tuple[int, int], arm: Arm) -> float:
         return setback[(node, arm)]
+
+    def turn_radius(node: tuple[int, int], arm_in: Arm, arm_out: Arm, k_in: int, k_out: int,
+                    command: Command) -> float | None:
+        """A turn's design radius at a junction of a styled town (None: the classic quarter circle). A right turn
+        keeps its distance from the kerb: round the corner's kerb arc, at its lanes' offset from the kerbs."""
+        if style.name == CLASSIC.name or _is_bend(node, nx, ny):
+            return None
+        s_in, s_out = _street_of(arm_in, node, cols, rows), _street_of(arm_out, node, cols, rows)
+        if command == Command.LEFT:
+            return LEFT_TURN_RADIUS_M + (k_in + 0.5) * s_in.lane_width_m
+        clear_in = s_in.half_width_m - (k_in + 0.5) * s_in.lane_width_m
+        clear_out = s_out.half_width_m - (k_out + 0.5) * s_out.lane_width_m
+        return JUNCTION_KERB_RADIUS_M + min(clear_in, clear_out)
 
     network = RoadNetwork()
     lane_info: dict[LaneIndex, LaneInfo] = {}
@@ -709,7 +727,8 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
                         lane: AbstractLane = StraightLane(start, end, width=w, line_types=(LineType.NONE, LineType.NONE))
                     else:
                         lane = _turn_lane(c + ARM_VEC[a] * attach(node, a) + out_dir * attach(node, b), start,
-                                          math.atan2(travel[1], travel[0]), end, math.atan2(out_dir[1], out_dir[0]), w)
+                                          math.atan2(travel[1], travel[0]), end, math.atan2(out_dir[1], out_dir[0]), w,
+                                          turn_radius(node, a, b, k, k_out, command))
                     network.add_lane(frm, to, lane)
                     lane_info[(frm, to, k)] = LaneInfo("bend" if bend else "connector", node,
                                                       Command.FOLLOW if bend else command)

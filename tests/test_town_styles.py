@@ -166,6 +166,23 @@ def test_left_turns_keep_to_the_inner_lanes_and_right_turns_to_the_outer_ones(to
                 assert town.next_lane((frm, to, k), out_edge)[2] == n_out - 1
 
 
+def test_turns_keep_clear_of_poles_sign_posts_and_waiting_pedestrians(towns):
+    """A turn follows the kerb round the corner: the centre line stays a car's half width plus a margin from
+    every pole and post, and half a lane from the kerbside places where pedestrians wait to cross."""
+    for town in towns.values():
+        posts = np.array([*town.poles, *[s.position for s in town.signs]])
+        waits = np.array([p for cw in town.crosswalks for p in (cw.start, cw.end)])
+        for index, info in town.lane_info.items():
+            if info.kind != "connector":
+                continue
+            lane = town.lane(index)
+            centre = np.array([lane.position(s, 0.0) for s in np.linspace(0, lane.length, 40)])
+            to_posts = np.linalg.norm(centre[:, None] - posts[None], axis=2).min()
+            to_waits = np.linalg.norm(centre[:, None] - waits[None], axis=2).min()
+            assert to_posts > 0.95 + Town.POLE_RADIUS_M + 0.3, (town.config.style, town.seed, index, to_posts)
+            assert to_waits > town.lane_width / 2 + 0.3, (town.config.style, town.seed, index, to_waits)
+
+
 def test_every_road_reaches_every_other(towns):
     for town in towns.values():
         roads = sorted({k[:2] for k, i in town.lane_info.items() if i.kind == "road"})
