@@ -301,3 +301,17 @@ def test_world_determinism_with_rules(style: str):
         return out
 
     assert run() == run()
+
+
+NEW_SCENARIOS = ["stop_sign_cross_traffic", "t_junction_priority_turn", "speed_limit_change", "parked_door_zone",
+                 "pedestrian_unsignalled"]
+
+
+@pytest.mark.parametrize("name", NEW_SCENARIOS)
+def test_autopilot_passes_the_scenarios_of_unsignalled_towns(name: str):
+    from towndrive.agent.autopilot import Autopilot
+    from towndrive.envs.drive_env import DriveConfig
+    from towndrive.envs.scenarios import run_scenario
+
+    result = run_scenario(name, Autopilot(), DriveConfig(render_camera=False))
+    assert result.passed, result.detail
