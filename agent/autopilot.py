@@ -6,7 +6,11 @@ target speed, capped by an IDM planner that keeps a time headway to whatever is 
 (vehicles in its lane, pedestrians in or stepping into it; vehicles in other lanes are ignored),
 stops before the stop line on red and on yellow when a comfortable stop is possible, and waits for
 oncoming traffic before an unprotected left turn. CARLA's BasicAgent handles lanes, lights and
-leaders; this one also handles stop lines and pedestrians.
+leaders; this one also handles stop lines and pedestrians. At unsignalled junctions it follows the
+world's own rules (``sim.rules``, the ones the NPCs obey and the ego is charged by): a full stop at a
+stop line, then its turn in the arrival order and a gap in the priority traffic; at a give-way line a
+slow approach and the same gap; on a priority street a left turn waits for oncoming traffic. It keeps
+under the posted limits (slowing before a lower one) and stops for people on unsignalled zebras.
 
 Noise injection (off by default): now and then a steering perturbation is added for a moment and the
 car recovers from it. ``clean_action`` keeps the expert's own action for the step, which is what a
@@ -24,8 +28,20 @@ from highway_env.road.lane import AbstractLane
 from towndrive.agent.decision.pid import PID, STEER_RATE_PER_S  # noqa: F401 (re-exported)
 from towndrive.envs.driver_context import DriverContext
 from towndrive.sim.objects import LightState
-from towndrive.sim.town import Command, lanes_for
-from towndrive.sim.traffic import Agents, crosswalk_gap, curve_speed_limit, idm_acceleration, oncoming_conflict, path_gap
+from towndrive.sim.rules import turn_after
+from towndrive.sim.town import Command, Control, lanes_for
+from towndrive.sim.traffic import (
+    CURVE_BRAKE_MPS2,
+    YIELD_APPROACH_MPS,
+    Agents,
+    crosswalk_gap,
+    curve_speed_limit,
+    idm_acceleration,
+    junction_gap,
+    oncoming_conflict,
+    path_gap,
+    posted_speed_cap,
+)
 from towndrive.sim.world import EGO_ID, World
 
 if TYPE_CHECKING:
@@ -152,8 +168,27 @@ class Autopilot:
         wheel = math.atan2(2.0 * ego.LENGTH * math.sin(alpha), max(math.hypot(dx, dy), 1e-3))
         return max(-1.0, min(1.0, wheel / ego.MAX_STEER_RAD))
 
+    def junction_stop_gap(self, world: World, agents: Agents, zebra: float | None) -> float | None:
+        """At an unsignalled junction ahead: the distance to where the car must stop, if the rules say wait
+        (``sim.traffic.junction_gap``: the world's rules, the NPCs' too), else None."""
+        control = world.next_control()
+        if control is None or control.control == Control.SIGNAL:
+            return None
+        entry = world.town.entries[control.entry]
+        if control.distance_m < -0.3:
+            return None  # the bumper is over the line: clear the junction
+        index = world.route.index(entry.edge, world.route_index)
+        turn = turn_after(world.town, world.route, index)
+        gap = max(control.distance_m - 0.8, 0.0)
+        zebra_beyond = None if zebra is None else zebra - 0.8
+        return junction_gap(world.town, world.junctions, EGO_ID, entry, turn, gap, agents, zebra_beyond)
+
     def stop_gap(self, world: World, agents: Agents) -> float | None:
         """Distance to where the car must stop for a light or an unprotected left turn, if it must."""
+        if world.town.entries and world.next_control() is not None:
+            control = world.next_control()
+            if control is not None and control.control != Control.SIGNAL:
+                return None  # an unsignalled junction comes first: junction_stop_gap
         light = world.next_light()
         if light is None or self.ignore_lights:
             return None
@@ -181,6 +216,13 @@ class Autopilot:
         self._last_steer = steer
         # Longitudinal: PID to the target speed, capped by the IDM planner's acceleration.
         cruise = min(self.target_speed, curve_speed_limit(path, s0))
+        if world.town.speed_limits_kmh:
+            cruise = min(cruise, posted_speed_cap(world.town, path, self._path_lanes, s0))
+        if world.town.entries and not self.ignore_lights:
+            control = world.next_control()
+            if control is not None and control.control == Control.YIELD and control.distance_m > 0.0:
+                # a give-way line: slow enough to stop at it after a last look
+                cruise = min(cruise, math.sqrt(YIELD_APPROACH_MPS ** 2 + 2.0 * CURVE_BRAKE_MPS2 * control.distance_m))
         accel = self.speed_pid(cruise - ego.speed, dt) * ego.MAX_ACCEL_MPS2
         agents = world.agents()
         lookahead = 15.0 + 3.0 * ego.speed
@@ -194,6 +236,10 @@ class Autopilot:
                                                 min_gap_m=LEAD_GAP_M))
             hold |= gap < LEAD_GAP_M + HOLD_MARGIN_M and lead_speed < 0.5
         stop = self.stop_gap(world, agents)
+        if not self.ignore_lights:  # the signs too: an autopilot that ignores lights tests the infraction checks
+            wait = self.junction_stop_gap(world, agents, zebra)
+            if wait is not None:
+                stop = wait if stop is None else min(stop, wait)
         if stop is not None:
             accel = min(accel, idm_acceleration(ego.speed, self.target_speed, stop, ego.speed, min_gap_m=STOP_GAP_M))
             hold |= stop < STOP_GAP_M + HOLD_MARGIN_M

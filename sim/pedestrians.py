@@ -4,6 +4,10 @@ A pedestrian waits at the kerb until the crossing's signal allows walking (the c
 traffic has red for long enough to get across) and no vehicle is on or about to enter the
 crossing, then walks over; on the far kerb it turns the corner to the next crossing. Now and then
 (configurable) one jaywalks: crosses without waiting for the signal, still not into a car.
+
+At an unsignalled crossing (a zebra at a stop, give-way or priority junction) the pedestrian has the
+right of way: it steps onto the zebra unless a vehicle is on it or could not stop before it
+(``_cannot_stop``), and the vehicles stop for whoever is on it (``sim.traffic.crosswalk_gap``).
 """
 
 from __future__ import annotations
@@ -26,6 +30,9 @@ DETOUR_CLEARANCE_M = 0.9  # distance kept from the car's end while walking round
 DEFAULT_HALF_SIZE = (2.3, 0.95)  # a car's half length and half width
 MOVING_CAR_AHEAD_M = 1.2  # a moving car bars the way when it is near the point this far ahead of a pedestrian
 MOVING_CAR_CLEAR_M2 = 2.8 ** 2  # ... within 2.8 m (squared)
+ZEBRA_BRAKE_MPS2 = 3.0  # a driver stops for a pedestrian on a zebra at this deceleration or gentler
+ZEBRA_REACTION_S = 0.5  # ... after this long
+ZEBRA_MARGIN_M = 1.5  # ... this far short of the zebra
 SHIRT_COLORS = [(0.80, 0.15, 0.15), (0.15, 0.35, 0.75), (0.95, 0.85, 0.20), (0.20, 0.60, 0.30),
                 (0.90, 0.90, 0.90), (0.25, 0.25, 0.28), (0.85, 0.45, 0.10), (0.55, 0.25, 0.60)]
 
@@ -126,6 +133,38 @@ class PedestrianCrowd:
         time_to = dist / np.maximum(speeds, 0.1)
         return bool(np.any(approaching & (dist < 25.0) & (time_to < 4.0) & (speeds > 0.5)))
 
+    @staticmethod
+    def _cannot_stop(cw: Crosswalk, vehicles: np.ndarray, speeds: np.ndarray, headings: np.ndarray,
+                     point: np.ndarray, sizes: np.ndarray | None) -> bool:
+        """At an unsignalled zebra: a moving vehicle right beside the pedestrian or on the zebra, or heading for
+        it too fast to stop comfortably before it (the pedestrian has the right of way, not a death wish). A
+        standing vehicle does not hold the pedestrian up: it is waiting for it, and a crossing pedestrian walks
+        round a car that bars the way (``_look_out``)."""
+        moving = speeds > 0.5
+        if not np.any(moving):
+            return False
+        vehicles, speeds, headings = vehicles[moving], speeds[moving], headings[moving]
+        sizes = sizes[moving] if sizes is not None else None
+        if np.any(np.linalg.norm(vehicles - point, axis=1) < 3.0):
+            return True
+        centre = cw.polygon.mean(axis=0)
+        along = cw.polygon[1] - cw.polygon[0]
+        half_depth = float(np.linalg.norm(along)) / 2
+        u = along / (2 * half_depth)
+        across = np.array([-u[1], u[0]])
+        half_width = float(np.linalg.norm(cw.polygon[2] - cw.polygon[1])) / 2
+        half_length = sizes[:, 0] if sizes is not None else np.full(len(vehicles), DEFAULT_HALF_SIZE[0])
+        d = vehicles - centre
+        on = (np.abs(d @ u) < half_depth + half_length) & (np.abs(d @ across) < half_width + 0.5)
+        if np.any(on):
+            return True
+        dist = np.linalg.norm(d, axis=1)
+        heading_vec = np.stack([np.cos(headings), np.sin(headings)], axis=1)
+        approaching = np.sum(heading_vec * -d, axis=1) > 0.3 * dist
+        to_zebra = dist - half_depth - half_length
+        stopping = speeds * speeds / (2 * ZEBRA_BRAKE_MPS2) + speeds * ZEBRA_REACTION_S + ZEBRA_MARGIN_M
+        return bool(np.any(approaching & (dist < 45.0) & (to_zebra < stopping)))
+
     def step(self, dt: float, lights: TrafficLights, vehicles: np.ndarray, speeds: np.ndarray,
              headings: np.ndarray, tick: int = 0, sizes: np.ndarray | None = None) -> None:
         """Move everyone one tick. Waiting pedestrians look up at the signal every fourth tick (5 Hz).
@@ -153,7 +192,11 @@ class PedestrianCrowd:
                 if not ped.jaywalk and self.jaywalk_probability > 0 and self.rng.random() < self.jaywalk_probability * dt:
                     ped.jaywalk = True
                 go = ped.jaywalk or self.walk_allowed(cw, lights, crossing_time)
-                if go and not self._vehicle_blocks(cw, vehicles, speeds, headings, ped.position, 7.0):
+                if go and cw.approach < 0 and not ped.jaywalk:  # a zebra with the right of way
+                    go = not self._cannot_stop(cw, vehicles, speeds, headings, ped.position, sizes)
+                elif go:
+                    go = not self._vehicle_blocks(cw, vehicles, speeds, headings, ped.position, 7.0)
+                if go:
                     ped.state, ped.target = "crossing", there.copy()
             elif ped.state == "crossing":
                 if id(ped) in in_the_way:

@@ -263,6 +263,7 @@ class Town:
         default_factory=dict, repr=False, compare=False)
     _crosswalk_frames: list[tuple[np.ndarray, np.ndarray, float, float, np.ndarray]] | None = field(
         default=None, repr=False, compare=False)
+    _entries_by_node: dict[tuple[int, int], list[Entry]] | None = field(default=None, repr=False, compare=False)
 
     GRID_CELL_M = 8.0
     POLE_RADIUS_M = 0.15
@@ -351,6 +352,14 @@ class Town:
     def entry_for_edge(self, edge: Edge) -> Entry | None:
         """The junction entry an incoming road edge leads to (None at bends)."""
         return self._entry_by_edge.get(edge)
+
+    def entries_at(self, node: tuple[int, int]) -> list[Entry]:
+        """The entries of one junction (indexed once)."""
+        if self._entries_by_node is None:
+            self._entries_by_node = {}
+            for e in self.entries:
+                self._entries_by_node.setdefault(e.node, []).append(e)
+        return self._entries_by_node.get(node, [])
 
     def speed_limit_kmh(self, edge: Edge) -> int | None:
         """The posted limit on an edge, None where nothing is posted."""
