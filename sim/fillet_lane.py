@@ -65,6 +65,11 @@ class FilletLane(AbstractLane):
         self.start = np.asarray(start, float)
         self.end = np.asarray(end, float)
 
+    def tightest_turn(self) -> tuple[float, float]:
+        """The arc's radius and where it starts along the lane."""
+        k = next(k for k, p in enumerate(self.pieces) if isinstance(p, CircularLane))
+        return float(self.pieces[k].radius), float(self.offsets[k])
+
     def _piece(self, longitudinal: float) -> tuple[AbstractLane, float]:
         k = int(np.searchsorted(self.offsets, longitudinal, side="right")) - 1
         k = min(max(k, 0), len(self.pieces) - 1)

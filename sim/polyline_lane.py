@@ -66,6 +66,14 @@ class PolylineLane(AbstractLane):
     def local_coordinates(self, position: np.ndarray) -> tuple[float, float]:
         return _project(float(position[0]), float(position[1]), self.points, self._d, self._len, self._s, self._n)
 
+    def tightest_turn(self) -> tuple[float, float]:
+        """The smallest radius between two samples (a segment's length over its turn) and where that segment
+        starts; inf for a centre line that does not turn."""
+        turns = np.abs(np.diff(self.headings))
+        radii = np.where(turns > 1e-9, self._len / np.maximum(turns, 1e-12), np.inf)
+        k = int(np.argmin(radii))
+        return float(radii[k]), float(self._s[k])
+
     def to_config(self) -> dict:
         return {"class_path": "towndrive.sim.polyline_lane.PolylineLane",
                 "config": {"points": self.points.tolist(), "headings": self.headings.tolist(), "width": self.width}}

@@ -579,6 +579,7 @@ def _junction_controls(style: TownStyle, node: tuple[int, int], arms: list[Arm],
 
 
 LEFT_TURN_RADIUS_M = 10.0  # a left turn's arc: this plus the lane's offset from the centre line
+RIGHT_TURN_RADIUS_M = 5.0  # a right turn's arc: this plus its lanes' distance from the kerbs (classic: 6.75 m)
 
 
 def _turn_lane(corner_centre: np.ndarray, start: np.ndarray, heading_in: float, end: np.ndarray, heading_out: float,
@@ -648,7 +649,8 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
     def turn_radius(node: tuple[int, int], arm_in: Arm, arm_out: Arm, k_in: int, k_out: int,
                     command: Command) -> float | None:
         """A turn's design radius at a junction of a styled town (None: the classic quarter circle). A right turn
-        keeps its distance from the kerb: round the corner's kerb arc, at its lanes' offset from the kerbs."""
+        keeps its distance from the kerb: the radius of a classic junction's outer right turn, plus how much further
+        from the kerbs its lanes lie (a parking strip)."""
         if style.name == CLASSIC.name or _is_bend(node, nx, ny):
             return None
         s_in, s_out = _street_of(arm_in, node, cols, rows), _street_of(arm_out, node, cols, rows)
@@ -656,7 +658,7 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
             return LEFT_TURN_RADIUS_M + (k_in + 0.5) * s_in.lane_width_m
         clear_in = s_in.half_width_m - (k_in + 0.5) * s_in.lane_width_m
         clear_out = s_out.half_width_m - (k_out + 0.5) * s_out.lane_width_m
-        return JUNCTION_KERB_RADIUS_M + min(clear_in, clear_out)
+        return RIGHT_TURN_RADIUS_M + min(clear_in, clear_out)
 
     network = RoadNetwork()
     lane_info: dict[LaneIndex, LaneInfo] = {}

@@ -68,15 +68,25 @@ def _clip(x: float, low: float, high: float) -> float:
     return min(max(x, low), high)
 
 
+def tightest_turn(lane: AbstractLane) -> tuple[float, float]:
+    """A lane's smallest radius and where along it that part starts (inf for a straight lane): a circle's
+    radius from its start; a fillet's arc after its lead-in; a sampled curve's tightest segment."""
+    if isinstance(lane, CircularLane):
+        return lane.radius, 0.0
+    tightest = getattr(lane, "tightest_turn", None)
+    return tightest() if tightest is not None else (math.inf, 0.0)
+
+
 def curve_speed_limit(path: list[tuple[AbstractLane, float]], my_s: float) -> float:
     """The highest speed from which every turn ahead on the path can be taken comfortably:
     v_turn = sqrt(a_lat * radius) in the turn, and at most sqrt(v_turn^2 + 2 b d) at distance d before it."""
     limit = math.inf
     for lane, offset in path:
-        if not isinstance(lane, CircularLane):
+        radius, turn_s = tightest_turn(lane)
+        if radius == math.inf:
             continue
-        v_turn = math.sqrt(CURVE_LATERAL_ACCEL_MPS2 * lane.radius)
-        distance = max(0.0, offset - my_s)
+        v_turn = math.sqrt(CURVE_LATERAL_ACCEL_MPS2 * radius)
+        distance = max(0.0, offset + turn_s - my_s)
         limit = min(limit, math.sqrt(v_turn * v_turn + 2.0 * CURVE_BRAKE_MPS2 * distance))
     return limit
 

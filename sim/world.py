@@ -654,7 +654,8 @@ class World:
         if self.ego_lane is None:
             return float("nan")
         lat0 = self.ego_lane[2] + self.ego_lane[0][2] * self.town.lane_width  # lateral from lane 0's centre
-        return float(max(0.0, -lat0, lat0 - self.town.lane_width))
+        band = (self.town.lane_count(self.ego_lane[0][:2]) - 1) * self.town.lane_width
+        return float(max(0.0, -lat0, lat0 - band))
 
     def lane_offset_m(self) -> float:
         """Signed lateral offset from the current lane's centre (positive: right of it); nan off road."""

@@ -322,3 +322,32 @@ def test_every_style_passes_the_env_checker_and_repeats_frames_and_info(style):
     assert a_info == b_info
     c, _ = _styled_rollout(style, 4)
     assert not all(np.array_equal(x, y) for x, y in zip(a, c, strict=False))
+
+
+def test_curve_speed_limit_slows_for_fillets_and_sampled_turns():
+    from towndrive.sim.traffic import CURVE_LATERAL_ACCEL_MPS2, curve_speed_limit
+
+    fillet = FilletLane(np.array([0.0, 0.0]), 0.0, np.array([20.0, 20.0]), math.pi / 2, 3.0, radius_m=6.0)
+    radius, start = fillet.tightest_turn()
+    assert radius == pytest.approx(6.0) and start == pytest.approx(14.0)
+    at_turn = curve_speed_limit([(fillet, 0.0)], start)
+    assert at_turn == pytest.approx(math.sqrt(CURVE_LATERAL_ACCEL_MPS2 * 6.0))
+    assert at_turn < curve_speed_limit([(fillet, 0.0)], 0.0) < math.inf  # braking room before the arc
+    ss = np.linspace(0, fillet.length, 40)
+    sampled = PolylineLane(np.array([fillet.position(s, 0) for s in ss]), np.array([fillet.heading_at(s) for s in ss]),
+                           3.0)
+    assert sampled.tightest_turn()[0] == pytest.approx(6.0, rel=0.1)
+
+
+def test_the_safety_drivers_lane_band_of_a_one_lane_street_is_its_lane():
+    from towndrive.sim.world import World, WorldConfig
+
+    town = generate_town(TownConfig.of_style("suburb"), 4001)
+    edge = next(k[:2] for k, i in town.lane_info.items() if i.kind == "road" and town.lane_count(k[:2]) == 1
+                and town.lane(k).length > 40)
+    world = World(town, WorldConfig(town=town.config, npc_count=0, pedestrian_count=0), seed=1, start=(*edge, 0))
+    lane = town.lane((*edge, 0))
+    s = lane.local_coordinates(world.ego.position)[0]
+    world.ego.position = lane.position(s, 1.4)
+    world.step(np.zeros(2))
+    assert world.lane_band_offset_m() == pytest.approx(1.4, abs=0.1)
