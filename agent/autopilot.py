@@ -103,15 +103,28 @@ class Autopilot:
         return self.env.world
 
     # ------------------------------------------------------------------ decisions
+    @staticmethod
+    def _lane_on(world: World, edge: tuple[str, str]) -> int:
+        """The lane of the route's edge the car is in: the located lane where it lies on that edge, else the
+        edge's lane nearest the car (inside a junction, where the car may be located on another move's
+        connector, whose lane number says nothing of this edge's)."""
+        if world.ego_lane is None:
+            return 0
+        if world.ego_lane[0][:2] == edge:
+            return world.ego_lane[0][2]
+        lats = [abs(world.town.lane((*edge, k)).local_coordinates(world.ego.position)[1])
+                for k in range(world.town.lane_count(edge))]
+        return lats.index(min(lats))
+
     def choose_lane(self, world: World) -> int:
         """The lane to drive in: the current one, unless the announced turn must start from the other lane
         (left turns from lane 0, right turns from lane 1); change when that lane is clear.
 
         It waits for the route command to announce the turn, as a driver who only hears the command would:
         a lane change the camera sees under "follow" would teach a cloned driver to weave."""
-        current = world.ego_lane[0][2] if world.ego_lane is not None else 0
         town = world.town
         edge = world.route[world.route_index]
+        current = self._lane_on(world, edge)
         if town.lane_info[(*edge, 0)].kind != "road" or world.route_index + 1 >= len(world.route):
             return current
         if world.command() not in (Command.LEFT, Command.RIGHT):

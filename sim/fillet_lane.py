@@ -30,6 +30,7 @@ class FilletLane(AbstractLane):
                  radius_m: float | None = None) -> None:
         super().__init__()
         self.width = width
+        self.design_radius_m = radius_m  # as asked (None: the largest that fits)
         self.line_types = list(_NONE)
         self.forbidden = False
         self.speed_limit = 20.0

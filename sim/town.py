@@ -31,7 +31,7 @@ from towndrive.sim.fillet_lane import FilletLane
 from towndrive.sim.geometry import right_of, wrap_to_pi
 from towndrive.sim.objects import CAR_COLORS
 from towndrive.sim.path_filter import ROW_SIZE, lane_row, lanes_may_hold
-from towndrive.sim.spec import COMMAND_NAMES, ROAD
+from towndrive.sim.spec import COMMAND_NAMES, ROAD, VEHICLE
 from towndrive.sim.town_style import CLASSIC, TownStyle, style_named
 from towndrive.sim.town_warp import TownWarp, warp_town
 
@@ -517,6 +517,8 @@ _CONTROL_DRAW = (Control.SIGNAL, Control.ALL_WAY_STOP, Control.STOP, Control.YIE
 _MOUNTS = ("mast_arm", "far_pole", "near_pole")
 POLE_HEAD_HEIGHT_M = 3.6  # a post-mounted head's centre above the road
 CROSSWALK_GAP_M = 0.6  # kerb line of the crossing street to the zebra
+CORNER_TO_ZEBRA_M = 0.3  # where corners are rounded wide (styles), the zebra starts this far past the rounding
+POLE_FROM_KERB_M = 1.25  # a signal pole stands this far inside a corner's kerb (the classic corner's spacing)
 CROSSWALK_DEPTH_M = 3.0
 STOP_BAR_GAP_M = 0.5  # zebra to the stop bar, at least
 PARKED_SLOT_M = 6.0  # one parked car's share of the kerb
@@ -579,7 +581,7 @@ def _junction_controls(style: TownStyle, node: tuple[int, int], arms: list[Arm],
 
 
 LEFT_TURN_RADIUS_M = 10.0  # a left turn's arc: this plus the lane's offset from the centre line
-RIGHT_TURN_RADIUS_M = 5.0  # a right turn's arc: this plus its lanes' distance from the kerbs (classic: 6.75 m)
+TURN_RADIUS_MARGIN = 1.15  # no turn tighter than the car's full-lock circle times this
 
 
 def _turn_lane(corner_centre: np.ndarray, start: np.ndarray, heading_in: float, end: np.ndarray, heading_out: float,
@@ -621,7 +623,9 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
         return np.array([xs[node[0]], ys[node[1]]])
 
     nodes = [(i, j) for i in range(nx + 1) for j in range(ny + 1)]
-    # Stop-line setbacks, per junction arm: beyond the crossing street's kerb, its zebra and a gap.
+    corner = style.corner_radius_m or JUNCTION_KERB_RADIUS_M  # kerb radius at junction corners
+    zebra_gap = CROSSWALK_GAP_M if style.corner_radius_m is None else corner + CORNER_TO_ZEBRA_M
+    # Stop-line setbacks, per junction arm: beyond the crossing street's kerb (and its corner), its zebra and a gap.
     setback: dict[tuple[tuple[int, int], Arm], float] = {}
     controls: dict[tuple[int, int], dict[Arm, Control]] = {}
     mounts: dict[tuple[int, int], str] = {}
@@ -636,7 +640,7 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
             if extra is None:
                 setback[(node, a)] = config.stop_line_setback_m
             else:
-                need = _cross_street(a, node, cols, rows).half_width_m + CROSSWALK_GAP_M + CROSSWALK_DEPTH_M
+                need = _cross_street(a, node, cols, rows).half_width_m + zebra_gap + CROSSWALK_DEPTH_M
                 setback[(node, a)] = round(need + STOP_BAR_GAP_M + extra, 2)
         controls[node] = _junction_controls(style, node, arms, cols, rows, len(arms) == 3, mix)
         if Control.SIGNAL in controls[node].values():
@@ -649,8 +653,7 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
     def turn_radius(node: tuple[int, int], arm_in: Arm, arm_out: Arm, k_in: int, k_out: int,
                     command: Command) -> float | None:
         """A turn's design radius at a junction of a styled town (None: the classic quarter circle). A right turn
-        keeps its distance from the kerb: the radius of a classic junction's outer right turn, plus how much further
-        from the kerbs its lanes lie (a parking strip)."""
+        goes round the corner's kerb arc at its lanes' distance from the kerbs (never tighter than the car can)."""
         if style.name == CLASSIC.name or _is_bend(node, nx, ny):
             return None
         s_in, s_out = _street_of(arm_in, node, cols, rows), _street_of(arm_out, node, cols, rows)
@@ -658,7 +661,7 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
             return LEFT_TURN_RADIUS_M + (k_in + 0.5) * s_in.lane_width_m
         clear_in = s_in.half_width_m - (k_in + 0.5) * s_in.lane_width_m
         clear_out = s_out.half_width_m - (k_out + 0.5) * s_out.lane_width_m
-        return RIGHT_TURN_RADIUS_M + min(clear_in, clear_out)
+        return max(corner + min(clear_in, clear_out), VEHICLE.min_turn_radius_m * TURN_RADIUS_MARGIN)
 
     network = RoadNetwork()
     lane_info: dict[LaneIndex, LaneInfo] = {}
@@ -776,7 +779,7 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
             elif control != Control.PRIORITY:
                 markings["stop_line"].append(np.array([far + inner, near + inner, near + outer, far + outer]))
             # Zebra across the whole arm, between the crossing street and the stop bar.
-            cw0, cw1 = half_cross + CROSSWALK_GAP_M, half_cross + CROSSWALK_GAP_M + CROSSWALK_DEPTH_M
+            cw0, cw1 = half_cross + zebra_gap, half_cross + zebra_gap + CROSSWALK_DEPTH_M
             for lat in np.arange(-half_arm + 0.4, half_arm - 0.3, 1.0):
                 q0, q1 = c + u * cw0 + r * lat, c + u * cw1 + r * lat
                 markings["crosswalk"].append(np.array([q0, q1, q1 + r * 0.5, q0 + r * 0.5]))
@@ -788,9 +791,13 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
             approach_index = -1
             if control == Control.SIGNAL:
                 mount = mounts[node]
-                far_corner = c + travel * (half_cross + sw / 2) + tr * (half_arm + sw / 2)
+                if style.corner_radius_m is None:
+                    far_corner = c + travel * (half_cross + sw / 2) + tr * (half_arm + sw / 2)
+                else:  # on the sidewalk behind the rounded kerb, as far from it as the classic corner's pole
+                    kerb_centre = c + travel * (half_cross + corner) + tr * (half_arm + corner)
+                    far_corner = kerb_centre - (travel + tr) / math.sqrt(2) * (corner - POLE_FROM_KERB_M)
                 if mount == "mast_arm":  # over the middle of the incoming lanes, from the far-right corner
-                    pole, head, height = far_corner, c + travel * (half_cross + sw / 2) + tr * (lanes_w / 2), \
+                    pole, head, height = far_corner, c + travel * float((far_corner - c) @ travel) + tr * (lanes_w / 2), \
                         ROAD.signal_head_height_m
                 elif mount == "far_pole":
                     pole, head, height = far_corner, far_corner - tr * 0.45, POLE_HEAD_HEIGHT_M
@@ -930,7 +937,7 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
             # Slab: the block rectangle with rounded kerbs (tight at junctions, wide at bends).
             radii = []
             for n in corners:
-                radii.append(rc - ring_half if _is_bend(n, nx, ny) else JUNCTION_KERB_RADIUS_M)
+                radii.append(rc - ring_half if _is_bend(n, nx, ny) else corner)
             poly = _rounded_rect(x0, y0, x1, y1, radii)
             slab_polys.append(poly)
             ix0, iy0, ix1, iy1 = x0 + sw + 0.5, y0 + sw + 0.5, x1 - sw - 0.5, y1 - sw - 0.5

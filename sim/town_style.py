@@ -56,6 +56,8 @@ class TownStyle:
     residential_pair: ControlMix = ControlMix()  # two residential streets
     mounts: SignalMounts = SignalMounts()
     setback_extra_m: tuple[float, float] | None = None  # stop bar beyond the crossing; None: the fixed default
+    corner_radius_m: float | None = None  # the kerb's radius at junction corners (None: the classic 3 m); the
+    #   right turns go round it, and the zebras start where it ends
     arterial_limit_kmh: int | None = None  # posted limits; None: nothing posted
     residential_limit_kmh: int | None = None
     parking_strip_m: float = 0.0  # residential streets' parking strip along each kerb (0: none)
@@ -92,7 +94,8 @@ DOWNTOWN = TownStyle(
     mixed_pair=ControlMix(signal=0.6, side_stop=0.25, side_yield=0.15),
     residential_pair=ControlMix(all_way_stop=1.0),
     mounts=SignalMounts(mast_arm=0.4, far_pole=0.35, near_pole=0.25),
-    setback_extra_m=(4.5, 8.0),
+    setback_extra_m=(0.5, 4.0),
+    corner_radius_m=6.5,
     arterial_limit_kmh=50,
     residential_limit_kmh=30,
     parking_strip_m=2.2,
@@ -116,7 +119,8 @@ SUBURB = TownStyle(
     mixed_pair=ControlMix(signal=0.2, side_stop=0.5, side_yield=0.3),
     residential_pair=ControlMix(all_way_stop=0.5, side_stop=0.25, side_yield=0.25),
     mounts=SignalMounts(mast_arm=0.3, far_pole=0.7),
-    setback_extra_m=(4.5, 9.0),
+    setback_extra_m=(0.5, 5.0),
+    corner_radius_m=7.0,
     arterial_limit_kmh=50,
     residential_limit_kmh=30,
     parking_strip_m=2.2,

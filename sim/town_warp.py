@@ -27,6 +27,7 @@ import numpy as np
 from highway_env.road.lane import AbstractLane, LineType, StraightLane
 from highway_env.road.road import RoadNetwork
 
+from towndrive.sim.fillet_lane import FilletLane
 from towndrive.sim.polyline_lane import PolylineLane
 
 if TYPE_CHECKING:
@@ -70,9 +71,16 @@ class TownWarp:
         return math.atan2(dy + dydx * dx, dx + dxdy * dy)
 
     def lane(self, lane: AbstractLane) -> AbstractLane:
+        """A lane mapped: a straight one stays straight under a skew; a turn of a chosen radius (a junction's) is
+        made again between its mapped ends on that radius, so that the map never tightens it; other curves are
+        sampled along their mapped centre line (a bend must follow its mapped kerbs)."""
         if type(lane) is StraightLane and self.affine:
             return StraightLane(self.point(lane.start), self.point(lane.end), width=lane.width,
                                 line_types=(LineType.NONE, LineType.NONE))
+        if isinstance(lane, FilletLane) and lane.design_radius_m is not None:
+            start, end = lane.position(0.0, 0.0), lane.position(lane.length, 0.0)
+            return FilletLane(self.point(start), self.heading(lane.heading_at(0.0), start), self.point(end),
+                              self.heading(lane.heading_at(lane.length), end), lane.width, lane.design_radius_m)
         step = BOWED_SAMPLE_M if type(lane) is StraightLane else CURVE_SAMPLE_M
         ss = np.linspace(0.0, lane.length, max(3, int(math.ceil(lane.length / step)) + 1))
         centre = np.array([lane.position(s, 0.0) for s in ss])

@@ -351,3 +351,13 @@ def test_the_safety_drivers_lane_band_of_a_one_lane_street_is_its_lane():
     world.ego.position = lane.position(s, 1.4)
     world.step(np.zeros(2))
     assert world.lane_band_offset_m() == pytest.approx(1.4, abs=0.1)
+
+
+def test_no_lane_turns_tighter_than_the_car_can(towns):
+    from towndrive.sim.spec import VEHICLE
+    from towndrive.sim.traffic import tightest_turn
+
+    for town in towns.values():
+        for index in town.lane_info:
+            radius, _ = tightest_turn(town.lane(index))
+            assert radius > VEHICLE.min_turn_radius_m, (town.config.style, town.seed, index, radius)
