@@ -180,6 +180,7 @@ class _FrameSetup:
     intrinsics: np.ndarray
 
 
+SIGN_NIGHT_GLOW = 0.45  # at night a plate's face shows this share of its colour (the headlights' retroreflection)
 SIGN_RANGE_M = 150.0  # signs farther than this are not drawn (a 0.75 m plate is about a pixel wide there at 320 px)
 TILE_M = 120.0  # static meshes are split into tiles of this size for view culling (few bodies: resets stay cheap)
 
@@ -475,6 +476,9 @@ class SceneRenderer:
             self._no_collisions(uid)
             self._label(uid, [-1], SemanticClass.POLE, 0)
             self._label(uid, list(range(n)), SIGN_CLASS[int(sign.kind)], SIGN_ID_BASE + sign.index)
+            for link in range(1, n):  # the face's parts (not the back): retroreflective sheeting at night
+                rgb = parts[link + 1].rgb
+                self._set_emissive(uid, link, tuple(SIGN_NIGHT_GLOW * c for c in rgb), night_only=True)
             self._sign_bodies.append(uid)
             self._sign_paint.append([(link, part.rgb) for link, part in zip(range(-1, n), parts, strict=True)])
             self.triangle_count += sum(len(part.mesh[1]) // 3 for part in parts)
