@@ -26,6 +26,9 @@ class SemanticClass(IntEnum):
     CAR = 12
     TRUCK = 13
     PEDESTRIAN = 14
+    STOP_SIGN = 15  # a sign's plate (its post is POLE)
+    YIELD_SIGN = 16
+    SPEED_LIMIT_SIGN = 17
 
 
 CAR_COLORS = [  # body colours of cars, moving and parked
@@ -34,6 +37,10 @@ CAR_COLORS = [  # body colours of cars, moving and parked
 ]
 
 LIGHT_ID_BASE = 10000  # segmentation object id of approach k's traffic light: LIGHT_ID_BASE + k
+# Segmentation object id of the town's sign k: SIGN_ID_BASE + k. Below LIGHT_ID_BASE, so that code which takes
+# every id from LIGHT_ID_BASE up for a light stays right; a town has at most MAX_SIGNS signs.
+SIGN_ID_BASE = 9000
+MAX_SIGNS = LIGHT_ID_BASE - SIGN_ID_BASE
 
 
 class LightState(IntEnum):
