@@ -89,12 +89,16 @@ class TownWarp:
 
     def pieces(self, polygon: np.ndarray) -> list[np.ndarray]:
         """A convex polygon mapped: itself if the map is affine, else its convex pieces of at most
-        ``PIECE_M`` (cut on a grid), each mapped."""
+        ``PIECE_M``, each mapped. A quad (asphalt strips, paint) is cut into a grid of smaller quads between
+        points along its own sides, so that a thin line's pieces meet edge to edge; any other polygon is cut
+        on the map's grid."""
         if self.affine:
             return [self.point(polygon)]
         lo, hi = polygon.min(axis=0), polygon.max(axis=0)
         if float(np.max(hi - lo)) <= PIECE_M:
             return [self.point(polygon)]
+        if len(polygon) == 4:
+            return [self.point(q) for q in _quad_grid(np.asarray(polygon, float))]
         out = []
         for x in np.arange(lo[0], hi[0], PIECE_M):
             for y in np.arange(lo[1], hi[1], PIECE_M):
@@ -112,6 +116,19 @@ class TownWarp:
             n = max(1, int(math.ceil(float(np.linalg.norm(b - a)) / OUTLINE_STEP_M)))
             points += [a + (b - a) * t for t in np.arange(n) / n]
         return self.point(np.array(points))
+
+
+def _quad_grid(quad: np.ndarray) -> list[np.ndarray]:
+    """A quad (corners a, b, c, d in order) cut into nu x nv quads of at most ``PIECE_M`` a side, bilinearly."""
+    a, b, c, d = quad
+    nu = max(1, int(math.ceil(max(np.linalg.norm(b - a), np.linalg.norm(c - d)) / PIECE_M)))
+    nv = max(1, int(math.ceil(max(np.linalg.norm(d - a), np.linalg.norm(c - b)) / PIECE_M)))
+
+    def at(i: int, j: int) -> np.ndarray:
+        u, v = i / nu, j / nv
+        return (1 - u) * (1 - v) * a + u * (1 - v) * b + u * v * c + (1 - u) * v * d
+
+    return [np.array([at(i, j), at(i + 1, j), at(i + 1, j + 1), at(i, j + 1)]) for i in range(nu) for j in range(nv)]
 
 
 def _clip(polygon: np.ndarray, x0: float, y0: float, x1: float, y1: float) -> np.ndarray:

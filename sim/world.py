@@ -18,7 +18,7 @@ from highway_env.road.road import Road
 from towndrive.sim.ego import EgoVehicle
 from towndrive.sim.geometry import circle_polygon_intersect, polygons_intersect, rect_corners, wrap_to_pi
 from towndrive.sim.lights import LightTiming, TrafficLights
-from towndrive.sim.objects import CAR_COLORS, LIGHT_ID_BASE, LightState, ObjectSnapshot, SemanticClass, snapshot_of
+from towndrive.sim.objects import CAR_COLORS, SIGN_ID_BASE, LightState, ObjectSnapshot, SemanticClass, snapshot_of
 from towndrive.sim.path_filter import points_within
 from towndrive.sim.pedestrians import PedestrianCrowd
 from towndrive.sim.routes import command_at, edge_length, random_route, route_length, shortest_route
@@ -50,7 +50,7 @@ from towndrive.sim.traffic import Agents, TownVehicle, step_vehicles
 
 PEDESTRIAN_ID_BASE = 1000
 EGO_ID = 999
-PARKED_ID_BASE = 5000  # parked car k of the town is object PARKED_ID_BASE + k (below LIGHT_ID_BASE)
+PARKED_ID_BASE = 5000  # parked car k of the town is object PARKED_ID_BASE + k (below SIGN_ID_BASE)
 PARKED_VIEW_M = 160.0  # parked cars this near the ego are in object_snapshots (the camera sees no further in towns)
 SIGN_POST_RADIUS_M = 0.05  # a sign's post, for collisions (light poles are 0.15 m)
 SPEEDING_TOLERANCE = 0.10  # over the posted limit by more than this share ...
@@ -234,7 +234,7 @@ class World:
         self._entry_to_line: float | None = None  # the front bumper's distance to that line a step ago
         self._over_limit_s = 0.0  # how long the ego has been over the posted limit (plus tolerance)
         self._speeding = False  # a speeding stretch is on (charged once)
-        assert len(town.parked_cars) < LIGHT_ID_BASE - PARKED_ID_BASE
+        assert len(town.parked_cars) < SIGN_ID_BASE - PARKED_ID_BASE
         self._parked = [snapshot_of(PARKED_ID_BASE + k, SemanticClass.CAR, float(c.position[0]), float(c.position[1]),
                                     float(c.heading), c.length_m, c.width_m, c.height_m, c.color)
                         for k, c in enumerate(town.parked_cars)]
