@@ -33,6 +33,8 @@ MOVING_CAR_CLEAR_M2 = 2.8 ** 2  # ... within 2.8 m (squared)
 ZEBRA_BRAKE_MPS2 = 3.0  # a driver stops for a pedestrian on a zebra at this deceleration or gentler
 ZEBRA_REACTION_S = 0.5  # ... after this long
 ZEBRA_MARGIN_M = 1.5  # ... this far short of the zebra
+ZEBRA_TURN_S = 3.0  # a vehicle that has waited this long at an unsignalled zebra goes before newly arriving walkers
+ZEBRA_WAIT_REACH_M = 9.0  # ... standing with its centre this near the zebra's centre, facing it
 SHIRT_COLORS = [(0.80, 0.15, 0.15), (0.15, 0.35, 0.75), (0.95, 0.85, 0.20), (0.20, 0.60, 0.30),
                 (0.90, 0.90, 0.90), (0.25, 0.25, 0.28), (0.85, 0.45, 0.10), (0.55, 0.25, 0.60)]
 
@@ -78,6 +80,7 @@ class PedestrianCrowd:
         self._corner_next = self._link_corners()
         # Kerb-to-kerb length of each crossing (the same in both directions: hypot ignores signs).
         self._crossing_length = [math.hypot(*(cw.end - cw.start)) for cw in town.crosswalks]
+        self._vehicle_waiting_since: dict[int, float] = {}  # unsignalled zebra -> when a vehicle began to wait at it
         crosswalks = town.crosswalks
         for k in range(count if crosswalks else 0):
             cw = crosswalks[int(rng.integers(len(crosswalks)))]
@@ -165,6 +168,26 @@ class PedestrianCrowd:
         stopping = speeds * speeds / (2 * ZEBRA_BRAKE_MPS2) + speeds * ZEBRA_REACTION_S + ZEBRA_MARGIN_M
         return bool(np.any(approaching & (dist < 45.0) & (to_zebra < stopping)))
 
+    def _vehicles_turn(self, cw: Crosswalk, vehicles: np.ndarray, speeds: np.ndarray, headings: np.ndarray,
+                       now_s: float) -> bool:
+        """Whether a vehicle has stood waiting at an unsignalled zebra for ``ZEBRA_TURN_S``: then pedestrians
+        who arrive let it go first, until it has gone over (a pedestrian would otherwise step out as soon as it
+        starts to roll, slow enough to stop again). Without turns, pedestrians who keep arriving (or who walk back and forth
+        round a T-junction's corners) would hold the vehicle for ever; with them, whoever is on the zebra
+        still crosses first."""
+        centre = cw.polygon.mean(axis=0)
+        d = centre - vehicles
+        dist = np.hypot(d[:, 0], d[:, 1])
+        facing = np.cos(headings) * d[:, 0] + np.sin(headings) * d[:, 1] > 0.7 * dist
+        near = (dist < ZEBRA_WAIT_REACH_M) & facing
+        if not np.any(near):  # the vehicle has gone over (or none came): the turn is over
+            self._vehicle_waiting_since.pop(cw.index, None)
+            return False
+        if np.any(near & (speeds < 0.3)):
+            self._vehicle_waiting_since.setdefault(cw.index, now_s)
+        since = self._vehicle_waiting_since.get(cw.index)
+        return since is not None and now_s - since >= ZEBRA_TURN_S
+
     def step(self, dt: float, lights: TrafficLights, vehicles: np.ndarray, speeds: np.ndarray,
              headings: np.ndarray, tick: int = 0, sizes: np.ndarray | None = None) -> None:
         """Move everyone one tick. Waiting pedestrians look up at the signal every fourth tick (5 Hz).
@@ -194,6 +217,7 @@ class PedestrianCrowd:
                 go = ped.jaywalk or self.walk_allowed(cw, lights, crossing_time)
                 if go and cw.approach < 0 and not ped.jaywalk:  # a zebra with the right of way
                     go = not self._cannot_stop(cw, vehicles, speeds, headings, ped.position, sizes)
+                    go = go and not self._vehicles_turn(cw, vehicles, speeds, headings, tick * dt)
                 elif go:
                     go = not self._vehicle_blocks(cw, vehicles, speeds, headings, ped.position, 7.0)
                 if go:

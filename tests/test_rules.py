@@ -182,6 +182,27 @@ def test_pedestrian_has_the_right_of_way_on_an_unsignalled_zebra():
     assert not PedestrianCrowd._cannot_stop(cw, near, np.array([0.0]), head, cw.start, None)
 
 
+def test_a_vehicle_that_has_waited_at_an_unsignalled_zebra_gets_its_turn():
+    """Pedestrians who keep arriving would otherwise hold a waiting car for ever (two walking back and forth
+    round a T-junction's corners did, for 150 s): after ZEBRA_TURN_S, new arrivals let it go first, until it
+    has gone over."""
+    from towndrive.sim.pedestrians import ZEBRA_TURN_S
+
+    town = _town()
+    crowd = PedestrianCrowd(town, 0, np.random.default_rng(0), 1000)
+    cw = next(c for c in town.crosswalks if c.approach < 0)
+    centre = cw.polygon.mean(axis=0)
+    heading = math.atan2(*(centre - cw.start)[::-1]) + math.pi / 2
+    car = (centre - 6.0 * np.array([math.cos(heading), math.sin(heading)]))[None, :]
+    standing, moving, head = np.array([0.0]), np.array([2.0]), np.array([heading])
+    assert not crowd._vehicles_turn(cw, car, standing, head, 10.0)  # it has only just stopped
+    assert crowd._vehicles_turn(cw, car, standing, head, 10.0 + ZEBRA_TURN_S)  # it has waited: its turn
+    assert crowd._vehicles_turn(cw, car, moving, head, 11.0 + ZEBRA_TURN_S)  # rolling off: still its turn
+    gone = car + 30.0
+    assert not crowd._vehicles_turn(cw, gone, moving, head, 12.0 + ZEBRA_TURN_S)  # gone over: walkers again
+    assert not crowd._vehicles_turn(cw, car, standing, head, 13.0 + ZEBRA_TURN_S)  # a new wait starts afresh
+
+
 # ------------------------------------------------------------------------------------------ the ego
 def test_stop_sign_run_is_charged_a_full_stop_is_not():
     town = _town()
