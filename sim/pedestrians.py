@@ -34,7 +34,7 @@ ZEBRA_BRAKE_MPS2 = 3.0  # a driver stops for a pedestrian on a zebra at this dec
 ZEBRA_REACTION_S = 0.5  # ... after this long
 ZEBRA_MARGIN_M = 1.5  # ... this far short of the zebra
 ZEBRA_TURN_S = 3.0  # a vehicle that has waited this long at an unsignalled zebra goes before newly arriving walkers
-ZEBRA_WAIT_REACH_M = 9.0  # ... standing with its centre this near the zebra's centre, facing it
+ZEBRA_WAIT_REACH_M = 14.0  # ... standing with its centre this near the zebra's centre, facing it (at a stop line too)
 SHIRT_COLORS = [(0.80, 0.15, 0.15), (0.15, 0.35, 0.75), (0.95, 0.85, 0.20), (0.20, 0.60, 0.30),
                 (0.90, 0.90, 0.90), (0.25, 0.25, 0.28), (0.85, 0.45, 0.10), (0.55, 0.25, 0.60)]
 
@@ -98,7 +98,10 @@ class PedestrianCrowd:
         return here + outward * 0.6 * jitter[0] + ARM_VEC[cw.arm] * 0.8 * jitter[1]
 
     def _link_corners(self) -> dict[tuple[int, bool], tuple[int, bool]]:
-        """For each kerb end of a crossing, the end of the crossing round the same corner."""
+        """For each kerb end of a crossing, the nearest end of another crossing of the junction that can be
+        walked to without setting foot on the road: the one round the same corner, or at a T-junction's far
+        side the crossing of the other arm along the sidewalk. An end with none (there is always one) would send
+        the pedestrian back over the same crossing."""
         ends = [(cw.index, s, cw.start if s else cw.end, cw.node) for cw in self.town.crosswalks for s in (True, False)]
         links: dict[tuple[int, bool], tuple[int, bool]] = {}
         for idx, s, p, node in ends:
@@ -107,10 +110,15 @@ class PedestrianCrowd:
                 if node2 != node or idx2 == idx:
                     continue
                 d = float(np.linalg.norm(p2 - p))
-                if d < 9.0 and (best is None or d < best[0]):
+                if (best is None or d < best[0]) and self._walkable(p, p2):
                     best = (d, (idx2, s2))
             links[(idx, s)] = best[1] if best else (idx, s)
         return links
+
+    def _walkable(self, a: np.ndarray, b: np.ndarray) -> bool:
+        """Whether the straight walk from a to b stays off the lanes (sampled every metre)."""
+        n = max(2, int(np.linalg.norm(b - a)))
+        return not any(self.town.on_road(a + (b - a) * t) for t in np.linspace(0.0, 1.0, n + 1)[1:-1])
 
     def walk_allowed(self, cw: Crosswalk, lights: TrafficLights, crossing_time_s: float) -> bool:
         """At a signalled crossing, while the traffic it crosses has red long enough to get across; at an

@@ -203,6 +203,19 @@ def test_a_vehicle_that_has_waited_at_an_unsignalled_zebra_gets_its_turn():
     assert not crowd._vehicles_turn(cw, car, standing, head, 13.0 + ZEBRA_TURN_S)  # a new wait starts afresh
 
 
+@pytest.mark.parametrize("style", ["classic", "suburb", "downtown"])
+def test_pedestrians_turn_the_corner_to_another_crossing_on_foot(style):
+    """Every kerb end of a crossing leads to another crossing of the junction, walked without stepping on a
+    lane; sent back over the same crossing, walkers at wide corners and T-junctions crossed to and fro."""
+    town = cached_town(TownConfig.of_style(style), 4005)
+    crowd = PedestrianCrowd(town, 0, np.random.default_rng(0), 1000)
+    for (idx, at_start), (nxt, nxt_start) in crowd._corner_next.items():
+        assert nxt != idx
+        cw, cw2 = town.crosswalks[idx], town.crosswalks[nxt]
+        a, b = (cw.start if at_start else cw.end), (cw2.start if nxt_start else cw2.end)
+        assert crowd._walkable(a, b) and cw.node == cw2.node
+
+
 # ------------------------------------------------------------------------------------------ the ego
 def test_stop_sign_run_is_charged_a_full_stop_is_not():
     town = _town()
