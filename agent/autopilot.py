@@ -51,6 +51,7 @@ if TYPE_CHECKING:
 LEAD_GAP_M = 2.5  # bumper gap kept to a stopped vehicle or pedestrian ahead
 STOP_GAP_M = 0.3  # ... and to the stop point before a stop line
 HOLD_MARGIN_M = 0.8  # within this of the stopping point at walking pace, brake to a standstill
+LANE_CHANGE_ROOM_M = 8.0  # no lane change this near a road's end: a turn from the wrong lane waits short of it
 
 
 class Autopilot:
@@ -116,6 +117,22 @@ class Autopilot:
                 for k in range(world.town.lane_count(edge))]
         return lats.index(min(lats))
 
+    def wrong_lane_gap(self, world: World, chosen: int) -> float | None:
+        """Distance to where a lane change stops being possible, while the announced turn must start from
+        another lane than the one the car keeps to (``chosen``: it has not begun to change): the car waits
+        there for that lane to clear rather than turn across it."""
+        town = world.town
+        edge = world.route[world.route_index]
+        if town.lane_info[(*edge, 0)].kind != "road" or world.route_index + 1 >= len(world.route):
+            return None
+        if world.command() not in (Command.LEFT, Command.RIGHT):
+            return None
+        if chosen in lanes_for(town.lane_info[(*world.route[world.route_index + 1], 0)].command, town.lane_count(edge)):
+            return None
+        lane = town.lane((*edge, chosen))
+        s = float(lane.local_coordinates(world.ego.position)[0])
+        return max(0.0, lane.length - LANE_CHANGE_ROOM_M - s - world.ego.LENGTH / 2)
+
     def choose_lane(self, world: World) -> int:
         """The lane to drive in: the current one, unless the announced turn must start from the other lane
         (left turns from lane 0, right turns from lane 1); change when that lane is clear.
@@ -134,8 +151,8 @@ class Autopilot:
             return current
         target = town.network.graph[edge[0]][edge[1]][allowed[0]]
         s0 = float(target.local_coordinates(world.ego.position)[0])
-        if target.length - s0 < 8.0:
-            return current  # too late to change lanes: take the move from here
+        if target.length - s0 < LANE_CHANGE_ROOM_M:
+            return current  # too late to change lanes (wrong_lane_gap held the car short of here while it could)
         for v in world.npcs:
             if math.hypot(*(v.position - world.ego.position)) < 20.0:
                 s, lat = target.local_coordinates(v.position)
@@ -249,6 +266,9 @@ class Autopilot:
                                                 min_gap_m=LEAD_GAP_M))
             hold |= gap < LEAD_GAP_M + HOLD_MARGIN_M and lead_speed < 0.5
         stop = self.stop_gap(world, agents)
+        wrong = self.wrong_lane_gap(world, self._path_lanes[0][2])
+        if wrong is not None:
+            stop = wrong if stop is None else min(stop, wrong)
         if not self.ignore_lights:  # the signs too: an autopilot that ignores lights tests the infraction checks
             wait = self.junction_stop_gap(world, agents, zebra)
             if wait is not None:

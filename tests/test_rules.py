@@ -348,3 +348,40 @@ def test_autopilot_passes_the_scenarios_of_unsignalled_towns(name: str):
 
     result = run_scenario(name, Autopilot(), DriveConfig(render_camera=False))
     assert result.passed, result.detail
+
+
+def test_autopilot_waits_for_the_turning_lane_rather_than_turn_across_the_other():
+    """Announced a right turn in the inner lane with a car alongside in the outer one, the autopilot holds
+    short of the junction until it can change lanes; it used to turn from the inner lane, across the car."""
+    from towndrive.agent.drivers import make_driver
+    from towndrive.envs.drive_env import DriveConfig, DriveEnv
+    from towndrive.sim.town import Command
+
+    town = cached_town(TownConfig(), 4000)
+    right = next(k for k, i in town.lane_info.items() if i.kind == "connector" and i.command == Command.RIGHT
+                 and k[2] == 1 and town.lane_info[(*_edge_into(town, k[0]), 0)].kind == "road")
+    road = _edge_into(town, right[0])
+    goal = (right[1], next(iter(town.network.graph[right[1]])))
+    lane = town.lane((*road, 0))
+    world = World(town, WorldConfig(npc_count=0, pedestrian_count=0), seed=0, start=(*road, 0),
+                  start_s=lane.length - 45.0, goal=goal, spawn_traffic=False)
+    npc = world.spawn_npc((*road, 1), lane.length - 45.0, SemanticClass.CAR, target_speed=7.0, min_gap_m=0.0)
+    assert npc is not None
+    env = DriveEnv(DriveConfig(render_camera=False))
+    driver = make_driver("autopilot")
+    obs, _ = env.reset(seed=0, options={"world": world})
+    driver.reset(env)
+    entered = None
+    for _ in range(1200):  # it waits beside the car at the junction's red light, then changes lanes
+        obs, _, term, trunc, info = env.step(driver.act(obs))
+        if entered is None and world.route[world.route_index][:2] == right[:2]:
+            entered = world.ego_lane[0] if world.ego_lane is not None else None
+        if term or trunc or world.route_index > world.route.index(right[:2]):
+            break
+    env.close()
+    assert entered is not None and entered[2] == 1, entered
+    assert not info["infraction_counts"]
+
+
+def _edge_into(town: Town, node: str) -> tuple[str, str]:
+    return next((frm, to) for frm, tos in town.network.graph.items() for to in tos if to == node)
