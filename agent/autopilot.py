@@ -6,7 +6,11 @@ target speed, capped by an IDM planner that keeps a time headway to whatever is 
 (vehicles in its lane, pedestrians in or stepping into it; vehicles in other lanes are ignored),
 stops before the stop line on red and on yellow when a comfortable stop is possible, and waits for
 oncoming traffic before an unprotected left turn. CARLA's BasicAgent handles lanes, lights and
-leaders; this one also handles stop lines and pedestrians.
+leaders; this one also handles stop lines and pedestrians. At unsignalled junctions it follows the
+world's own rules (``sim.rules``, the ones the NPCs obey and the ego is charged by): a full stop at a
+stop line, then its turn in the arrival order and a gap in the priority traffic; at a give-way line a
+slow approach and the same gap; on a priority street a left turn waits for oncoming traffic. It keeps
+under the posted limits (slowing before a lower one) and stops for people on unsignalled zebras.
 
 Noise injection (off by default): now and then a steering perturbation is added for a moment and the
 car recovers from it. ``clean_action`` keeps the expert's own action for the step, which is what a
@@ -24,8 +28,20 @@ from highway_env.road.lane import AbstractLane
 from towndrive.agent.decision.pid import PID, STEER_RATE_PER_S  # noqa: F401 (re-exported)
 from towndrive.envs.driver_context import DriverContext
 from towndrive.sim.objects import LightState
-from towndrive.sim.town import Command, lanes_for
-from towndrive.sim.traffic import Agents, crosswalk_gap, curve_speed_limit, idm_acceleration, oncoming_conflict, path_gap
+from towndrive.sim.rules import turn_after
+from towndrive.sim.town import Command, Control, lanes_for
+from towndrive.sim.traffic import (
+    CURVE_BRAKE_MPS2,
+    YIELD_APPROACH_MPS,
+    Agents,
+    crosswalk_gap,
+    curve_speed_limit,
+    idm_acceleration,
+    junction_gap,
+    oncoming_conflict,
+    path_gap,
+    posted_speed_cap,
+)
 from towndrive.sim.world import EGO_ID, World
 
 if TYPE_CHECKING:
@@ -35,6 +51,7 @@ if TYPE_CHECKING:
 LEAD_GAP_M = 2.5  # bumper gap kept to a stopped vehicle or pedestrian ahead
 STOP_GAP_M = 0.3  # ... and to the stop point before a stop line
 HOLD_MARGIN_M = 0.8  # within this of the stopping point at walking pace, brake to a standstill
+LANE_CHANGE_ROOM_M = 8.0  # no lane change this near a road's end: a turn from the wrong lane waits short of it
 
 
 class Autopilot:
@@ -87,26 +104,55 @@ class Autopilot:
         return self.env.world
 
     # ------------------------------------------------------------------ decisions
+    @staticmethod
+    def _lane_on(world: World, edge: tuple[str, str]) -> int:
+        """The lane of the route's edge the car is in: the located lane where it lies on that edge, else the
+        edge's lane nearest the car (inside a junction, where the car may be located on another move's
+        connector, whose lane number says nothing of this edge's)."""
+        if world.ego_lane is None:
+            return 0
+        if world.ego_lane[0][:2] == edge:
+            return world.ego_lane[0][2]
+        lats = [abs(world.town.lane((*edge, k)).local_coordinates(world.ego.position)[1])
+                for k in range(world.town.lane_count(edge))]
+        return lats.index(min(lats))
+
+    def wrong_lane_gap(self, world: World, chosen: int) -> float | None:
+        """Distance to where a lane change stops being possible, while the announced turn must start from
+        another lane than the one the car keeps to (``chosen``: it has not begun to change): the car waits
+        there for that lane to clear rather than turn across it."""
+        town = world.town
+        edge = world.route[world.route_index]
+        if town.lane_info[(*edge, 0)].kind != "road" or world.route_index + 1 >= len(world.route):
+            return None
+        if world.command() not in (Command.LEFT, Command.RIGHT):
+            return None
+        if chosen in lanes_for(town.lane_info[(*world.route[world.route_index + 1], 0)].command, town.lane_count(edge)):
+            return None
+        lane = town.lane((*edge, chosen))
+        s = float(lane.local_coordinates(world.ego.position)[0])
+        return max(0.0, lane.length - LANE_CHANGE_ROOM_M - s - world.ego.LENGTH / 2)
+
     def choose_lane(self, world: World) -> int:
         """The lane to drive in: the current one, unless the announced turn must start from the other lane
         (left turns from lane 0, right turns from lane 1); change when that lane is clear.
 
         It waits for the route command to announce the turn, as a driver who only hears the command would:
         a lane change the camera sees under "follow" would teach a cloned driver to weave."""
-        current = world.ego_lane[0][2] if world.ego_lane is not None else 0
         town = world.town
         edge = world.route[world.route_index]
+        current = self._lane_on(world, edge)
         if town.lane_info[(*edge, 0)].kind != "road" or world.route_index + 1 >= len(world.route):
             return current
         if world.command() not in (Command.LEFT, Command.RIGHT):
             return current
-        allowed = lanes_for(town.lane_info[(*world.route[world.route_index + 1], 0)].command)
+        allowed = lanes_for(town.lane_info[(*world.route[world.route_index + 1], 0)].command, town.lane_count(edge))
         if current in allowed:
             return current
         target = town.network.graph[edge[0]][edge[1]][allowed[0]]
         s0 = float(target.local_coordinates(world.ego.position)[0])
-        if target.length - s0 < 8.0:
-            return current  # too late to change lanes: take the move from here
+        if target.length - s0 < LANE_CHANGE_ROOM_M:
+            return current  # too late to change lanes (wrong_lane_gap held the car short of here while it could)
         for v in world.npcs:
             if math.hypot(*(v.position - world.ego.position)) < 20.0:
                 s, lat = target.local_coordinates(v.position)
@@ -121,11 +167,12 @@ class Autopilot:
         path = []
         self._path_lanes = []
         total = 0.0
+        index: tuple[str, str, int] | None = None
         for frm, to in world.route[world.route_index:world.route_index + 4]:
             lanes = graph[frm][to]
-            k = min(lane_id, len(lanes) - 1)
-            path.append((lanes[k], total))
-            self._path_lanes.append((frm, to, k))
+            index = (frm, to, min(lane_id, len(lanes) - 1)) if index is None else world.town.next_lane(index, (frm, to))
+            path.append((lanes[index[2]], total))
+            self._path_lanes.append(index)
             total += lanes[0].length
         s0 = float(path[0][0].local_coordinates(world.ego.position)[0])
         return path, s0
@@ -151,8 +198,27 @@ class Autopilot:
         wheel = math.atan2(2.0 * ego.LENGTH * math.sin(alpha), max(math.hypot(dx, dy), 1e-3))
         return max(-1.0, min(1.0, wheel / ego.MAX_STEER_RAD))
 
+    def junction_stop_gap(self, world: World, agents: Agents, zebra: float | None) -> float | None:
+        """At an unsignalled junction ahead: the distance to where the car must stop, if the rules say wait
+        (``sim.traffic.junction_gap``: the world's rules, the NPCs' too), else None."""
+        control = world.next_control()
+        if control is None or control.control == Control.SIGNAL:
+            return None
+        entry = world.town.entries[control.entry]
+        if control.distance_m < -0.3:
+            return None  # the bumper is over the line: clear the junction
+        index = world.route.index(entry.edge, world.route_index)
+        turn = turn_after(world.town, world.route, index)
+        gap = max(control.distance_m - 0.8, 0.0)
+        zebra_beyond = None if zebra is None else zebra - 0.8
+        return junction_gap(world.town, world.junctions, EGO_ID, entry, turn, gap, agents, zebra_beyond)
+
     def stop_gap(self, world: World, agents: Agents) -> float | None:
         """Distance to where the car must stop for a light or an unprotected left turn, if it must."""
+        if world.town.entries and world.next_control() is not None:
+            control = world.next_control()
+            if control is not None and control.control != Control.SIGNAL:
+                return None  # an unsignalled junction comes first: junction_stop_gap
         light = world.next_light()
         if light is None or self.ignore_lights:
             return None
@@ -180,6 +246,13 @@ class Autopilot:
         self._last_steer = steer
         # Longitudinal: PID to the target speed, capped by the IDM planner's acceleration.
         cruise = min(self.target_speed, curve_speed_limit(path, s0))
+        if world.town.speed_limits_kmh:
+            cruise = min(cruise, posted_speed_cap(world.town, path, self._path_lanes, s0))
+        if world.town.entries and not self.ignore_lights:
+            control = world.next_control()
+            if control is not None and control.control == Control.YIELD and control.distance_m > 0.0:
+                # a give-way line: slow enough to stop at it after a last look
+                cruise = min(cruise, math.sqrt(YIELD_APPROACH_MPS ** 2 + 2.0 * CURVE_BRAKE_MPS2 * control.distance_m))
         accel = self.speed_pid(cruise - ego.speed, dt) * ego.MAX_ACCEL_MPS2
         agents = world.agents()
         lookahead = 15.0 + 3.0 * ego.speed
@@ -193,6 +266,13 @@ class Autopilot:
                                                 min_gap_m=LEAD_GAP_M))
             hold |= gap < LEAD_GAP_M + HOLD_MARGIN_M and lead_speed < 0.5
         stop = self.stop_gap(world, agents)
+        wrong = self.wrong_lane_gap(world, self._path_lanes[0][2])
+        if wrong is not None:
+            stop = wrong if stop is None else min(stop, wrong)
+        if not self.ignore_lights:  # the signs too: an autopilot that ignores lights tests the infraction checks
+            wait = self.junction_stop_gap(world, agents, zebra)
+            if wait is not None:
+                stop = wait if stop is None else min(stop, wait)
         if stop is not None:
             accel = min(accel, idm_acceleration(ego.speed, self.target_speed, stop, ego.speed, min_gap_m=STOP_GAP_M))
             hold |= stop < STOP_GAP_M + HOLD_MARGIN_M

@@ -1,6 +1,6 @@
 """Drive-v0 throughput: env steps per second at 200x66 and 320x160 on the default town with traffic,
 the bare ``getCameraImage`` cost of the same scene measured in the same run (so the simulation's own
-overhead is a ratio), and steps per second with no camera.
+overhead is a ratio), steps per second with no camera, and each town style against the classic town.
 
 Run: ``python bench/bench_env.py`` (add ``--steps N`` for longer runs). Pins itself to one core
 where the OS allows, as the targets are for one core.
@@ -74,13 +74,54 @@ def run(config: DriveConfig, steps: int, seed: int) -> dict[str, float]:
     return out
 
 
+def style_rows(steps: int, seed: int) -> bool:
+    """Steps per second at 320x160 in each town style against the classic town, in the same run: one env per style,
+    stepped in turn (one step each, round and round), so that a busy neighbour or a slower core weighs on every
+    style alike. Issue 30's bar: the busiest style within 15 % of the classic town. Returns whether it is met."""
+    from towndrive.sim.town import TownConfig
+    from towndrive.sim.town_style import STYLES
+    from towndrive.sim.world import WorldConfig
+
+    envs, drivers, times, bare = {}, {}, {}, {}
+    for name in STYLES:
+        config = DriveConfig(world=WorldConfig(town=TownConfig.of_style(name)), camera=CameraConfig(width=320, height=160))
+        envs[name], drivers[name], times[name], bare[name] = DriveEnv(config), Autopilot(), [], []
+        envs[name].reset(seed=seed)
+        drivers[name].reset(envs[name])
+    for k in range(steps):
+        for name, env in envs.items():
+            action = drivers[name].act({})
+            t = time.perf_counter()
+            _, _, term, trunc, _ = env.step(action)
+            times[name].append(time.perf_counter() - t)
+            if k % 25 == 0:
+                bare[name].append(bare_camera_image_ms(env, 3))
+            if term or trunc:
+                env.reset(seed=seed + k + 1)
+                drivers[name].reset(env)
+    speed = {name: 1.0 / statistics.median(t) for name, t in times.items()}
+    print(f"town styles at 320x160, town seed 0, {steps} steps each, the styles' envs stepped in turn")
+    for name in STYLES:
+        envs[name].close()
+        print(f"{name:>10} {speed[name]:9.1f} steps/s  {speed[name] / speed['classic']:6.3f} x classic  "
+              f"bare render {statistics.median(bare[name]):6.2f} ms  p95 {1000 * float(np.percentile(times[name], 95)):6.2f} ms")
+    busiest = min(speed, key=lambda name: speed[name])
+    slower = 1.0 - speed[busiest] / speed["classic"]
+    ok = slower <= 0.15
+    print(f"slowest style {busiest}: {100 * slower:.1f}% slower than classic (target <= 15%: {'met' if ok else 'NOT MET'})")
+    return ok
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--steps", type=int, default=400)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--styles-only", action="store_true", help="only the town styles against the classic town")
     args = ap.parse_args()
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
+    if args.styles_only:
+        return 0 if style_rows(args.steps, args.seed) else 1
     print(f"Drive-v0 on the default town with traffic, {args.steps} steps each, one core")
     print(f"{'camera':>10} {'steps/s':>9} {'p50 ms':>8} {'p95 ms':>8} {'bare render ms':>15} {'sim overhead':>13}"
           f"  {'steps/s target':>20}  {'overhead <= 30%':>15}")
@@ -97,6 +138,7 @@ def main() -> int:
     res = run(DriveConfig(render_camera=False), args.steps * 3, args.seed)
     print(f"{'none':>10} {res['steps_per_s']:9.1f} {res['step_ms_p50']:8.2f} {res['step_ms_p95']:8.2f}")
     print("targets: >=150 steps/s at 200x66, >=60 at 320x160, simulation overhead <= 30% of the step")
+    ok &= style_rows(args.steps, args.seed)
     print("all targets met" if ok else "some targets NOT met (see rows above)")
     return 0
 

@@ -31,6 +31,9 @@ from towndrive.envs.parallel import DriverSpec, available_cores, parse_workers  
 from towndrive.envs.rules_cli import add_rule_arguments, rules_from_arguments  # noqa: E402
 from towndrive.extras import import_for  # noqa: E402
 from towndrive.sim.render import LIGHTING_PRESETS  # noqa: E402
+from towndrive.sim.splits import TOWN_SPLITS, split_towns  # noqa: E402
+from towndrive.sim.town import TownConfig  # noqa: E402
+from towndrive.sim.town_style import STYLES  # noqa: E402
 from towndrive.sim.world import WorldConfig  # noqa: E402
 
 
@@ -40,8 +43,11 @@ def main(argv: list[str] | None = None) -> int:
                     help="driver names; NAME@MODEL uses another model file (e.g. pilotnet@out/pilotnet/bc.pt)")
     ap.add_argument("--episodes", type=int, default=10)
     ap.add_argument("--seed", type=int, default=500)
-    ap.add_argument("--town-seed", type=int, default=100)
+    ap.add_argument("--town-seed", type=int, default=None, help="first town (default 100, or the split's first)")
     ap.add_argument("--towns", type=int, default=5)
+    ap.add_argument("--town-style", default="classic", choices=sorted(STYLES), help="the kind of town")
+    ap.add_argument("--split", default=None, choices=list(TOWN_SPLITS),
+                    help="take the towns from this split's town seeds (sim/splits.py)")
     ap.add_argument("--weathers", default="all", help="comma-separated presets or 'all'")
     ap.add_argument("--traffic", type=float, default=0.0, help="NPC and pedestrian density (0: empty town)")
     ap.add_argument("--seconds", type=float, default=120.0, help="time limit per episode")
@@ -59,13 +65,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reuse", action="store_true",
                     help="take a driver's row from an earlier run in --out with the same settings instead of re-running")
     args = ap.parse_args(argv)
+    if args.split is not None:
+        first = split_towns(args.split, args.towns)[0]
+        if args.town_seed not in (None, first):
+            ap.error(f"--split {args.split} starts at town {first}; drop --town-seed")
+        args.town_seed = first
+    elif args.town_seed is None:
+        args.town_seed = 100
     args.workers = parse_workers(args.workers)
     if args.ray:
         import_for("ray", "--ray")
         if args.ray == "local" and args.workers == 1:
             args.workers = available_cores()
     weathers = sorted(LIGHTING_PRESETS) if args.weathers == "all" else args.weathers.split(",")
-    base = WorldConfig()
+    base = WorldConfig(town=TownConfig.of_style(args.town_style))
     world = replace(base, npc_count=round(base.npc_count * args.traffic),
                     pedestrian_count=round(base.pedestrian_count * args.traffic))
     config = DriveConfig(world=world, max_time_s=args.seconds)
@@ -104,7 +117,9 @@ def main(argv: list[str] | None = None) -> int:
                     f"{m['distance_km']:.2f} | {inf} | {m.get('standing_clear_s', 0.0):.0f} / "
                     f"{m.get('longest_clear_hold_s', 0.0):.0f} | {_audit_cell(m)} | "
                     f"{float((folder / 'wall_s.txt').read_text()):.0f} |")
-    head = [f"Towns {args.town_seed}-{args.town_seed + args.towns - 1}, seeds {args.seed}-{args.seed + args.episodes - 1}, "
+    style = "" if args.town_style == "classic" else f"{args.town_style} "
+    towns = f"{args.town_seed}-{args.town_seed + args.towns - 1}"
+    head = [f"{style}Towns {towns}, seeds {args.seed}-{args.seed + args.episodes - 1}, "
             f"weathers {', '.join(weathers)}, traffic x{args.traffic:g}, {args.seconds:g} s per episode", "",
             "| driver | route completion % | driving score | autonomy % | interventions | mean abs lane offset m "
             "| mean speed m/s | km | infractions | standing clear s: total / longest | audit: confirmed / "

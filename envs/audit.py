@@ -10,13 +10,15 @@ ego) with separate code that is simple enough to check by eye, and compares the 
   the light of the approach the bar belongs to is red;
 - vehicle collision: the ego's rectangle overlaps a car's or truck's rectangle (separating axes);
   pedestrian collision: a person's circle touches the ego's rectangle; static collision: a building's
-  footprint, a light pole or a tree trunk touches it; each counted when the contact starts;
+  footprint, a parked car, a light pole, a sign post or a tree trunk touches it; each counted when the
+  contact starts;
 - off road: no lane of the network (brute force over the lanes nearby) holds the ego's centre within
   half a lane width; counted when it starts;
 - wrong way: the ego's heading is more than 100 degrees from the nearest lane holding its centre,
   unless that lane is inside a junction; counted when it starts.
 
-Route deviation is the route tracker's judgement, not a rule of the road; it is not audited.
+Route deviation is the route tracker's judgement, not a rule of the road; it is not audited. Nor, yet, are
+the rules of unsignalled towns (``stop_sign``, ``failed_to_yield``, ``speeding``).
 
 A safety driver's take-over carries the car elsewhere: nothing is counted across it, and contacts
 start afresh after it, as in the world.
@@ -32,7 +34,7 @@ import numpy as np
 
 from towndrive.sim.objects import LightState
 from towndrive.sim.town import Town
-from towndrive.sim.world import World
+from towndrive.sim.world import SIGN_POST_RADIUS_M, World
 
 AUDITED = ("red_light", "collision_vehicle", "collision_pedestrian", "collision_static", "off_road", "wrong_way")
 MATCH_S = 0.5  # a reported and a recomputed infraction of the same kind and party this close in time agree
@@ -117,12 +119,16 @@ class StopBar:
 
 
 def stop_bars(town: Town) -> list[StopBar]:
-    """The painted stop bars, each with its approach (the one whose stop-line centre is its near edge's middle)."""
+    """The painted stop bars of signalled approaches, each with its approach (the one whose stop-line centre is its
+    near edge's middle); the bars of stop signs have no light and are left out."""
     centres = np.array([ap.stop_line_center for ap in town.approaches])
     bars = []
     for quad in town.markings["stop_line"]:
         far_inner, near_inner, near_outer, far_outer = (np.asarray(p, float) for p in quad)
-        approach = int(np.argmin(np.linalg.norm(centres - (near_inner + near_outer) / 2, axis=1)))
+        middle = (near_inner + near_outer) / 2
+        if not len(centres) or float(np.min(np.linalg.norm(centres - middle, axis=1))) > 0.5:
+            continue  # a stop sign's bar
+        approach = int(np.argmin(np.linalg.norm(centres - middle, axis=1)))
         travel = far_inner - near_inner
         bars.append(StopBar(approach, (far_inner, far_outer), travel / np.linalg.norm(travel)))
     return bars
@@ -159,7 +165,11 @@ def recompute(town: Town, trace: AuditTrace) -> list[dict[str, Any]]:
     table = _LaneTable(town)
     static_rects = [b.footprint for b in town.buildings]
     static_centres = np.array([b.footprint.mean(axis=0) for b in town.buildings]) if static_rects else np.zeros((0, 2))
+    static_rects += [_rectangle(float(c.position[0]), float(c.position[1]), c.heading, c.length_m, c.width_m)
+                     for c in town.parked_cars]
+    static_centres = np.array([r.mean(axis=0) for r in static_rects]) if static_rects else np.zeros((0, 2))
     circles = [(np.asarray(p, float), Town.POLE_RADIUS_M) for p in town.poles]
+    circles += [(np.asarray(g.position, float), SIGN_POST_RADIUS_M) for g in town.signs]
     circles += [(np.asarray(t.position, float), Town.TRUNK_RADIUS_M) for t in town.trees]
     circle_centres = np.array([c for c, _ in circles]) if circles else np.zeros((0, 2))
     length, width = trace.ego_size

@@ -41,14 +41,18 @@ from towndrive.sim.render import LIGHTING_PRESETS, CameraConfig, CameraFrame, Sc
 from towndrive.sim.render_kernels import object_boxes
 from towndrive.sim.spec import EPISODE_S, MIRRORS
 from towndrive.sim.topdown import TopDownMap
-from towndrive.sim.town import Command
+from towndrive.sim.town import Command, Control, SignKind, TownConfig
 from towndrive.sim.world import TERMINAL_INFRACTIONS, World, WorldConfig, cached_town
 
-INFRACTION_REWARD = {"red_light": -5.0, "wrong_way": -2.0, "route_deviation": -2.0}
+INFRACTION_REWARD = {"red_light": -5.0, "stop_sign": -4.0, "failed_to_yield": -5.0, "speeding": -1.0, "wrong_way": -2.0,
+                     "route_deviation": -2.0}
 # Lower-case names by value, one table per enum (IntEnum members of different enums compare equal as ints).
 _CLASS_NAMES = {int(c): c.name.lower() for c in SemanticClass}
 _LIGHT_NAMES = {int(s): s.name.lower() for s in LightState}
 _COMMAND_NAMES = {int(c): c.name.lower() for c in Command}
+_CONTROL_NAMES = {int(c): c.name.lower() for c in Control}
+_SIGN_NAMES = {int(k): k.name.lower() for k in SignKind}
+SIGNS_NEAR_M = 60.0  # info["signs"]: the signs this near that face the car
 
 
 # The blind-spot cameras: under each door mirror (1.0 m ahead of the car's centre, 1.0 m out, 1.0 m up), turned
@@ -143,9 +147,10 @@ class DriveEnv(gym.Env):
 
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[dict, dict]:
-        """Start an episode. ``options`` may set ``town_seed``, ``weather``, ``traffic_density``
-        (multiplies NPCs and pedestrians), ``start`` (lane index), ``goal`` (edge) and ``world``
-        (a ready-made World, used by scenarios)."""
+        """Start an episode. ``options`` may set ``town_seed``, ``town_style`` (``sim.town_style``: the
+        style's town config replaces the configured one), ``weather``, ``traffic_density`` (multiplies NPCs
+        and pedestrians), ``start`` (lane index), ``goal`` (edge) and ``world`` (a ready-made World, used by
+        scenarios)."""
         self._require_open()
         if seed is not None:
             check_number("seed", seed, 0, MAX_TOWN_SEED, integer=True)
@@ -155,6 +160,8 @@ class DriveEnv(gym.Env):
         town_seed = options.get("town_seed", self.config.town_seed)
         self.weather = options.get("weather", self.config.weather)
         wcfg = self.config.world
+        if "town_style" in options and options["town_style"] != wcfg.town.style:
+            wcfg = replace(wcfg, town=TownConfig.of_style(options["town_style"]))
         density = options.get("traffic_density", 1.0)
         if density != 1.0:
             wcfg = replace(wcfg, npc_count=int(round(wcfg.npc_count * density)),
@@ -364,6 +371,7 @@ class DriveEnv(gym.Env):
         world = self._require_world()
         ego = world.ego
         nl = world.next_light()
+        nc = world.next_control()
         lane = world.ego_lane
         return {
             "time_s": world.time_s,
@@ -375,6 +383,12 @@ class DriveEnv(gym.Env):
             "command": _COMMAND_NAMES[world.command()],
             "next_light": None if nl is None else {"approach": nl.approach, "state": _LIGHT_NAMES[nl.state],
                                                    "distance_m": float(nl.distance_m)},
+            "next_control": None if nc is None else {"kind": _CONTROL_NAMES[nc.control], "distance_m": float(nc.distance_m),
+                                                     "entry": nc.entry, "approach": nc.approach},
+            "signs": [{"id": g.index, "kind": _SIGN_NAMES[g.kind], "value_kmh": g.value_kmh or None,
+                       "x": float(g.position[0]), "y": float(g.position[1]), "distance_m": d}
+                      for g, d in world.signs_near(SIGNS_NEAR_M)],
+            "speed_limit_kmh": world.speed_limit_here_kmh(),
             "objects": self._visible_objects(),
             "infractions": [inf.__dict__.copy() for inf in new_infractions],
             "infraction_counts": _count(world.infractions),
@@ -383,6 +397,7 @@ class DriveEnv(gym.Env):
             "distance_m": world.distance_m,
             "weather": self.weather,
             "town_seed": world.town.seed,
+            "town_style": world.town.config.style,
         }
 
 

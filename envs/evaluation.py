@@ -207,7 +207,7 @@ def run_episode(env: DriveEnv, driver: Driver, seed: int, video: Any = None, pro
     world = env.world
     assert world is not None
     trace = EpisodeTrace(seed, world.route_total_m, world.config.dt_s, town_seed=world.town.seed, weather=env.weather,
-                         takeover_penalty=rules.takeover_penalty)
+                         takeover_penalty=rules.takeover_penalty, town_style=world.town.config.style)
     truth = AuditTrace() if audit else None
     state = _RuleState(section_end_m=world.route_progress_m + rules.min_speed_section_m)
     dt = world.config.dt_s

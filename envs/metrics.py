@@ -4,8 +4,9 @@ Per episode:
   route_completion     % of the route's length driven along the route (0-100)
   infraction_penalty   product of the Leaderboard multipliers, once per infraction:
                        pedestrian collision 0.50, vehicle 0.60, static object 0.65, red light 0.70,
-                       stop-line violation 0.80 (kinds without a multiplier, e.g. wrong way, count 1.0);
-                       and once per safety-driver take-over, ``EvaluationRules.takeover_penalty`` (0.70)
+                       stop sign 0.80, failed to yield 0.70, speeding 0.90 (kinds without a multiplier, e.g.
+                       wrong way, count 1.0); and once per safety-driver take-over,
+                       ``EvaluationRules.takeover_penalty`` (0.70)
   driving_score        route_completion x infraction_penalty (0-100)
   infractions_per_km   every infraction kind, per kilometre driven
   autonomy             (1 - interventions x 6 s / elapsed s) x 100, at least 0
@@ -50,8 +51,13 @@ from typing import Any
 
 import numpy as np
 
+# The Leaderboard's multipliers; stop_sign is its "stop infraction" (0.80). The Leaderboard has neither of the
+# other two rules of unsignalled towns, so: failed_to_yield 0.70, as a red light (both put the car in front of
+# traffic that has the right of way; Leaderboard 2.0 also charges 0.70 for not yielding to an emergency vehicle);
+# speeding 0.90, once per stretch over the limit: a rule broken with no other party at a conflict point, so it
+# costs less than a rolled stop (0.80), but every stretch counts, so a car that speeds on every street pays often.
 PENALTY = {"collision_pedestrian": 0.50, "collision_vehicle": 0.60, "collision_static": 0.65, "red_light": 0.70,
-           "stop_line": 0.80, "hold_timeout": 0.70}
+           "stop_sign": 0.80, "failed_to_yield": 0.70, "speeding": 0.90, "hold_timeout": 0.70}
 INTERVENTION_INFRACTIONS = {"collision_pedestrian", "collision_vehicle", "collision_static", "off_road",
                             "route_deviation"}
 INTERVENTION_OFFSET_M = 1.0
@@ -103,6 +109,7 @@ class EpisodeTrace:
     distance_m: float = 0.0
     town_seed: int = 0
     weather: str = "noon"
+    town_style: str = "classic"
 
     def add_step(self, info: dict[str, Any], action: np.ndarray, standing_clear: bool = False) -> None:
         """Keep one step's figures; ``standing_clear``: the car stood with nothing in its path (``envs.standing``)."""
@@ -155,6 +162,7 @@ def episode_metrics(trace: EpisodeTrace) -> dict[str, Any]:
     return {
         "seed": trace.seed,
         "town_seed": trace.town_seed,
+        "town_style": trace.town_style,
         "weather": trace.weather,
         "route_completion": round(completion, 3),
         "infraction_penalty": round(penalty, 6),

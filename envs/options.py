@@ -14,7 +14,7 @@ from towndrive.sim.checks import check_number
 from towndrive.sim.render import LIGHTING_PRESETS
 from towndrive.sim.town import Town
 
-RESET_OPTIONS = ("town_seed", "weather", "traffic_density", "start", "goal", "world")
+RESET_OPTIONS = ("town_seed", "town_style", "weather", "traffic_density", "start", "goal", "world")
 MAX_TOWN_SEED = 2**32 - 1  # NumPy's seeds are non-negative
 # Up to 5x the default traffic (80 cars, 120 pedestrians); the densest data set used 2.5x. Far beyond it the
 # spawner cannot place the cars and a reset would search for room for ever.
@@ -87,6 +87,12 @@ def check_reset_options(options: dict[str, Any] | None) -> dict[str, Any]:
         options["traffic_density"] = traffic_density(options["traffic_density"])
     if "weather" in options:
         options["weather"] = weather(options["weather"])
+    if "town_style" in options:
+        from towndrive.sim.town_style import style_named
+
+        if not isinstance(options["town_style"], str):
+            raise ValueError(f"town_style must be a style name; got {options['town_style']!r}.")
+        style_named(options["town_style"])
     if "world" in options:
         from towndrive.sim.world import World
 

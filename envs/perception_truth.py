@@ -157,8 +157,10 @@ def lane_truth(world: World, camera: CameraConfig, ground_map: GroundMap, depth_
     edge = index[:2]
     if edge in world.route:
         k = world.route.index(edge)
+        prev = index
         for nxt in world.route[k + 1:k + 3]:
-            nidx = (nxt[0], nxt[1], index[2])
+            nidx = town.next_lane(prev, nxt)
+            prev = nidx
             if town.lane_info.get(nidx) is None or town.lane_info[nidx].kind == "connector":
                 break
             chain.append((nidx, 0.0))

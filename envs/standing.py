@@ -15,25 +15,30 @@ would call a reason.
 from __future__ import annotations
 
 from towndrive.sim.objects import LightState
-from towndrive.sim.town import Approach, Command
+from towndrive.sim.town import Approach, Command, Control
 from towndrive.sim.traffic import crosswalk_gap, oncoming_conflict, path_gap
 from towndrive.sim.world import EGO_ID, World
 
 STANDING_SPEED_MPS = 0.1  # below this the car stands
 STANDING_LOOKAHEAD_M = 12.0  # an agent or an occupied zebra this far ahead of the bumper is a reason to stand
 STANDING_LIGHT_M = 15.0  # a red or yellow stop bar this close ahead is a reason to stand
+STOPPING_CONTROLS = (Control.STOP, Control.ALL_WAY_STOP, Control.YIELD)  # lines at which waiting is the rule
 STANDING_LATERAL_M = 3.0  # half-width of the corridor in which a vehicle or pedestrian counts
 
 
 def standing_reason(world: World) -> str | None:
     """What in the world holds the standing ego up ("vehicle or pedestrian", "crosswalk", "red light",
-    "yellow light", "oncoming traffic", "off road"), or None when nothing does. Call it when the car stands."""
+    "yellow light", "stop sign", "give way", "oncoming traffic", "off road"), or None when nothing does. Call
+    it when the car stands."""
     ego = world.ego
     if world.ego_lane is None:
         return "off road"
     light = world.next_light(horizon_m=STANDING_LIGHT_M)
     if light is not None and light.state != LightState.GREEN and light.distance_m > -1.0:
         return f"{light.state.name.lower()} light"
+    control = world.next_control(horizon_m=STANDING_LIGHT_M)
+    if control is not None and control.control in STOPPING_CONTROLS and control.distance_m > -1.0:
+        return "stop sign" if control.control != Control.YIELD else "give way"  # its turn, a gap: sim.rules
     path, path_lanes, s0 = _route_path(world)
     agents = world.agents()
     gap, _ = path_gap(path, s0, ego.LENGTH / 2, agents, EGO_ID, ego.position, STANDING_LOOKAHEAD_M,
@@ -57,11 +62,13 @@ def _route_path(world: World) -> tuple[list, list[tuple[str, str, int]], float]:
     edges = world.route[world.route_index:world.route_index + 3]
     edges = [here, *edges] if here not in edges else edges[edges.index(here):]
     path, lanes, total = [], [], 0.0
+    index: tuple[str, str, int] | None = None
     for frm, to in edges:
         options = graph[frm][to]
-        lane = options[min(k, len(options) - 1)]
+        index = (frm, to, min(k, len(options) - 1)) if index is None else world.town.next_lane(index, (frm, to))
+        lane = options[index[2]]
         path.append((lane, total))
-        lanes.append((frm, to, min(k, len(options) - 1)))
+        lanes.append(index)
         total += lane.length
     s0 = float(path[0][0].local_coordinates(world.ego.position)[0])
     return path, lanes, s0

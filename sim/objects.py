@@ -26,9 +26,21 @@ class SemanticClass(IntEnum):
     CAR = 12
     TRUCK = 13
     PEDESTRIAN = 14
+    STOP_SIGN = 15  # a sign's plate (its post is POLE)
+    YIELD_SIGN = 16
+    SPEED_LIMIT_SIGN = 17
 
+
+CAR_COLORS = [  # body colours of cars, moving and parked
+    (0.75, 0.08, 0.08), (0.08, 0.20, 0.60), (0.92, 0.92, 0.90), (0.10, 0.10, 0.11), (0.55, 0.56, 0.58),
+    (0.85, 0.65, 0.10), (0.10, 0.42, 0.20), (0.35, 0.55, 0.80), (0.60, 0.30, 0.10), (0.95, 0.45, 0.65),
+]
 
 LIGHT_ID_BASE = 10000  # segmentation object id of approach k's traffic light: LIGHT_ID_BASE + k
+# Segmentation object id of the town's sign k: SIGN_ID_BASE + k. Below LIGHT_ID_BASE, so that code which takes
+# every id from LIGHT_ID_BASE up for a light stays right; a town has at most MAX_SIGNS signs.
+SIGN_ID_BASE = 9000
+MAX_SIGNS = LIGHT_ID_BASE - SIGN_ID_BASE
 
 
 class LightState(IntEnum):

@@ -4,6 +4,10 @@ A pedestrian waits at the kerb until the crossing's signal allows walking (the c
 traffic has red for long enough to get across) and no vehicle is on or about to enter the
 crossing, then walks over; on the far kerb it turns the corner to the next crossing. Now and then
 (configurable) one jaywalks: crosses without waiting for the signal, still not into a car.
+
+At an unsignalled crossing (a zebra at a stop, give-way or priority junction) the pedestrian has the
+right of way: it steps onto the zebra unless a vehicle is on it or could not stop before it
+(``_cannot_stop``), and the vehicles stop for whoever is on it (``sim.traffic.crosswalk_gap``).
 """
 
 from __future__ import annotations
@@ -26,6 +30,11 @@ DETOUR_CLEARANCE_M = 0.9  # distance kept from the car's end while walking round
 DEFAULT_HALF_SIZE = (2.3, 0.95)  # a car's half length and half width
 MOVING_CAR_AHEAD_M = 1.2  # a moving car bars the way when it is near the point this far ahead of a pedestrian
 MOVING_CAR_CLEAR_M2 = 2.8 ** 2  # ... within 2.8 m (squared)
+ZEBRA_BRAKE_MPS2 = 3.0  # a driver stops for a pedestrian on a zebra at this deceleration or gentler
+ZEBRA_REACTION_S = 0.5  # ... after this long
+ZEBRA_MARGIN_M = 1.5  # ... this far short of the zebra
+ZEBRA_TURN_S = 3.0  # a vehicle that has waited this long at an unsignalled zebra goes before newly arriving walkers
+ZEBRA_WAIT_REACH_M = 14.0  # ... standing with its centre this near the zebra's centre, facing it (at a stop line too)
 SHIRT_COLORS = [(0.80, 0.15, 0.15), (0.15, 0.35, 0.75), (0.95, 0.85, 0.20), (0.20, 0.60, 0.30),
                 (0.90, 0.90, 0.90), (0.25, 0.25, 0.28), (0.85, 0.45, 0.10), (0.55, 0.25, 0.60)]
 
@@ -71,6 +80,7 @@ class PedestrianCrowd:
         self._corner_next = self._link_corners()
         # Kerb-to-kerb length of each crossing (the same in both directions: hypot ignores signs).
         self._crossing_length = [math.hypot(*(cw.end - cw.start)) for cw in town.crosswalks]
+        self._vehicle_waiting_since: dict[int, float] = {}  # unsignalled zebra -> when a vehicle began to wait at it
         crosswalks = town.crosswalks
         for k in range(count if crosswalks else 0):
             cw = crosswalks[int(rng.integers(len(crosswalks)))]
@@ -88,7 +98,10 @@ class PedestrianCrowd:
         return here + outward * 0.6 * jitter[0] + ARM_VEC[cw.arm] * 0.8 * jitter[1]
 
     def _link_corners(self) -> dict[tuple[int, bool], tuple[int, bool]]:
-        """For each kerb end of a crossing, the end of the crossing round the same corner."""
+        """For each kerb end of a crossing, the nearest end of another crossing of the junction that can be
+        walked to without setting foot on the road: the one round the same corner, or at a T-junction's far
+        side the crossing of the other arm along the sidewalk. An end with none (there is always one) would send
+        the pedestrian back over the same crossing."""
         ends = [(cw.index, s, cw.start if s else cw.end, cw.node) for cw in self.town.crosswalks for s in (True, False)]
         links: dict[tuple[int, bool], tuple[int, bool]] = {}
         for idx, s, p, node in ends:
@@ -97,12 +110,21 @@ class PedestrianCrowd:
                 if node2 != node or idx2 == idx:
                     continue
                 d = float(np.linalg.norm(p2 - p))
-                if d < 9.0 and (best is None or d < best[0]):
+                if (best is None or d < best[0]) and self._walkable(p, p2):
                     best = (d, (idx2, s2))
             links[(idx, s)] = best[1] if best else (idx, s)
         return links
 
+    def _walkable(self, a: np.ndarray, b: np.ndarray) -> bool:
+        """Whether the straight walk from a to b stays off the lanes (sampled every metre)."""
+        n = max(2, int(np.linalg.norm(b - a)))
+        return not any(self.town.on_road(a + (b - a) * t) for t in np.linspace(0.0, 1.0, n + 1)[1:-1])
+
     def walk_allowed(self, cw: Crosswalk, lights: TrafficLights, crossing_time_s: float) -> bool:
+        """At a signalled crossing, while the traffic it crosses has red long enough to get across; at an
+        unsignalled one always (the pedestrian still waits for a gap in the traffic, ``_vehicle_blocks``)."""
+        if cw.approach < 0:
+            return True
         return lights.red_remaining_s(cw.approach) > crossing_time_s
 
     @staticmethod
@@ -121,6 +143,58 @@ class PedestrianCrowd:
         approaching = np.sum(heading_vec * to_cw, axis=1) > 0
         time_to = dist / np.maximum(speeds, 0.1)
         return bool(np.any(approaching & (dist < 25.0) & (time_to < 4.0) & (speeds > 0.5)))
+
+    @staticmethod
+    def _cannot_stop(cw: Crosswalk, vehicles: np.ndarray, speeds: np.ndarray, headings: np.ndarray,
+                     point: np.ndarray, sizes: np.ndarray | None) -> bool:
+        """At an unsignalled zebra: a moving vehicle right beside the pedestrian or on the zebra, or heading for
+        it too fast to stop comfortably before it (the pedestrian has the right of way, not a death wish). A
+        standing vehicle does not hold the pedestrian up: it is waiting for it, and a crossing pedestrian walks
+        round a car that bars the way (``_look_out``)."""
+        moving = speeds > 0.5
+        if not np.any(moving):
+            return False
+        vehicles, speeds, headings = vehicles[moving], speeds[moving], headings[moving]
+        sizes = sizes[moving] if sizes is not None else None
+        if np.any(np.linalg.norm(vehicles - point, axis=1) < 3.0):
+            return True
+        centre = cw.polygon.mean(axis=0)
+        along = cw.polygon[1] - cw.polygon[0]
+        half_depth = float(np.linalg.norm(along)) / 2
+        u = along / (2 * half_depth)
+        across = np.array([-u[1], u[0]])
+        half_width = float(np.linalg.norm(cw.polygon[2] - cw.polygon[1])) / 2
+        half_length = sizes[:, 0] if sizes is not None else np.full(len(vehicles), DEFAULT_HALF_SIZE[0])
+        d = vehicles - centre
+        on = (np.abs(d @ u) < half_depth + half_length) & (np.abs(d @ across) < half_width + 0.5)
+        if np.any(on):
+            return True
+        dist = np.linalg.norm(d, axis=1)
+        heading_vec = np.stack([np.cos(headings), np.sin(headings)], axis=1)
+        approaching = np.sum(heading_vec * -d, axis=1) > 0.3 * dist
+        to_zebra = dist - half_depth - half_length
+        stopping = speeds * speeds / (2 * ZEBRA_BRAKE_MPS2) + speeds * ZEBRA_REACTION_S + ZEBRA_MARGIN_M
+        return bool(np.any(approaching & (dist < 45.0) & (to_zebra < stopping)))
+
+    def _vehicles_turn(self, cw: Crosswalk, vehicles: np.ndarray, speeds: np.ndarray, headings: np.ndarray,
+                       now_s: float) -> bool:
+        """Whether a vehicle has stood waiting at an unsignalled zebra for ``ZEBRA_TURN_S``: then pedestrians
+        who arrive let it go first, until it has gone over (a pedestrian would otherwise step out as soon as it
+        starts to roll, slow enough to stop again). Without turns, pedestrians who keep arriving (or who walk back and forth
+        round a T-junction's corners) would hold the vehicle for ever; with them, whoever is on the zebra
+        still crosses first."""
+        centre = cw.polygon.mean(axis=0)
+        d = centre - vehicles
+        dist = np.hypot(d[:, 0], d[:, 1])
+        facing = np.cos(headings) * d[:, 0] + np.sin(headings) * d[:, 1] > 0.7 * dist
+        near = (dist < ZEBRA_WAIT_REACH_M) & facing
+        if not np.any(near):  # the vehicle has gone over (or none came): the turn is over
+            self._vehicle_waiting_since.pop(cw.index, None)
+            return False
+        if np.any(near & (speeds < 0.3)):
+            self._vehicle_waiting_since.setdefault(cw.index, now_s)
+        since = self._vehicle_waiting_since.get(cw.index)
+        return since is not None and now_s - since >= ZEBRA_TURN_S
 
     def step(self, dt: float, lights: TrafficLights, vehicles: np.ndarray, speeds: np.ndarray,
              headings: np.ndarray, tick: int = 0, sizes: np.ndarray | None = None) -> None:
@@ -149,7 +223,12 @@ class PedestrianCrowd:
                 if not ped.jaywalk and self.jaywalk_probability > 0 and self.rng.random() < self.jaywalk_probability * dt:
                     ped.jaywalk = True
                 go = ped.jaywalk or self.walk_allowed(cw, lights, crossing_time)
-                if go and not self._vehicle_blocks(cw, vehicles, speeds, headings, ped.position, 7.0):
+                if go and cw.approach < 0 and not ped.jaywalk:  # a zebra with the right of way
+                    go = not self._cannot_stop(cw, vehicles, speeds, headings, ped.position, sizes)
+                    go = go and not self._vehicles_turn(cw, vehicles, speeds, headings, tick * dt)
+                elif go:
+                    go = not self._vehicle_blocks(cw, vehicles, speeds, headings, ped.position, 7.0)
+                if go:
                     ped.state, ped.target = "crossing", there.copy()
             elif ped.state == "crossing":
                 if id(ped) in in_the_way:

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from towndrive.sim import render_kernels as kernels
-from towndrive.sim.objects import LIGHT_ID_BASE, LightState, ObjectSnapshot, SemanticClass
+from towndrive.sim.objects import LIGHT_ID_BASE, MAX_SIGNS, SIGN_ID_BASE, LightState, ObjectSnapshot, SemanticClass
 from towndrive.sim.scene_meshes import (
     HOUSING_HALF,
     LAMP_SPACING_M,
@@ -40,6 +40,7 @@ from towndrive.sim.scene_meshes import (
     world_point,
     yaw_of,
 )
+from towndrive.sim.sign_meshes import SIGN_CLASS, sign_parts
 from towndrive.sim.spec import IMAGE_PX, WEATHERS, CameraConfig, check_image_size  # noqa: F401 (re-exported)
 from towndrive.sim.town import Town
 
@@ -179,6 +180,8 @@ class _FrameSetup:
     intrinsics: np.ndarray
 
 
+SIGN_NIGHT_GLOW = 0.45  # at night a plate's face shows this share of its colour (the headlights' retroreflection)
+SIGN_RANGE_M = 150.0  # signs farther than this are not drawn (a 0.75 m plate is about a pixel wide there at 320 px)
 TILE_M = 120.0  # static meshes are split into tiles of this size for view culling (few bodies: resets stay cheap)
 
 
@@ -223,6 +226,7 @@ class SceneRenderer:
             self._build_static(seed)
             self._build_calibration_patch()
             self._build_lights()
+            self._build_signs()
         finally:
             _forget_mesh_files(self._mesh_files, self.client)
         self._light_xy = np.array([ap.light_head for ap in town.approaches]).reshape(-1, 2)
@@ -384,7 +388,7 @@ class SceneRenderer:
         v, _, nrm = light_lamp_disc()
         lamps = [self._mesh_shape(np.array(v), np.array(nrm), (*LAMP_OFF_RGB[s], 1.0), specular=None) for s in LAMP_ORDER]
         for ap in self.town.approaches:
-            pos = to_world(ap.light_head[0], ap.light_head[1], Town.LIGHT_HEAD_HEIGHT_M)
+            pos = to_world(ap.light_head[0], ap.light_head[1], ap.head_height_m)
             # Local +x must look at the oncoming traffic, i.e. along -travel_heading on the map.
             orn = p.getQuaternionFromEuler([0.0, 0.0, yaw_of(ap.travel_heading + math.pi)])
             uid = p.createMultiBody(
@@ -438,6 +442,64 @@ class SceneRenderer:
         for k in np.nonzero(show != self._light_shown)[0]:
             self._light_shown[k] = bool(show[k])
             self._paint_light(int(k))
+
+    # ----------------------------------------------------------------- signs
+    def _build_signs(self) -> None:
+        """One multibody per sign: the post (base, POLE) and the plate's parts as links, one colour each, labelled
+        with the sign's class and ``SIGN_ID_BASE + index``. Bodies, not tiles of one mesh: the segmentation
+        tells bodies (and links) apart, not triangles; out of view they are hidden like lights."""
+        signs = self.town.signs
+        if len(signs) > MAX_SIGNS:
+            raise ValueError(f"A town may have at most {MAX_SIGNS} signs for the segmentation's ids; it has {len(signs)}.")
+        self._sign_bodies: list[int] = []
+        self._sign_paint: list[list[tuple[int, tuple[float, float, float]]]] = []
+        shapes: dict[tuple, int] = {}
+        for sign in signs:
+            key = (int(sign.kind), round(sign.plate_size_m, 3), round(sign.plate_height_m, 3), int(sign.value_kmh))
+            parts = sign_parts(*key)
+            ids = []
+            for k, part in enumerate(parts):
+                if (key, k) not in shapes:
+                    v, _, nrm = part.mesh
+                    shapes[(key, k)] = self._mesh_shape(np.array(v), np.array(nrm), (*part.rgb, 1.0))
+                ids.append(shapes[(key, k)])
+            n = len(parts) - 1
+            orn = p.getQuaternionFromEuler([0.0, 0.0, yaw_of(sign.facing + math.pi)])  # the face looks at its readers
+            uid = p.createMultiBody(
+                baseMass=0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=ids[0],
+                basePosition=world_point(sign.position[0], sign.position[1], 0.0), baseOrientation=orn,
+                linkMasses=[0.0] * n, linkCollisionShapeIndices=[-1] * n, linkVisualShapeIndices=ids[1:],
+                linkPositions=[[0, 0, 0]] * n, linkOrientations=[[0, 0, 0, 1]] * n,
+                linkInertialFramePositions=[[0, 0, 0]] * n, linkInertialFrameOrientations=[[0, 0, 0, 1]] * n,
+                linkParentIndices=[0] * n, linkJointTypes=[p.JOINT_FIXED] * n, linkJointAxis=[[0, 0, 1]] * n,
+                **self._cid)
+            self._no_collisions(uid)
+            self._label(uid, [-1], SemanticClass.POLE, 0)
+            self._label(uid, list(range(n)), SIGN_CLASS[int(sign.kind)], SIGN_ID_BASE + sign.index)
+            for link in range(1, n):  # the face's parts (not the back): retroreflective sheeting at night
+                rgb = parts[link + 1].rgb
+                self._set_emissive(uid, link, tuple(SIGN_NIGHT_GLOW * c for c in rgb), night_only=True)
+            self._sign_bodies.append(uid)
+            self._sign_paint.append([(link, part.rgb) for link, part in zip(range(-1, n), parts, strict=True)])
+            self.triangle_count += sum(len(part.mesh[1]) // 3 for part in parts)
+        self._sign_xy = np.array([s.position for s in signs], float).reshape(-1, 2)
+        self._sign_shown = np.ones(len(signs), bool)
+
+    def _cull_signs(self, eye_xy: np.ndarray, heading: float, camera: CameraConfig) -> None:
+        """Hide signs outside the camera's view wedge or beyond ``SIGN_RANGE_M`` (where a plate is under a pixel
+        wide at any camera this project uses), as ``_cull_lights`` does for lights."""
+        if not self._sign_bodies:
+            return
+        rel = self._sign_xy - eye_xy
+        dist = np.hypot(rel[:, 0], rel[:, 1])
+        ang = np.abs((np.arctan2(rel[:, 1], rel[:, 0]) - heading + np.pi) % (2 * np.pi) - np.pi)
+        reach = math.radians(camera.hfov_deg) / 2 + np.arcsin(np.clip(1.0 / np.maximum(dist, 1e-6), 0, 1)) + 0.1
+        show = (dist < 2.0) | ((dist < min(camera.far_m, SIGN_RANGE_M)) & (ang <= reach))
+        for k in np.nonzero(show != self._sign_shown)[0]:
+            alpha = 1.0 if show[k] else 0.0
+            for link, rgb in self._sign_paint[k]:
+                p.changeVisualShape(self._sign_bodies[k], link, rgbaColor=[*rgb, alpha], **self._cid)
+        self._sign_shown = show
 
     # ----------------------------------------------------------------- moving objects
     def _box_shape(self, half: Sequence[float], offset: Sequence[float], rgb: Sequence[float]) -> int:
@@ -659,6 +721,7 @@ class SceneRenderer:
             # The wedges carry margins of several degrees, so half a metre or a degree of motion changes nothing.
             self._cull(eye_xy, camera_pose[2], camera)
             self._cull_lights(eye_xy, camera_pose[2], camera)
+            self._cull_signs(eye_xy, camera_pose[2], camera)
             self._last_cull = (eye_xy, camera_pose[2], cull_key)
         fx, fy, fz = forward.tolist()
         ex, ey, ez = eye.tolist()

@@ -205,8 +205,10 @@ def build_ground_map(town: Town, texels_per_m: float = 10.0) -> GroundMap:
         fill(poly, Surface.SIDEWALK)
     for poly in town.grass_polygons:
         fill(poly, Surface.PARK)
+    # Give-way triangles are the stop bar's paint and class: both mark where the entry's traffic waits, which is
+    # what a labeller of "the line to stop at" wants; the sign beside the road says whether to stop or yield.
     kinds = {"dashed_white": Surface.WHITE, "solid_white": Surface.WHITE, "solid_yellow": Surface.YELLOW,
-             "stop_line": Surface.STOP, "crosswalk": Surface.CROSSWALK}
+             "stop_line": Surface.STOP, "crosswalk": Surface.CROSSWALK, "yield_line": Surface.STOP}
     for kind, quads in town.markings.items():
         for quad in quads:
             fill(quad, kinds[kind])
@@ -317,11 +319,16 @@ def build_static_groups(town: Town, seed: int = 0) -> list[MeshGroup]:
         canopy = group(f"canopy_{shade}", SemanticClass.VEGETATION, shades[shade])
         _canopy(canopy, base, z_canopy, t.height_m, r, float(rng.uniform(0, math.pi / 3)))
 
-    # Light poles and mast arms (the housings and lamps are per-light bodies, see render.py).
+    # Light poles and mast arms (the housings and lamps are per-light bodies, see render.py). A mast arm reaches
+    # over the lanes above the head; a post-mounted head hangs on the post's side, which ends at the head's top.
     poles = group("poles", SemanticClass.POLE, POLE_RGB)
-    top_z = Town.LIGHT_HEAD_HEIGHT_M + HOUSING_HALF[2] + 2 * ARM_HALF_M
     for ap in town.approaches:
         foot = to_world(ap.light_pole[0], ap.light_pole[1], Z_SLAB)
+        if ap.mount != "mast_arm":
+            top_z = ap.head_height_m + HOUSING_HALF[2]
+            poles.box(foot + _dz((top_z - Z_SLAB) / 2), np.array([POLE_HALF_M, POLE_HALF_M, (top_z - Z_SLAB) / 2]))
+            continue
+        top_z = ap.head_height_m + HOUSING_HALF[2] + 2 * ARM_HALF_M
         poles.box(foot + _dz((top_z - Z_SLAB) / 2), np.array([POLE_HALF_M, POLE_HALF_M, (top_z - Z_SLAB) / 2]))
         head = to_world(ap.light_head[0], ap.light_head[1], top_z - ARM_HALF_M)
         arm_foot = foot.copy()
@@ -337,7 +344,7 @@ def build_static_groups(town: Town, seed: int = 0) -> list[MeshGroup]:
     # Kerb faces only: the flat layers (asphalt, markings, sidewalk and park tops, grass) are the
     # ground map below, drawn in numpy.
     kerb = group("kerb", SemanticClass.SIDEWALK, KERB_RGB)
-    for poly in town.slab_polygons:
+    for poly in town.kerb_outlines or town.slab_polygons:  # a bent town's slabs are cut in pieces: kerbs go round
         kerb.prism_sides(poly, Z_ROAD - 0.02, Z_SLAB, max_len_m=8.0)
 
     def rank(g: MeshGroup) -> int:

@@ -95,6 +95,11 @@ class VehicleSpec:
     drag_mps2: float = 0.15
     max_speed_mps: float = 25.0
 
+    @property
+    def min_turn_radius_m(self) -> float:
+        """The tightest circle the car can drive (full lock): roads must not turn tighter."""
+        return self.length_m / math.tan(self.max_steer_rad)
+
 
 @dataclass(frozen=True)
 class RoadDesign:

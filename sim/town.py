@@ -1,4 +1,4 @@
-"""Procedural town: a grid of blocks joined by two-way, two-lane-per-direction roads.
+"""Procedural town: a grid of blocks joined by two-way streets with junctions, signals and signs.
 
 The drivable lanes live in a highway-env ``RoadNetwork`` (``StraightLane`` and ``CircularLane``),
 so IDM/MOBIL vehicles drive on it unchanged. Everything else the town holds (road surfaces,
@@ -7,24 +7,33 @@ which the renderer turns into meshes and the world uses for collisions. The town
 pybullet.
 
 Layout: a grid of ``(blocks_x + 1) x (blocks_y + 1)`` nodes. The four outer corners are curved
-bends; every other node is a signalled junction (four arms inside, three on the border). Node
-names in the network are ``"i-j" + arm + "i"|"o"``: the end of a road arriving at that node via
-that arm ("i") or the start of a road leaving by it ("o").
+bends; every other node is a junction (four arms inside, three on the border). Node names in the
+network are ``"i-j" + arm + "i"|"o"``: the end of a road arriving at that node via that arm ("i")
+or the start of a road leaving by it ("o").
+
+Each grid line is one street: an arterial (two lanes each way) or a residential street (one lane
+each way, with a parking strip where the style parks cars). Each junction has one control: signals,
+an all-way stop, or priority for one street with the other stopping or giving way. The town's
+style (``sim.town_style``) sets the mix; the classic style is arterials and signals everywhere.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import IntEnum
 
 import numpy as np
 from highway_env.road.lane import AbstractLane, CircularLane, LineType, StraightLane
 from highway_env.road.road import RoadNetwork
 
+from towndrive.sim.fillet_lane import FilletLane
 from towndrive.sim.geometry import right_of, wrap_to_pi
+from towndrive.sim.objects import CAR_COLORS
 from towndrive.sim.path_filter import ROW_SIZE, lane_row, lanes_may_hold
-from towndrive.sim.spec import COMMAND_NAMES, ROAD
+from towndrive.sim.spec import COMMAND_NAMES, ROAD, VEHICLE
+from towndrive.sim.town_style import CLASSIC, TownStyle, style_named
+from towndrive.sim.town_warp import TownWarp, warp_town
 
 LaneIndex = tuple[str, str, int]
 LaneLocation = tuple[LaneIndex, float, float]  # lane index, longitudinal s, lateral offset
@@ -61,15 +70,32 @@ class Command(IntEnum):
 assert {int(c): c.name.lower() for c in Command} == COMMAND_NAMES, "sim.spec.COMMAND_NAMES names the commands"
 
 
-def lanes_for(command: Command) -> tuple[int, ...]:
-    """Lanes a junction move may start from: left turns from the inner lane (0), right turns from the
-    outer lane (1), straight from either. The network has both lanes on every connector, but turning
-    across the other lane's straight traffic (or into an opposing left turn) is not allowed."""
+def lanes_for(command: Command, lane_count: int = 2) -> tuple[int, ...]:
+    """Lanes a junction move may start from, on a road of ``lane_count`` lanes each way: left turns
+    from the inner lane (0), right turns from the outer lane, straight from any. The network has every
+    lane on every connector, but turning across another lane's straight traffic (or into an opposing
+    left turn) is not allowed."""
     if command == Command.LEFT:
         return (0,)
     if command == Command.RIGHT:
-        return (1,)
-    return (0, 1)
+        return (lane_count - 1,)
+    return tuple(range(lane_count))
+
+
+class Control(IntEnum):
+    """What governs traffic entering a junction by one arm."""
+
+    SIGNAL = 0  # a traffic light (the entry's ``approach``)
+    ALL_WAY_STOP = 1  # stop, then go in turn: every arm of the junction stops
+    STOP = 2  # stop, then give way to the priority street
+    YIELD = 3  # give way to the priority street without having to stop
+    PRIORITY = 4  # the priority street at a stop or yield junction: nothing to obey
+
+
+class SignKind(IntEnum):
+    STOP = 0
+    YIELD = 1
+    SPEED_LIMIT = 2
 
 
 @dataclass(frozen=True)
@@ -87,8 +113,20 @@ class TownConfig:
     park_probability: float = 0.15
     tree_spacing_m: float = 16.0
     outer_buildings: bool = True
+    style: str = CLASSIC.name  # sim.town_style: the mix of streets, junctions, signs and scenery
+
+    @classmethod
+    def of_style(cls, name: str, **overrides: object) -> TownConfig:
+        """The config of a named style, with its block size, trees and parks (other fields as given)."""
+        style = style_named(name)
+        fields: dict[str, object] = dict(style=style.name, block_size_m=style.block_size_m,
+                                         block_jitter_m=style.block_jitter_m, tree_spacing_m=style.tree_spacing_m,
+                                         park_probability=style.park_probability)
+        fields.update(overrides)
+        return cls(**fields)  # type: ignore[arg-type]
 
     def __post_init__(self) -> None:
+        style_named(self.style)
         if self.blocks_x < 1 or self.blocks_y < 1:
             raise ValueError("A town needs at least one block in each direction (blocks_x, blocks_y >= 1).")
         if self.block_size_m - self.block_jitter_m < 2 * self.stop_line_setback_m + 30:
@@ -115,7 +153,50 @@ class Approach:
     stop_line_center: np.ndarray  # middle of the stop bar's near edge, map frame
     travel_heading: float  # heading of traffic arriving on this approach
     light_pole: np.ndarray  # pole foot
-    light_head: np.ndarray  # head position (x, y); its height is LIGHT_HEAD_HEIGHT_M
+    light_head: np.ndarray  # head position (x, y)
+    mount: str = "mast_arm"  # "mast_arm" (over the lanes), "far_pole" or "near_pole" (on a post at that corner)
+    head_height_m: float = ROAD.signal_head_height_m  # the head's centre above the road
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One arm by which traffic enters a junction, whatever controls it (signalled ones have an approach)."""
+
+    index: int
+    node: tuple[int, int]
+    arm: Arm
+    edge: Edge  # the incoming road edge (ends at the stop or give-way line)
+    line_center: np.ndarray  # middle of the stop or give-way line's near edge (where a stop is made)
+    travel_heading: float
+    control: Control
+    approach: int  # the signalled approach (Control.SIGNAL), else -1
+    lane_count: int  # lanes arriving
+
+
+@dataclass(frozen=True)
+class Sign:
+    """A road sign on a post beside the road, facing the traffic it addresses."""
+
+    index: int
+    kind: SignKind
+    position: np.ndarray  # post foot (x, y)
+    facing: float  # heading of the traffic that reads it (the plate's face looks the other way)
+    edge: Edge  # the road it stands on (stop/yield: the entry's road; limits: the road they start)
+    value_kmh: int = 0  # speed limits: the posted limit
+    plate_height_m: float = 2.1  # the plate's centre above the road
+    plate_size_m: float = 0.75  # the plate's width
+
+
+@dataclass(frozen=True)
+class ParkedCar:
+    """A car standing in a parking strip (static: part of the scenery and of the obstacles)."""
+
+    position: np.ndarray
+    heading: float
+    length_m: float
+    width_m: float
+    height_m: float
+    color: tuple[float, float, float]
 
 
 @dataclass(frozen=True)
@@ -165,6 +246,16 @@ class Town:
     grass_polygons: list[np.ndarray]  # parks on top of slabs
     markings: dict[str, list[np.ndarray]]  # kind -> convex quads
     poles: list[np.ndarray] = field(default_factory=list)  # light pole feet (collision circles)
+    entries: list[Entry] = field(default_factory=list)  # every junction arm, signalled or not
+    signs: list[Sign] = field(default_factory=list)
+    parked_cars: list[ParkedCar] = field(default_factory=list)
+    speed_limits_kmh: dict[Edge, int] = field(default_factory=dict)  # posted limits by edge (none in classic towns)
+    exit_lanes: dict[LaneIndex, int] = field(default_factory=dict)  # connector lane -> lane of the road it joins
+    #   (only where the two streets have different lane counts; elsewhere a lane keeps its number)
+    lane_width_m: float = 0.0  # every lane's width (drawn per town by the style; 0: the config's)
+    warp: TownWarp | None = None  # how the square layout was bent (sim.town_warp); None: square
+    kerb_outlines: list[np.ndarray] = field(default_factory=list)  # a bent town's slab outlines (else the slabs')
+    _entry_by_edge: dict[Edge, Entry] = field(default_factory=dict, repr=False)
     _grid: dict[tuple[int, int], list[LaneIndex]] = field(default_factory=dict, repr=False)
     _approach_by_edge: dict[Edge, Approach] = field(default_factory=dict, repr=False)
     _lane_crosswalks: dict[LaneIndex, list[tuple[int, float, float]]] | None = field(default=None, repr=False)
@@ -172,6 +263,7 @@ class Town:
         default_factory=dict, repr=False, compare=False)
     _crosswalk_frames: list[tuple[np.ndarray, np.ndarray, float, float, np.ndarray]] | None = field(
         default=None, repr=False, compare=False)
+    _entries_by_node: dict[tuple[int, int], list[Entry]] | None = field(default=None, repr=False, compare=False)
 
     GRID_CELL_M = 8.0
     POLE_RADIUS_M = 0.15
@@ -181,7 +273,7 @@ class Town:
     # ----------------------------------------------------------------- lanes
     @property
     def lane_width(self) -> float:
-        return self.config.lane_width_m
+        return self.lane_width_m or self.config.lane_width_m
 
     def lane(self, index: LaneIndex) -> AbstractLane:
         return self.network.graph[index[0]][index[1]][index[2]]
@@ -249,6 +341,30 @@ class Town:
                 return True
         return False
 
+    def lane_count(self, edge: Edge) -> int:
+        return len(self.network.graph[edge[0]][edge[1]])
+
+    def next_lane(self, index: LaneIndex, edge: Edge) -> LaneIndex:
+        """The lane of ``edge`` that lane ``index`` runs on into (the same number unless the lane counts differ)."""
+        k = self.exit_lanes.get(index, index[2])
+        return (edge[0], edge[1], min(k, self.lane_count(edge) - 1))
+
+    def entry_for_edge(self, edge: Edge) -> Entry | None:
+        """The junction entry an incoming road edge leads to (None at bends)."""
+        return self._entry_by_edge.get(edge)
+
+    def entries_at(self, node: tuple[int, int]) -> list[Entry]:
+        """The entries of one junction (indexed once)."""
+        if self._entries_by_node is None:
+            self._entries_by_node = {}
+            for e in self.entries:
+                self._entries_by_node.setdefault(e.node, []).append(e)
+        return self._entries_by_node.get(node, [])
+
+    def speed_limit_kmh(self, edge: Edge) -> int | None:
+        """The posted limit on an edge, None where nothing is posted."""
+        return self.speed_limits_kmh.get(edge)
+
     def approach_for_edge(self, edge: Edge) -> Approach | None:
         """The signalled approach an incoming road edge leads to, if any."""
         return self._approach_by_edge.get(edge)
@@ -279,13 +395,20 @@ class Town:
         return [k for k, v in self.lane_info.items() if v.kind == "road"]
 
     def node_position(self, node: tuple[int, int]) -> np.ndarray:
-        return np.array([self.xs[node[0]], self.ys[node[1]]])
+        """A junction's or bend's centre (where its streets' centre lines cross)."""
+        centre = np.array([float(self.xs[node[0]]), float(self.ys[node[1]])])
+        return centre if self.warp is None else self.warp.point(centre)
 
     @property
     def extent(self) -> tuple[float, float, float, float]:
         """(xmin, ymin, xmax, ymax) of the whole scene, scenery included."""
         m = 60.0
-        return (float(self.xs[0] - m), float(self.ys[0] - m), float(self.xs[-1] + m), float(self.ys[-1] + m))
+        if self.warp is None:
+            return (float(self.xs[0] - m), float(self.ys[0] - m), float(self.xs[-1] + m), float(self.ys[-1] + m))
+        corners = np.array([self.node_position(n) for n in ((0, 0), (len(self.xs) - 1, 0), (0, len(self.ys) - 1),
+                                                            (len(self.xs) - 1, len(self.ys) - 1))])
+        lo, hi = corners.min(axis=0) - m, corners.max(axis=0) + m
+        return (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
 
 
 # --------------------------------------------------------------------------- generation
@@ -371,16 +494,125 @@ def _rect(x0: float, y0: float, x1: float, y1: float) -> np.ndarray:
     return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], dtype=float)
 
 
-def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
-    """Build a town from a config and a seed; the same pair always gives the same town."""
-    config = config or TownConfig()
-    rng = np.random.default_rng(seed)
+@dataclass(frozen=True)
+class _Street:
+    """One grid line's street: lanes each way, their width, the parking strip and the posted limit."""
+
+    lanes: int
+    lane_width_m: float
+    parking_m: float
+    limit_kmh: int | None
+
+    @property
+    def half_width_m(self) -> float:
+        """Centre line to kerb."""
+        return self.lanes * self.lane_width_m + self.parking_m
+
+    @property
+    def arterial(self) -> bool:
+        return self.lanes == 2
+
+
+_CONTROL_DRAW = (Control.SIGNAL, Control.ALL_WAY_STOP, Control.STOP, Control.YIELD)
+_MOUNTS = ("mast_arm", "far_pole", "near_pole")
+POLE_HEAD_HEIGHT_M = 3.6  # a post-mounted head's centre above the road
+CROSSWALK_GAP_M = 0.6  # kerb line of the crossing street to the zebra
+CORNER_TO_ZEBRA_M = 0.3  # where corners are rounded wide (styles), the zebra starts this far past the rounding
+POLE_FROM_KERB_M = 1.25  # a signal pole stands this far inside a corner's kerb (the classic corner's spacing)
+CROSSWALK_DEPTH_M = 3.0
+STOP_BAR_GAP_M = 0.5  # zebra to the stop bar, at least
+PARKED_SLOT_M = 6.0  # one parked car's share of the kerb
+PARKING_CLEAR_M = 10.0  # no parking this near a road's ends (the junction's mouth)
+LIMIT_SIGN_AFTER_M = 8.0  # a limit sign stands this far into the road it governs
+STOP_SIGN_BEFORE_M = 2.5  # a stop or yield sign stands this far before the line (oblique junctions need room)
+LIMIT_REPEAT_CHANCE = 0.3  # chance of a limit sign on a road where the limit does not change
+
+
+def _streets(style: TownStyle, config: TownConfig, w: float, column_scale: float,
+             mix: np.random.Generator) -> tuple[list[_Street], list[_Street]]:
+    """The street of every column line (x = xs[i]) and row line (y = ys[j]); the ring's lines share one.
+
+    ``column_scale``: columns are built this much wider across x, so that the skew (``sim.town_warp``), which
+    leans them, leaves them their true width."""
     nx, ny = config.blocks_x, config.blocks_y
-    w = config.lane_width_m
-    half_road = 2 * w
+
+    def kinds(scale: float) -> tuple[_Street, _Street]:
+        return (_Street(2, w * scale, 0.0, style.arterial_limit_kmh),
+                _Street(1, w * scale, style.parking_strip_m * scale, style.residential_limit_kmh))
+
+    def line(k: int, last: int, scale: float) -> _Street:
+        arterial, residential = kinds(scale)
+        if k in (0, last):
+            return arterial if style.ring_arterial else residential
+        return arterial if mix.random() < style.arterial_share else residential
+
+    return [line(i, nx, column_scale) for i in range(nx + 1)], [line(j, ny, 1.0) for j in range(ny + 1)]
+
+
+def _street_of(arm: Arm, node: tuple[int, int], cols: list[_Street], rows: list[_Street]) -> _Street:
+    """The street an arm of a node lies on (E/W arms on the node's row, N/S arms on its column)."""
+    return rows[node[1]] if arm in (Arm.E, Arm.W) else cols[node[0]]
+
+
+def _cross_street(arm: Arm, node: tuple[int, int], cols: list[_Street], rows: list[_Street]) -> _Street:
+    """The other street at a node: the one an arm's traffic crosses."""
+    return cols[node[0]] if arm in (Arm.E, Arm.W) else rows[node[1]]
+
+
+def _junction_controls(style: TownStyle, node: tuple[int, int], arms: list[Arm], cols: list[_Street],
+                       rows: list[_Street], border: bool, mix: np.random.Generator) -> dict[Arm, Control]:
+    """Each arm's control at one junction, drawn from the style's mix for the pairing of its streets."""
+    row, col = rows[node[1]], cols[node[0]]
+    pair = (style.arterial_pair if row.arterial and col.arterial
+            else style.residential_pair if not row.arterial and not col.arterial else style.mixed_pair)
+    weights = np.array(pair.weights(), float)
+    kind = _CONTROL_DRAW[int(mix.choice(len(weights), p=weights / weights.sum()))] if weights.sum() > 0 else Control.SIGNAL
+    if kind in (Control.SIGNAL, Control.ALL_WAY_STOP):
+        return {a: kind for a in arms}
+    # Priority junction: the arterial has priority over a residential street; between equals, the street
+    # that runs through a T-junction, else one drawn.
+    if row.arterial != col.arterial:
+        major_row = row.arterial
+    elif border:
+        major_row = sum(a in (Arm.E, Arm.W) for a in arms) == 2
+    else:
+        major_row = bool(mix.random() < 0.5)
+    return {a: Control.PRIORITY if (a in (Arm.E, Arm.W)) == major_row else kind for a in arms}
+
+
+LEFT_TURN_RADIUS_M = 10.0  # a left turn's arc: this plus the lane's offset from the centre line
+TURN_RADIUS_MARGIN = 1.15  # no turn tighter than the car's full-lock circle times this
+
+
+def _turn_lane(corner_centre: np.ndarray, start: np.ndarray, heading_in: float, end: np.ndarray, heading_out: float,
+               width: float, radius_m: float | None) -> AbstractLane:
+    """A fillet of ``radius_m`` (straight on past the stop line, round the corner, straight out); with no radius
+    (classic junctions, bends) the quarter circle about ``corner_centre`` where start and end lie on one, else
+    the largest fillet."""
+    if radius_m is None and abs(float(np.linalg.norm(start - corner_centre)) -
+                                float(np.linalg.norm(end - corner_centre))) < 1e-9:
+        return _arc_lane(corner_centre, start, end, width)
+    return FilletLane(start, heading_in, end, heading_out, width, radius_m)
+
+
+def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
+    """Build a town from a config and a seed; the same pair always gives the same town.
+
+    The style's draws (streets, controls, mounts, setbacks, signs, parked cars) come from their own
+    generator, so the classic style draws exactly what it always drew from the main one."""
+    config = config or TownConfig()
+    style = style_named(config.style)
+    rng = np.random.default_rng(seed)
+    mix = np.random.default_rng([seed, 30])
+    nx, ny = config.blocks_x, config.blocks_y
+    w = config.lane_width_m if style.name == CLASSIC.name else round(float(mix.uniform(*style.lane_width_range_m)), 2)
+    skew = float(mix.uniform(*style.skew_deg)) * (1.0 if mix.random() < 0.5 else -1.0) if style.skew_deg[1] > 0 else 0.0
+    bows = tuple(float(mix.uniform(*style.bow_m)) * (1.0 if mix.random() < 0.5 else -1.0)
+                 if style.bow_m[1] > 0 else 0.0 for _ in range(2))
+    cols, rows = _streets(style, config, w, 1.0 / math.cos(math.radians(skew)), mix)
     sw = config.sidewalk_width_m
-    d_junction = config.stop_line_setback_m
     rc = config.bend_radius_m
+    palette = list(style.building_colors) or BUILDING_COLORS
 
     steps_x = config.block_size_m + rng.uniform(-config.block_jitter_m, config.block_jitter_m, nx)
     steps_y = config.block_size_m + rng.uniform(-config.block_jitter_m, config.block_jitter_m, ny)
@@ -390,56 +622,109 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
     def centre(node: tuple[int, int]) -> np.ndarray:
         return np.array([xs[node[0]], ys[node[1]]])
 
-    def attach(node: tuple[int, int]) -> float:
-        return rc if _is_bend(node, nx, ny) else d_junction
+    nodes = [(i, j) for i in range(nx + 1) for j in range(ny + 1)]
+    corner = style.corner_radius_m or JUNCTION_KERB_RADIUS_M  # kerb radius at junction corners
+    zebra_gap = CROSSWALK_GAP_M if style.corner_radius_m is None else corner + CORNER_TO_ZEBRA_M
+    # Stop-line setbacks, per junction arm: beyond the crossing street's kerb (and its corner), its zebra and a gap.
+    setback: dict[tuple[tuple[int, int], Arm], float] = {}
+    controls: dict[tuple[int, int], dict[Arm, Control]] = {}
+    mounts: dict[tuple[int, int], str] = {}
+    for node in nodes:
+        arms = _arms(node, nx, ny)
+        if _is_bend(node, nx, ny):
+            for a in arms:
+                setback[(node, a)] = rc
+            continue
+        extra = None if style.setback_extra_m is None else float(mix.uniform(*style.setback_extra_m))
+        for a in arms:
+            if extra is None:
+                setback[(node, a)] = config.stop_line_setback_m
+            else:
+                need = _cross_street(a, node, cols, rows).half_width_m + zebra_gap + CROSSWALK_DEPTH_M
+                setback[(node, a)] = round(need + STOP_BAR_GAP_M + extra, 2)
+        controls[node] = _junction_controls(style, node, arms, cols, rows, len(arms) == 3, mix)
+        if Control.SIGNAL in controls[node].values():
+            mw = np.array(style.mounts.weights(), float)
+            mounts[node] = _MOUNTS[int(mix.choice(len(mw), p=mw / mw.sum()))]
+
+    def attach(node: tuple[int, int], arm: Arm) -> float:
+        return setback[(node, arm)]
+
+    def turn_radius(node: tuple[int, int], arm_in: Arm, arm_out: Arm, k_in: int, k_out: int,
+                    command: Command) -> float | None:
+        """A turn's design radius at a junction of a styled town (None: the classic quarter circle). A right turn
+        goes round the corner's kerb arc at its lanes' distance from the kerbs (never tighter than the car can)."""
+        if style.name == CLASSIC.name or _is_bend(node, nx, ny):
+            return None
+        s_in, s_out = _street_of(arm_in, node, cols, rows), _street_of(arm_out, node, cols, rows)
+        if command == Command.LEFT:
+            return LEFT_TURN_RADIUS_M + (k_in + 0.5) * s_in.lane_width_m
+        clear_in = s_in.half_width_m - (k_in + 0.5) * s_in.lane_width_m
+        clear_out = s_out.half_width_m - (k_out + 0.5) * s_out.lane_width_m
+        return max(corner + min(clear_in, clear_out), VEHICLE.min_turn_radius_m * TURN_RADIUS_MARGIN)
 
     network = RoadNetwork()
     lane_info: dict[LaneIndex, LaneInfo] = {}
+    exit_lanes: dict[LaneIndex, int] = {}
     road_polys: list[np.ndarray] = []
     markings: dict[str, list[np.ndarray]] = {"dashed_white": [], "solid_white": [], "solid_yellow": [],
-                                              "stop_line": [], "crosswalk": []}
+                                              "stop_line": [], "crosswalk": [], "yield_line": []}
     line_half = 0.07
 
-    def add_markings(lane0: AbstractLane, lane1: AbstractLane, with_centre: bool) -> None:
-        """Markings of one direction of a road: its half of the centre line, divider and edge."""
+    def add_markings(lanes: list[AbstractLane], street: _Street, with_centre: bool) -> None:
+        """Markings of one direction of a road: its half of the centre line, lane dividers and edge line
+        (at the lane's edge where a parking strip lies beyond it)."""
+        lane0, outer = lanes[0], lanes[-1]
+        lw = street.lane_width_m
         if with_centre:
-            markings["solid_yellow"] += _strip_quads(lane0, -w / 2 + 0.06, -w / 2 + 0.06 + 2 * line_half, 0, lane0.length, 2.0)
-        markings["dashed_white"] += _dashes(lane0, w / 2, line_half, 3.0, 6.0)
-        markings["solid_white"] += _strip_quads(lane1, w / 2 - 0.35, w / 2 - 0.35 + 2 * line_half, 0, lane1.length, 2.0)
+            markings["solid_yellow"] += _strip_quads(lane0, -lw / 2 + 0.06, -lw / 2 + 0.06 + 2 * line_half, 0, lane0.length, 2.0)
+        for k in range(1, len(lanes)):
+            markings["dashed_white"] += _dashes(lanes[k - 1], lw / 2, line_half, 3.0, 6.0)
+        edge = lw / 2 - 2 * line_half if street.parking_m > 0 else lw / 2 - 0.35
+        markings["solid_white"] += _strip_quads(outer, edge, edge + 2 * line_half, 0, outer.length, 2.0)
 
     # Roads between neighbouring nodes, both directions.
-    nodes = [(i, j) for i in range(nx + 1) for j in range(ny + 1)]
+    speed_limits: dict[Edge, int] = {}
+    street_of_edge: dict[Edge, _Street] = {}
     for node in nodes:
         for arm in _arms(node, nx, ny):
+            street = _street_of(arm, node, cols, rows)
             d = ARM_VEC[arm]
             nbr = (node[0] + int(d[0]), node[1] + int(d[1]))
-            a = centre(node) + d * attach(node)
-            b = centre(nbr) - d * attach(nbr)
+            a = centre(node) + d * attach(node, arm)
+            b = centre(nbr) - d * attach(nbr, OPPOSITE[arm])
             r = right_of(d)
-            lanes = [StraightLane(a + r * (k + 0.5) * w, b + r * (k + 0.5) * w, width=w,
-                                  line_types=(LineType.NONE, LineType.NONE)) for k in range(2)]
+            lw = street.lane_width_m
+            lanes = [StraightLane(a + r * (k + 0.5) * lw, b + r * (k + 0.5) * lw, width=w,
+                                  line_types=(LineType.NONE, LineType.NONE)) for k in range(street.lanes)]
             frm, to = _node_name(node, arm, "o"), _node_name(nbr, OPPOSITE[arm], "i")
+            street_of_edge[(frm, to)] = street
             for k, lane in enumerate(lanes):
                 network.add_lane(frm, to, lane)
                 lane_info[(frm, to, k)] = LaneInfo("road", None, Command.FOLLOW)
-            road_polys += _strip_quads(lanes[0], -w / 2, w / 2 + w, 0, lanes[0].length, 2.0)
-            add_markings(lanes[0], lanes[1], with_centre=True)
+            road_polys += _strip_quads(lanes[0], -lw / 2, street.half_width_m - lw / 2, 0, lanes[0].length, 2.0)
+            add_markings(lanes, street, with_centre=True)
+            if street.limit_kmh is not None:
+                speed_limits[(frm, to)] = street.limit_kmh
 
-    # Junction connectors, bends, stop lines, crosswalks, lights.
+    # Junction connectors, bends, stop lines, crosswalks, lights, signs.
     approaches: list[Approach] = []
+    entries: list[Entry] = []
     crosswalks: list[Crosswalk] = []
+    signs: list[Sign] = []
     poles: list[np.ndarray] = []
     for node in nodes:
         c = centre(node)
         arms = _arms(node, nx, ny)
         bend = _is_bend(node, nx, ny)
-        dist = attach(node)
         for a in arms:
             travel = -ARM_VEC[a]
+            n_in, w_in = _street_of(a, node, cols, rows).lanes, _street_of(a, node, cols, rows).lane_width_m
             for b in arms:
                 if b == a:
                     continue
                 out_dir = ARM_VEC[b]
+                n_out, w_out = _street_of(b, node, cols, rows).lanes, _street_of(b, node, cols, rows).lane_width_m
                 if np.allclose(out_dir, travel):
                     command = Command.STRAIGHT
                 elif np.allclose(out_dir, right_of(travel)):
@@ -447,54 +732,143 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
                 else:
                     command = Command.LEFT
                 frm, to = _node_name(node, a, "i"), _node_name(node, b, "o")
-                for k in range(2):
-                    start = c + ARM_VEC[a] * dist + right_of(travel) * (k + 0.5) * w
-                    end = c + out_dir * dist + right_of(out_dir) * (k + 0.5) * w
+                for k in range(n_in):
+                    # Left turns keep to the inner lanes, right turns to the outer ones.
+                    k_out = min(k, n_out - 1) if command != Command.RIGHT else min(max(k + n_out - n_in, 0), n_out - 1)
+                    start = c + ARM_VEC[a] * attach(node, a) + right_of(travel) * (k + 0.5) * w_in
+                    end = c + out_dir * attach(node, b) + right_of(out_dir) * (k_out + 0.5) * w_out
                     if command == Command.STRAIGHT:
                         lane: AbstractLane = StraightLane(start, end, width=w, line_types=(LineType.NONE, LineType.NONE))
                     else:
-                        lane = _arc_lane(c + ARM_VEC[a] * dist + out_dir * dist, start, end, w)
+                        lane = _turn_lane(c + ARM_VEC[a] * attach(node, a) + out_dir * attach(node, b), start,
+                                          math.atan2(travel[1], travel[0]), end, math.atan2(out_dir[1], out_dir[0]), w,
+                                          turn_radius(node, a, b, k, k_out, command))
                     network.add_lane(frm, to, lane)
                     lane_info[(frm, to, k)] = LaneInfo("bend" if bend else "connector", node,
                                                       Command.FOLLOW if bend else command)
+                    if k_out != k:
+                        exit_lanes[(frm, to, k)] = k_out
                 if bend:
-                    lanes = [network.graph[frm][to][k] for k in range(2)]
-                    road_polys += _strip_quads(lanes[0], -w / 2, w / 2 + w, 0, lanes[0].length, 2.0)
-                    add_markings(lanes[0], lanes[1], with_centre=True)
+                    street = _street_of(a, node, cols, rows)
+                    lanes = [network.graph[frm][to][k] for k in range(n_in)]
+                    road_polys += _strip_quads(lanes[0], -w_in / 2, street.half_width_m - w_in / 2, 0, lanes[0].length, 2.0)
+                    add_markings(lanes, street, with_centre=True)
         if bend:
             continue
-        # Junction asphalt: a square out to the stop lines (kerb-side corners lie under the slabs).
-        ext = {arm: (dist if arm in arms else half_road) for arm in Arm}
+        # Junction asphalt: a rectangle out to the stop lines (kerb-side corners lie under the slabs).
+        ext = {arm: (attach(node, arm) if arm in arms else _cross_street(arm, node, cols, rows).half_width_m)
+               for arm in Arm}
         road_polys.append(_rect(c[0] - ext[Arm.W], c[1] - ext[Arm.N], c[0] + ext[Arm.E], c[1] + ext[Arm.S]))
         for a in arms:
             u, r = ARM_VEC[a], right_of(ARM_VEC[a])
             travel = -u
             tr = right_of(travel)
-            # Stop bar across the incoming lanes, on the approach side of the lane end.
+            street = _street_of(a, node, cols, rows)
+            half_arm = street.half_width_m
+            half_cross = _cross_street(a, node, cols, rows).half_width_m
+            dist = attach(node, a)
+            control = controls[node][a]
+            # Stop bar (or give-way line) across the incoming lanes, on the approach side of the lane end.
             near = c + u * (dist + ROAD.stop_bar_depth_m)
             far = c + u * dist
-            inner, outer = tr * 0.1, tr * (2 * w - 0.1)
-            markings["stop_line"].append(np.array([far + inner, near + inner, near + outer, far + outer]))
-            # Zebra across the whole arm, between the junction box and the stop bar.
-            cw0, cw1 = half_road + 0.6, half_road + 0.6 + 3.0
-            for lat in np.arange(-half_road + 0.4, half_road - 0.3, 1.0):
+            lanes_w = street.lanes * street.lane_width_m  # the incoming lanes, together
+            inner, outer = tr * 0.1, tr * (lanes_w - 0.1)
+            if control == Control.YIELD:
+                markings["yield_line"] += [np.array([far + tr * t, near + tr * (t + 0.3), near + tr * (t + 0.6)])
+                                           for t in np.arange(0.15, lanes_w - 0.6, 0.9)]
+            elif control != Control.PRIORITY:
+                markings["stop_line"].append(np.array([far + inner, near + inner, near + outer, far + outer]))
+            # Zebra across the whole arm, between the crossing street and the stop bar.
+            cw0, cw1 = half_cross + zebra_gap, half_cross + zebra_gap + CROSSWALK_DEPTH_M
+            for lat in np.arange(-half_arm + 0.4, half_arm - 0.3, 1.0):
                 q0, q1 = c + u * cw0 + r * lat, c + u * cw1 + r * lat
                 markings["crosswalk"].append(np.array([q0, q1, q1 + r * 0.5, q0 + r * 0.5]))
             mid = c + u * (cw0 + cw1) / 2
-            kerb = half_road + sw / 2
-            # Traffic light on the far-right corner, on a mast arm over the lane divider.
-            pole = c + travel * (half_road + sw / 2) + tr * (half_road + sw / 2)
-            head = c + travel * (half_road + sw / 2) + tr * w
-            poles.append(pole)
+            kerb = half_arm + sw / 2
             approach_edge = (_node_name((node[0] + int(u[0]), node[1] + int(u[1])), OPPOSITE[a], "o"),
                              _node_name(node, a, "i"))
-            ap = Approach(len(approaches), node, a, approach_edge, c + u * (dist + ROAD.stop_bar_depth_m) + tr * w,
-                          math.atan2(travel[1], travel[0]), pole, head)
-            approaches.append(ap)
+            line_centre = c + u * (dist + ROAD.stop_bar_depth_m) + tr * (lanes_w / 2)
+            approach_index = -1
+            if control == Control.SIGNAL:
+                mount = mounts[node]
+                if style.corner_radius_m is None:
+                    far_corner = c + travel * (half_cross + sw / 2) + tr * (half_arm + sw / 2)
+                else:  # on the sidewalk behind the rounded kerb, as far from it as the classic corner's pole
+                    kerb_centre = c + travel * (half_cross + corner) + tr * (half_arm + corner)
+                    far_corner = kerb_centre - (travel + tr) / math.sqrt(2) * (corner - POLE_FROM_KERB_M)
+                if mount == "mast_arm":  # over the middle of the incoming lanes, from the far-right corner
+                    pole, head, height = far_corner, c + travel * float((far_corner - c) @ travel) + tr * (lanes_w / 2), \
+                        ROAD.signal_head_height_m
+                elif mount == "far_pole":
+                    pole, head, height = far_corner, far_corner - tr * 0.45, POLE_HEAD_HEIGHT_M
+                else:  # near_pole: beside the stop line, on the right
+                    pole = c + u * (dist + ROAD.stop_bar_depth_m + 1.0) + tr * (half_arm + 0.8)
+                    head, height = pole - tr * 0.45, POLE_HEAD_HEIGHT_M
+                poles.append(pole)
+                ap = Approach(len(approaches), node, a, approach_edge, line_centre, math.atan2(travel[1], travel[0]),
+                              pole, head, mount, height)
+                approaches.append(ap)
+                approach_index = ap.index
+            entries.append(Entry(len(entries), node, a, approach_edge, line_centre, math.atan2(travel[1], travel[0]),
+                                 control, approach_index, street.lanes))
+            if control in (Control.STOP, Control.ALL_WAY_STOP, Control.YIELD):
+                kind = SignKind.YIELD if control == Control.YIELD else SignKind.STOP
+                post = c + u * (dist + ROAD.stop_bar_depth_m + STOP_SIGN_BEFORE_M) + tr * (half_arm + 0.7)
+                signs.append(Sign(len(signs), kind, post,
+                                  math.atan2(travel[1], travel[0]), approach_edge))
             crosswalks.append(Crosswalk(len(crosswalks), node, a, mid - r * kerb, mid + r * kerb,
-                                        np.array([c + u * cw0 - r * half_road, c + u * cw1 - r * half_road,
-                                                  c + u * cw1 + r * half_road, c + u * cw0 + r * half_road]),
-                                        ap.index))
+                                        np.array([c + u * cw0 - r * half_arm, c + u * cw1 - r * half_arm,
+                                                  c + u * cw1 + r * half_arm, c + u * cw0 + r * half_arm]),
+                                        approach_index))
+
+    # Posted limits: a sign where a road leaves a junction at which streets of other limits meet (and now
+    # and then where none do); connectors and bends carry the higher limit of the roads they join.
+    if speed_limits:
+        for node in nodes:
+            if _is_bend(node, nx, ny):
+                continue
+            arms = _arms(node, nx, ny)
+            limits = {_street_of(a, node, cols, rows).limit_kmh for a in arms}
+            for b in arms:
+                street = _street_of(b, node, cols, rows)
+                if street.limit_kmh is None or (len(limits) == 1 and mix.random() >= LIMIT_REPEAT_CHANCE):
+                    continue
+                d = ARM_VEC[b]
+                edge = (_node_name(node, b, "o"), _node_name((node[0] + int(d[0]), node[1] + int(d[1])), OPPOSITE[b], "i"))
+                lane = network.graph[edge[0]][edge[1]][0]
+                at = lane.position(LIMIT_SIGN_AFTER_M, street.half_width_m - street.lane_width_m / 2 + 0.7)
+                signs.append(Sign(len(signs), SignKind.SPEED_LIMIT, at, math.atan2(d[1], d[0]), edge, street.limit_kmh))
+        for frm, tos in network.graph.items():
+            for to in tos:
+                if (frm, to) in speed_limits:
+                    continue
+                before = [speed_limits.get((f, frm)) for f, t in _edges_into(network, frm)]
+                after = [speed_limits.get((to, t)) for t in network.graph.get(to, {})]
+                known = [v for v in before + after if v is not None]
+                if known:
+                    speed_limits[(frm, to)] = max(known)
+
+    # Parked cars along the parking strips of residential streets (both sides, clear of the junctions).
+    parked: list[ParkedCar] = []
+    if style.parked_per_100m > 0:
+        chance = min(1.0, style.parked_per_100m * PARKED_SLOT_M / 100.0)
+        for (frm, to, k), info in sorted(lane_info.items()):
+            street_lanes = len(network.graph[frm][to])
+            if info.kind != "road" or k != street_lanes - 1:
+                continue
+            lane = network.graph[frm][to][k]
+            street = street_of_edge[(frm, to)]
+            if street.parking_m <= 0:
+                continue
+            s = PARKING_CLEAR_M
+            while s + PARKED_SLOT_M < lane.length - PARKING_CLEAR_M:
+                if mix.random() < chance:
+                    length = float(mix.uniform(4.0, 4.8))
+                    jitter = float(mix.uniform(-0.4, 0.4))
+                    pos = lane.position(s + PARKED_SLOT_M / 2 + jitter, street.lane_width_m / 2 + street.parking_m / 2)
+                    color = CAR_COLORS[int(mix.integers(len(CAR_COLORS)))]
+                    parked.append(ParkedCar(pos, float(lane.heading_at(s)), length, 1.85, 1.5, color))
+                s += PARKED_SLOT_M
 
     # Blocks: raised slabs (sidewalk level), parks, buildings and street trees.
     slab_polys: list[np.ndarray] = []
@@ -503,6 +877,7 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
     trees: list[Tree] = []
     centre_xy = np.array([xs[-1] / 2, ys[-1] / 2])
     max_r = float(np.linalg.norm(centre_xy)) + 1.0
+    ring_half = rows[0].half_width_m  # the ring's half width (its columns are wider across x when skewed)
 
     def bend_of(node: tuple[int, int]) -> np.ndarray | None:
         """``[arc centre, inward]`` of a bend node, None for junctions."""
@@ -510,6 +885,14 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
             return None
         inward = np.array([1.0 if node[0] == 0 else -1.0, 1.0 if node[1] == 0 else -1.0])
         return np.array([centre(node) + inward * rc, inward])
+
+    h_lo, h_hi = style.building_height_m
+
+    def setback_along(i: int, j: int, arm: Arm) -> float:
+        """Where a block side's street trees start: clear of the junction's stop line (classic: one setback)."""
+        if style.setback_extra_m is None or _is_bend((i, j), nx, ny):
+            return config.stop_line_setback_m
+        return setback[((i, j), arm)]
 
     def add_building_row(x0: float, y0: float, x1: float, y1: float, along_x: bool, depth_max: float,
                          front_at_min: bool, forbid: list[np.ndarray]) -> None:
@@ -527,10 +910,10 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
                 bx0, bx1 = (x0, x0 + depth) if front_at_min else (x1 - depth, x1)
             rect = _rect(bx0, by0, bx1, by1)
             bc = rect.mean(axis=0)
-            if not any(_cuts_bend(rect, f, rc - half_road - sw - 0.5) for f in forbid):
+            if not any(_cuts_bend(rect, f, rc - ring_half - sw - 0.5) for f in forbid):
                 closeness = 1.0 - float(np.linalg.norm(bc - centre_xy)) / max_r
-                height = float(rng.uniform(6, 14) + rng.uniform(0, 34) * closeness ** 2)
-                color = BUILDING_COLORS[int(rng.integers(len(BUILDING_COLORS)))]
+                height = float(rng.uniform(h_lo, h_hi) + rng.uniform(0, style.building_centre_extra_m) * closeness ** 2)
+                color = palette[int(rng.integers(len(palette)))]
                 buildings.append(Building(rect, height, color))
             pos += frontage + float(rng.uniform(0.5, 4.0))
 
@@ -540,21 +923,21 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
         s = float(rng.uniform(4, config.tree_spacing_m))
         while s < length - 4:
             pos = p0 + direction * s
-            if rng.random() < 0.8 and not any(_cuts_bend(pos[None, :], f, rc - half_road - 1.5) for f in forbid):
+            if rng.random() < 0.8 and not any(_cuts_bend(pos[None, :], f, rc - ring_half - 1.5) for f in forbid):
                 trees.append(Tree(pos, float(rng.uniform(4.5, 7.5)), float(rng.uniform(1.6, 2.6)),
                                   (0.18 + 0.1 * float(rng.random()), 0.42 + 0.15 * float(rng.random()), 0.16)))
             s += config.tree_spacing_m * float(rng.uniform(0.8, 1.3))
 
     for i in range(nx):
         for j in range(ny):
-            x0, x1 = xs[i] + half_road, xs[i + 1] - half_road
-            y0, y1 = ys[j] + half_road, ys[j + 1] - half_road
+            x0, x1 = xs[i] + cols[i].half_width_m, xs[i + 1] - cols[i + 1].half_width_m
+            y0, y1 = ys[j] + rows[j].half_width_m, ys[j + 1] - rows[j + 1].half_width_m
             corners = [(i, j), (i + 1, j), (i + 1, j + 1), (i, j + 1)]
             forbid = [p for p in (bend_of(n) for n in corners) if p is not None]
             # Slab: the block rectangle with rounded kerbs (tight at junctions, wide at bends).
             radii = []
             for n in corners:
-                radii.append(rc - half_road if _is_bend(n, nx, ny) else JUNCTION_KERB_RADIUS_M)
+                radii.append(rc - ring_half if _is_bend(n, nx, ny) else corner)
             poly = _rounded_rect(x0, y0, x1, y1, radii)
             slab_polys.append(poly)
             ix0, iy0, ix1, iy1 = x0 + sw + 0.5, y0 + sw + 0.5, x1 - sw - 0.5, y1 - sw - 0.5
@@ -562,7 +945,7 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
                 grass_polys.append(_rect(x0 + sw, y0 + sw, x1 - sw, y1 - sw))
                 for _ in range(int(rng.integers(6, 12))):
                     pos = np.array([rng.uniform(ix0 + 2, ix1 - 2), rng.uniform(iy0 + 2, iy1 - 2)])
-                    if not any(_cuts_bend(pos[None, :], f, rc - half_road - sw - 2.0) for f in forbid):
+                    if not any(_cuts_bend(pos[None, :], f, rc - ring_half - sw - 2.0) for f in forbid):
                         trees.append(Tree(pos, float(rng.uniform(5, 9)), float(rng.uniform(2.0, 3.2)),
                                           (0.16, 0.40 + 0.15 * float(rng.random()), 0.14)))
             else:
@@ -573,13 +956,18 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
                 add_building_row(ix0, iy0 + row_depth + 1.5, ix1, iy1 - row_depth - 1.5, False, side_depth, True, forbid)
                 add_building_row(ix0, iy0 + row_depth + 1.5, ix1, iy1 - row_depth - 1.5, False, side_depth, False, forbid)
             kerb = 1.0
-            add_street_trees(np.array([x0 + d_junction, y0 + kerb]), np.array([x1 - d_junction, y0 + kerb]), forbid)
-            add_street_trees(np.array([x0 + d_junction, y1 - kerb]), np.array([x1 - d_junction, y1 - kerb]), forbid)
-            add_street_trees(np.array([x0 + kerb, y0 + d_junction]), np.array([x0 + kerb, y1 - d_junction]), forbid)
-            add_street_trees(np.array([x1 - kerb, y0 + d_junction]), np.array([x1 - kerb, y1 - d_junction]), forbid)
+            dx0, dx1 = setback_along(i, j, Arm.E), setback_along(i + 1, j, Arm.W)
+            add_street_trees(np.array([x0 + dx0, y0 + kerb]), np.array([x1 - dx1, y0 + kerb]), forbid)
+            dx0, dx1 = setback_along(i, j + 1, Arm.E), setback_along(i + 1, j + 1, Arm.W)
+            add_street_trees(np.array([x0 + dx0, y1 - kerb]), np.array([x1 - dx1, y1 - kerb]), forbid)
+            dy0, dy1 = setback_along(i, j, Arm.S), setback_along(i, j + 1, Arm.N)
+            add_street_trees(np.array([x0 + kerb, y0 + dy0]), np.array([x0 + kerb, y1 - dy1]), forbid)
+            dy0, dy1 = setback_along(i + 1, j, Arm.S), setback_along(i + 1, j + 1, Arm.N)
+            add_street_trees(np.array([x1 - kerb, y0 + dy0]), np.array([x1 - kerb, y1 - dy1]), forbid)
 
     # Outside the ring road: a sidewalk along it and a row of buildings facing it.
-    X0, X1, Y0, Y1 = xs[0] - half_road, xs[-1] + half_road, ys[0] - half_road, ys[-1] + half_road
+    X0, X1 = xs[0] - cols[0].half_width_m, xs[-1] + cols[-1].half_width_m
+    Y0, Y1 = ys[0] - ring_half, ys[-1] + ring_half
     outer_sides = [
         _rect(xs[0] + rc, Y0 - sw, xs[-1] - rc, Y0),
         _rect(xs[0] + rc, Y1, xs[-1] - rc, Y1 + sw),
@@ -593,7 +981,7 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
         bc = bend[0]
         outward = centre(node) - bc
         mid = math.atan2(outward[1], outward[0])
-        r0, r1 = rc + half_road, rc + half_road + sw
+        r0, r1 = rc + ring_half, rc + ring_half + sw
         angs = np.linspace(mid - math.pi / 4, mid + math.pi / 4, 7)
         for a0, a1 in zip(angs[:-1], angs[1:], strict=True):
             u0, u1 = np.array([math.cos(a0), math.sin(a0)]), np.array([math.cos(a1), math.sin(a1)])
@@ -604,13 +992,24 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
         add_building_row(xs[0] + rc, Y1 + sw + gap, xs[-1] - rc, Y1 + sw + gap + 22, True, 20, True, [])
         add_building_row(X0 - sw - gap - 22, ys[0] + rc, X0 - sw - gap, ys[-1] - rc, False, 20, False, [])
         add_building_row(X1 + sw + gap, ys[0] + rc, X1 + sw + gap + 22, ys[-1] - rc, False, 20, True, [])
-    # Trees are not allowed on the asphalt (bend inner corners, junction stubs).
+    # Trees are not allowed on the asphalt (bend inner corners, junction stubs), nor on a sign or a parked car.
     town = Town(config, seed, xs, ys, network, lane_info, approaches, crosswalks, buildings, [],
-                road_polys, slab_polys, grass_polys, markings, poles)
+                road_polys, slab_polys, grass_polys, markings, poles, entries, signs, parked, speed_limits, exit_lanes, w)
+    if skew or bows != (0.0, 0.0):
+        warp = TownWarp(skew, bows[0], bows[1], (float(xs[0]), float(ys[0]), float(xs[-1]), float(ys[-1])))
+        warp_town(town, warp)
+        trees = [replace(t, position=warp.point(t.position)) for t in trees]
     _index_lanes(town)
-    town.trees = [t for t in trees if not town.on_road(t.position, margin_m=0.4)]
-    town._approach_by_edge = {ap.edge: ap for ap in approaches}
+    town.trees = [t for t in trees if not town.on_road(t.position, margin_m=0.4)
+                  and not any(float(np.linalg.norm(t.position - g.position)) < 1.0 for g in town.signs)]
+    town._approach_by_edge = {ap.edge: ap for ap in town.approaches}
+    town._entry_by_edge = {e.edge: e for e in town.entries}
     return town
+
+
+def _edges_into(network: RoadNetwork, node: str) -> list[tuple[str, str]]:
+    """The edges of a network that end at a node."""
+    return [(frm, to) for frm, tos in network.graph.items() for to in tos if to == node]
 
 
 def _cuts_bend(points: np.ndarray, bend: np.ndarray, radius: float) -> bool:

@@ -28,12 +28,8 @@ from towndrive.sim.idm import idm_acceleration as idm
 from towndrive.sim.objects import LightState, ObjectSnapshot, SemanticClass, snapshot_of
 from towndrive.sim.path_filter import clearly_nearest_lane, lanes_may_hold, path_candidates, path_rows, zone_holds
 from towndrive.sim.routes import random_next_edge
-from towndrive.sim.town import OPPOSITE, Approach, Command, Town, lanes_for
-
-CAR_COLORS = [
-    (0.75, 0.08, 0.08), (0.08, 0.20, 0.60), (0.92, 0.92, 0.90), (0.10, 0.10, 0.11), (0.55, 0.56, 0.58),
-    (0.85, 0.65, 0.10), (0.10, 0.42, 0.20), (0.35, 0.55, 0.80), (0.60, 0.30, 0.10), (0.95, 0.45, 0.65),
-]
+from towndrive.sim.rules import STOP_CONTROLS, JunctionRules
+from towndrive.sim.town import OPPOSITE, Approach, Command, Control, Entry, LaneIndex, Town, lanes_for
 
 
 @dataclass(frozen=True)
@@ -61,6 +57,10 @@ STANDING_PEDESTRIAN_LATERAL_M = 1.45  # on the sidewalk: car half width 0.95 + p
 
 CURVE_LATERAL_ACCEL_MPS2 = 2.0  # comfortable lateral acceleration in turns
 CURVE_BRAKE_MPS2 = 2.5  # how hard one slows down ahead of a turn
+LIMIT_BRAKE_MPS2 = 2.0  # how hard one slows down ahead of a lower posted limit
+YIELD_APPROACH_MPS = 4.0  # the speed at a give-way line a driver can still stop from (and look)
+ZEBRA_CLEAR_M = 10.0  # a stop-line driver does not leave the line for an occupied zebra this close beyond it
+STOP_HOLD_M = 1.5  # within this of a stop point at a stop sign, at walking pace, brake to a standstill
 
 
 def _clip(x: float, low: float, high: float) -> float:
@@ -68,15 +68,25 @@ def _clip(x: float, low: float, high: float) -> float:
     return min(max(x, low), high)
 
 
+def tightest_turn(lane: AbstractLane) -> tuple[float, float]:
+    """A lane's smallest radius and where along it that part starts (inf for a straight lane): a circle's
+    radius from its start; a fillet's arc after its lead-in; a sampled curve's tightest segment."""
+    if isinstance(lane, CircularLane):
+        return lane.radius, 0.0
+    tightest = getattr(lane, "tightest_turn", None)
+    return tightest() if tightest is not None else (math.inf, 0.0)
+
+
 def curve_speed_limit(path: list[tuple[AbstractLane, float]], my_s: float) -> float:
     """The highest speed from which every turn ahead on the path can be taken comfortably:
     v_turn = sqrt(a_lat * radius) in the turn, and at most sqrt(v_turn^2 + 2 b d) at distance d before it."""
     limit = math.inf
     for lane, offset in path:
-        if not isinstance(lane, CircularLane):
+        radius, turn_s = tightest_turn(lane)
+        if radius == math.inf:
             continue
-        v_turn = math.sqrt(CURVE_LATERAL_ACCEL_MPS2 * lane.radius)
-        distance = max(0.0, offset - my_s)
+        v_turn = math.sqrt(CURVE_LATERAL_ACCEL_MPS2 * radius)
+        distance = max(0.0, offset + turn_s - my_s)
         limit = min(limit, math.sqrt(v_turn * v_turn + 2.0 * CURVE_BRAKE_MPS2 * distance))
     return limit
 
@@ -86,6 +96,29 @@ def idm_acceleration(speed: float, target_speed: float, gap_m: float | None, clo
                      min_gap_m: float = 2.0, headway_s: float = 1.2, delta: float = IDMVehicle.DELTA) -> float:
     """Intelligent Driver Model with a bumper-to-bumper gap (``sim.idm``), highway-env's constants by default."""
     return idm(speed, target_speed, gap_m, closing_mps, a_max, b, min_gap_m, headway_s, delta)
+
+
+def posted_speed_cap(town: Town, path: list[tuple[AbstractLane, float]], path_lanes: list[LaneIndex],
+                     my_s: float) -> float:
+    """The highest speed that keeps to every posted limit ahead on the path: the limit of each lane's road from
+    where it starts, and at most sqrt(v_limit^2 + 2 b d) at distance d before it (inf where nothing is posted)."""
+    cap = math.inf
+    if not town.speed_limits_kmh:
+        return cap
+    for (_, offset), index in zip(path, path_lanes, strict=False):
+        kmh = town.speed_limit_kmh(index[:2])
+        if kmh is None:
+            continue
+        v = kmh / 3.6
+        cap = min(cap, math.sqrt(v * v + 2.0 * LIMIT_BRAKE_MPS2 * max(0.0, offset - my_s)))
+    return cap
+
+
+def vehicle_rows(agents: Agents) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Positions, headings, speeds, half lengths and ids of the vehicles among the agents (for ``sim.rules``)."""
+    keep = ~agents.is_pedestrian
+    return (agents.positions[keep], agents.headings[keep], agents.speeds[keep], agents.half_lengths[keep],
+            agents.ids[keep])
 
 
 def path_gap(path: list[tuple[AbstractLane, float]], my_s: float, my_half: float, agents: Agents, skip_id: int,
@@ -226,6 +259,48 @@ def oncoming_conflict(town: Town, approach: Approach, agents: Agents, skip_id: i
     return False
 
 
+def oncoming_priority_conflict(town: Town, entry: Entry, agents: Agents, skip_id: int, horizon_s: float = 4.5) -> bool:
+    """``oncoming_conflict`` on a priority street: whether traffic from the opposite priority arm is in the
+    junction or would reach its line within ``horizon_s`` (a left turn from ``entry`` waits for it)."""
+    opposite = next((e for e in town.entries_at(entry.node) if e.arm == OPPOSITE[entry.arm]), None)
+    if opposite is None or opposite.control != Control.PRIORITY:
+        return False
+    travel = np.array([math.cos(opposite.travel_heading), math.sin(opposite.travel_heading)])
+    side = np.array([-travel[1], travel[0]])
+    centre = town.node_position(entry.node)
+    rel = agents.positions - opposite.line_center
+    before = -(rel @ travel) - agents.half_lengths  # front bumper to its line
+    lateral = rel @ side
+    inside = float((centre - opposite.line_center) @ travel)  # line to junction centre
+    heading_ok = np.abs((agents.headings - opposite.travel_heading + np.pi) % (2 * np.pi) - np.pi) < 0.7
+    candidates = (~agents.is_pedestrian) & (agents.ids != skip_id) & heading_ok & (before > -inside) & (before < 70.0)
+    candidates &= np.abs(lateral) < opposite.lane_count * town.lane_width / 2 + 0.6
+    for k in np.nonzero(candidates)[0]:
+        if before[k] < 0.5:
+            return True  # at the line or already in the junction
+        if agents.speeds[k] > 0.5 and before[k] / float(agents.speeds[k]) < horizon_s:
+            return True
+    return False
+
+
+def junction_gap(town: Town, rules: JunctionRules | None, vehicle_id: int, entry: Entry, turn: Command | None,
+                 gap: float, agents: Agents, zebra: float | None) -> float | None:
+    """At an unsignalled entry: the gap to its line if the vehicle must stop there (``sim.rules``: a full stop
+    first, its turn, a free junction, a gap in the priority traffic, no one on the zebra just beyond), else
+    None. On a priority street only a left turn waits, for oncoming priority traffic."""
+    if entry.control == Control.PRIORITY:
+        if turn == Command.LEFT and oncoming_priority_conflict(town, entry, agents, vehicle_id):
+            return max(gap, 0.0)
+        return None
+    if rules is None:
+        return None
+    if zebra is not None and zebra < gap + ZEBRA_CLEAR_M and gap > -0.5:
+        return max(gap, 0.0)
+    if rules.may_go(vehicle_id, entry, *vehicle_rows(agents), turn):
+        return None
+    return max(gap, 0.0)
+
+
 class TownVehicle(IDMVehicle):
     """An NPC car or van/truck driving a random never-ending route through the town."""
 
@@ -245,6 +320,8 @@ class TownVehicle(IDMVehicle):
         else:
             self.LENGTH, self.WIDTH, self.HEIGHT = 4.5, 1.9, 1.5
         self._coords: dict[int, tuple[float, float]] | None = None
+        self._stop_hold = False  # this decision: waiting at a stop sign (brake to a full stop near the line)
+        self._yield_gap: float | None = None  # this decision: the gap to a give-way line ahead
         super().__init__(road, lane.position(s, 0.0), lane.heading_at(s), speed=target_speed * 0.5,
                          target_lane_index=lane_index, target_speed=target_speed,
                          route=[(lane_index[0], lane_index[1], None)])
@@ -298,14 +375,16 @@ class TownVehicle(IDMVehicle):
         path = [(lane, 0.0, (frm, to, k))]
         total = lane.length
         started = False
+        index = (frm, to, k)
         for rf, rt, _ in self.route:
             if (rf, rt) == (frm, to):
                 started = True
                 continue
             if not started or total - s0 > lookahead_m:
                 continue
-            nxt = self.town.network.graph[rf][rt][k]
-            path.append((nxt, total, (rf, rt, k)))
+            index = self.town.next_lane(index, (rf, rt))
+            nxt = self.town.lane(index)
+            path.append((nxt, total, index))
             total += nxt.length
         return path, s0
 
@@ -328,9 +407,10 @@ class TownVehicle(IDMVehicle):
         lane = self.town.lane(self.target_lane_index)
         remaining = lane.length - self._lane_coords(lane)[0]
         move = self._next_move()
-        allowed = lanes_for(move[1]) if move is not None else (0, 1)
+        count = self.town.lane_count((frm, to))
+        allowed = lanes_for(move[1], count) if move is not None else tuple(range(count))
         if k in allowed:
-            if len(allowed) == 2 and remaining >= 30.0 and self.enable_lane_change:
+            if len(allowed) > 1 and remaining >= 30.0 and self.enable_lane_change:
                 super().change_lane_policy()
             return
         if remaining >= 30.0:
@@ -340,7 +420,7 @@ class TownVehicle(IDMVehicle):
         assert move is not None
         index = move[0]
         options = sorted(self.town.network.graph[to].keys())
-        fits = [o for o in options if k in lanes_for(self.town.lane_info[(to, o, 0)].command)]
+        fits = [o for o in options if k in lanes_for(self.town.lane_info[(to, o, 0)].command, count)]
         self.route[index] = (to, fits[int(self.rng.integers(len(fits)))], None)
         del self.route[index + 1:]
         self._extend_route()
@@ -381,17 +461,20 @@ class TownVehicle(IDMVehicle):
         steering_angle = _clip(steering_angle, -self.MAX_STEERING_ANGLE, self.MAX_STEERING_ANGLE)
         return float(steering_angle)
 
-    def decide(self, agents: Agents, lights_state: list[LightState], enable_lane_change: bool) -> None:
-        """Set this step's steering and acceleration (highway-env action dict)."""
+    def decide(self, agents: Agents, lights_state: list[LightState], enable_lane_change: bool,
+               rules: JunctionRules | None = None) -> None:
+        """Set this step's steering and acceleration (highway-env action dict). ``rules``: the world's
+        junction rules (stop signs, give-way lines); without them unsignalled junctions are driven through."""
         if self.crashed:
             return
         self._coords = {}
         try:
-            self._decide(agents, lights_state, enable_lane_change)
+            self._decide(agents, lights_state, enable_lane_change, rules)
         finally:
             self._coords = None
 
-    def _decide(self, agents: Agents, lights_state: list[LightState], enable_lane_change: bool) -> None:
+    def _decide(self, agents: Agents, lights_state: list[LightState], enable_lane_change: bool,
+                rules: JunctionRules | None = None) -> None:
         self._locate()
         self.follow_road()
         self._extend_route()
@@ -408,16 +491,25 @@ class TownVehicle(IDMVehicle):
         if zebra is not None and (gap is None or zebra < gap):
             gap, lead_speed = zebra, 0.0
         cruise = min(self.target_speed, curve_speed_limit(path, s0))
+        if self.town.speed_limits_kmh:
+            cruise = min(cruise, posted_speed_cap(self.town, path, [i for _, _, i in indexed], s0))
+        self._stop_hold, self._yield_gap = False, None
+        stop = self._stop_line_gap(path, s0, lights_state, agents, rules, zebra)
+        if self._yield_gap is not None:  # approach a give-way line slowly enough to stop at it after a last look
+            cruise = min(cruise, math.sqrt(YIELD_APPROACH_MPS ** 2 + 2.0 * CURVE_BRAKE_MPS2 * self._yield_gap))
         acc = idm_acceleration(self.speed, cruise, gap, self.speed - lead_speed)
-        stop = self._stop_line_gap(path, s0, lights_state, agents)
         if stop is not None:
             acc = min(acc, idm_acceleration(self.speed, self.target_speed, stop, self.speed, min_gap_m=0.5))
+            if self._stop_hold and stop < STOP_HOLD_M and self.speed < 1.5:
+                acc = -8.0  # a full stop at the stop line, not a creep towards it
         acc = min(self.COMFORT_ACC_MAX, max(-8.0, float(acc)))
         Vehicle.act(self, {"steering": steering, "acceleration": acc})
 
     def _stop_line_gap(self, path: list[tuple[AbstractLane, float]], s0: float,
-                       lights_state: list[LightState], agents: Agents) -> float | None:
-        """Gap to a stop line ahead whose light says stop (yellow only if a comfortable stop is possible)."""
+                       lights_state: list[LightState], agents: Agents, rules: JunctionRules | None = None,
+                       zebra: float | None = None) -> float | None:
+        """Gap to a stop line ahead whose light says stop (yellow only if a comfortable stop is possible), or
+        at an unsignalled junction where the rules say wait (``junction_gap``)."""
         frm, to, _ = self.target_lane_index
         edges = [(frm, to)] + [(r[0], r[1]) for r in self.route if (r[0], r[1]) != (frm, to)]
         along = 0.0
@@ -425,7 +517,19 @@ class TownVehicle(IDMVehicle):
             approach = self.town.approach_for_edge(edge)
             along = offset + lane.length
             if approach is None:
-                continue
+                entry = self.town.entry_for_edge(edge)
+                if entry is None:
+                    continue
+                gap = along - 0.5 - s0 - self.LENGTH / 2
+                if gap < -0.5:
+                    return None
+                k = edges.index(edge) + 1
+                turn = self.town.lane_info[(*edges[k], 0)].command if k < len(edges) else None
+                wait = junction_gap(self.town, rules, self.object_id, entry, turn, gap, agents, zebra)
+                self._stop_hold = wait is not None and entry.control in STOP_CONTROLS
+                if entry.control == Control.YIELD and rules is not None:
+                    self._yield_gap = max(gap, 0.0)
+                return wait
             state = lights_state[approach.index]
             gap = along - 0.5 - s0 - self.LENGTH / 2
             if gap < -0.5:

@@ -18,16 +18,43 @@ from highway_env.road.road import Road
 from towndrive.sim.ego import EgoVehicle
 from towndrive.sim.geometry import circle_polygon_intersect, polygons_intersect, rect_corners, wrap_to_pi
 from towndrive.sim.lights import LightTiming, TrafficLights
-from towndrive.sim.objects import LightState, ObjectSnapshot, SemanticClass
+from towndrive.sim.objects import CAR_COLORS, SIGN_ID_BASE, LightState, ObjectSnapshot, SemanticClass, snapshot_of
 from towndrive.sim.path_filter import points_within
 from towndrive.sim.pedestrians import PedestrianCrowd
 from towndrive.sim.routes import command_at, edge_length, random_route, route_length, shortest_route
-from towndrive.sim.spec import STEP_S
-from towndrive.sim.town import Approach, Command, Edge, LaneLocation, Town, TownConfig, generate_town
-from towndrive.sim.traffic import CAR_COLORS, Agents, TownVehicle, step_vehicles
+from towndrive.sim.rules import (
+    GIVE_WAY_CONTROLS,
+    STOP_CONTROLS,
+    STOP_SPEED_MPS,
+    STOP_ZONE_M,
+    JunctionRules,
+    VehicleAt,
+    failed_to_yield_by,
+    front_to_line,
+    turn_after,
+)
+from towndrive.sim.spec import ROAD, STEP_S
+from towndrive.sim.town import (
+    Approach,
+    Command,
+    Control,
+    Edge,
+    Entry,
+    LaneLocation,
+    Sign,
+    Town,
+    TownConfig,
+    generate_town,
+)
+from towndrive.sim.traffic import Agents, TownVehicle, step_vehicles
 
 PEDESTRIAN_ID_BASE = 1000
 EGO_ID = 999
+PARKED_ID_BASE = 5000  # parked car k of the town is object PARKED_ID_BASE + k (below SIGN_ID_BASE)
+PARKED_VIEW_M = 160.0  # parked cars this near the ego are in object_snapshots (the camera sees no further in towns)
+SIGN_POST_RADIUS_M = 0.05  # a sign's post, for collisions (light poles are 0.15 m)
+SPEEDING_TOLERANCE = 0.10  # over the posted limit by more than this share ...
+SPEEDING_MIN_S = 1.0  # ... for this long is speeding; the stretch ends back at or under the limit
 
 
 @dataclass(frozen=True)
@@ -57,12 +84,13 @@ class Infraction:
     """One ground-truth infraction of the ego."""
 
     kind: str  # collision_vehicle | collision_pedestrian | collision_static | off_road | wrong_way |
-    #            red_light | route_deviation
+    #            red_light | route_deviation | stop_sign | failed_to_yield | speeding
     time_s: float
     x: float
     y: float
-    other_id: int = 0  # the vehicle's or pedestrian's id; the approach index for a red light
-    other_kind: str = ""  # car | truck | pedestrian | static | traffic_light | "" (none)
+    other_id: int = 0  # the vehicle's or pedestrian's id; the approach index for a red light; the entry index
+    #                    for a stop sign; the posted limit (km/h) for speeding
+    other_kind: str = ""  # car | truck | pedestrian | static | traffic_light | stop_sign | speed_limit | "" (none)
     approach: int = -1  # the signalled approach (its light and stop bar) the infraction concerns, if any
     heading: float = 0.0  # the ego's heading, radians
     speed_mps: float = 0.0  # the ego's speed
@@ -76,6 +104,16 @@ class NextLight:
     approach: int
     state: LightState
     distance_m: float  # from the ego's front bumper to the stop bar's near edge
+
+
+@dataclass(frozen=True)
+class NextControl:
+    """The next junction entry on the route and what controls it."""
+
+    entry: int
+    control: Control
+    distance_m: float  # from the ego's front bumper to the stop or give-way line's near edge
+    approach: int  # the signalled approach (Control.SIGNAL), else -1
 
 
 # An evaluation cycles through a handful of towns; more would only hold memory. Measured: a cached town holds
@@ -104,6 +142,11 @@ class StaticObstacles:
             self._add(("circle", p, Town.POLE_RADIUS_M), p - 1, p + 1)
         for t in town.trees:
             self._add(("circle", t.position, Town.TRUNK_RADIUS_M), t.position - 1, t.position + 1)
+        for g in town.signs:
+            self._add(("circle", g.position, SIGN_POST_RADIUS_M), g.position - 1, g.position + 1)
+        for c in town.parked_cars:
+            rect = rect_corners(c.position, c.heading, c.length_m, c.width_m)
+            self._add(("rect", rect, 0.0), rect.min(axis=0), rect.max(axis=0))
 
     def _add(self, item: tuple[str, np.ndarray, float], lo: np.ndarray, hi: np.ndarray) -> None:
         """File a shape under every cell its box [lo, hi] touches, with its exact bounding box."""
@@ -184,6 +227,18 @@ class World:
             for _ in range(config.npc_count):
                 self.spawn_npc()
         self.static = StaticObstacles(town)
+        self.junctions = JunctionRules(town)  # arrival queues at stop signs, junction occupancy (sim.rules)
+        self._unsignalled = any(e.control != Control.SIGNAL for e in town.entries)
+        self._entry_visit: int | None = None  # the stop or give-way entry whose road the ego is on
+        self._entry_stopped = False  # ... and whether it made a full stop at its line on this visit
+        self._entry_to_line: float | None = None  # the front bumper's distance to that line a step ago
+        self._over_limit_s = 0.0  # how long the ego has been over the posted limit (plus tolerance)
+        self._speeding = False  # a speeding stretch is on (charged once)
+        assert len(town.parked_cars) < SIGN_ID_BASE - PARKED_ID_BASE
+        self._parked = [snapshot_of(PARKED_ID_BASE + k, SemanticClass.CAR, float(c.position[0]), float(c.position[1]),
+                                    float(c.heading), c.length_m, c.width_m, c.height_m, c.color)
+                        for k, c in enumerate(town.parked_cars)]
+        self._parked_xy = np.array([(p.x, p.y) for p in self._parked]).reshape(-1, 2)
         self.infractions: list[Infraction] = []
         self.new_infractions: list[Infraction] = []
         self._wrong_way = False
@@ -297,7 +352,7 @@ class World:
         far_every, near_every = max(1, self.config.npc_far_decision_every), max(1, self.config.npc_decision_every)
         for npc, far in zip(self.npcs, far_all, strict=True):
             if (self.step_count + npc.object_id) % (far_every if far else near_every) == 0:
-                npc.decide(agents, states, self.config.enable_lane_change)
+                npc.decide(agents, states, self.config.enable_lane_change, self.junctions if self._unsignalled else None)
         self.ego.apply(action)
         before = self.ego.position.copy()
         batch: list[TownVehicle | EgoVehicle] = []
@@ -319,7 +374,20 @@ class World:
             vpos = np.concatenate([v.position for v in [self.ego] + self.npcs]).reshape(-1, 2)
         self.new_infractions = self._check_ego(vpos[1:])
         self.infractions += self.new_infractions
+        if self._unsignalled:
+            self._update_junctions(dt)
         return self.new_infractions
+
+    def _update_junctions(self, dt: float) -> None:
+        """Tell the junction rules where every vehicle is (after the step): full stops, queues, occupants."""
+        at: list[VehicleAt] = []
+        ego_lane = self.ego_lane[0] if self.ego_lane is not None else None
+        for vid, lane, v in [(EGO_ID, ego_lane, self.ego)] + [(n.object_id, n.lane_index, n) for n in self.npcs]:
+            entry = self.town.entry_for_edge(lane[:2]) if lane is not None else None
+            to_line = (front_to_line(entry, v.position, float(v.heading), v.LENGTH / 2)
+                       if entry is not None and entry.control in STOP_CONTROLS else float("inf"))
+            at.append(VehicleAt(vid, lane, to_line, float(v.speed)))
+        self.junctions.update(self.time_s, dt, at)
 
     # ---------------------------------------------------------------- ground truth
     def _record(self, kind: str, other: int = 0, other_kind: str = "", approach: int = -1) -> Infraction:
@@ -359,6 +427,10 @@ class World:
         if self.ego_lane is not None:
             out += self._check_direction_and_route(nearest)
         out += self._check_red_light()
+        if self._unsignalled:
+            out += self._check_junction_rules()
+        if self.town.speed_limits_kmh:
+            out += self._check_speed()
         return out
 
     def put_back_on_route(self) -> None:
@@ -366,14 +438,14 @@ class World:
         lane, at a standstill, facing along the lane."""
         frm, to = self.route[self.route_index]
         lane_id = self.ego_lane[0][2] if self.ego_lane is not None and self.ego_lane[0][:2] == (frm, to) else 0
-        lane = self.town.network.graph[frm][to][lane_id]
+        lane = self.town.lane((frm, to, lane_id))
         s = float(np.clip(lane.local_coordinates(self.ego.position)[0], 0.0, lane.length))
         # Back off along the route (this edge, then the one before) until the car stands clear of
         # every other car and person; a car stalled in a junction is not the safety driver's to move.
         candidates = [(self.route_index, lane, s - back) for back in np.arange(0.0, s + 0.01, 1.0)]
         if self.route_index > 0:
             pfrm, pto = self.route[self.route_index - 1]
-            plane = self.town.network.graph[pfrm][pto][lane_id]
+            plane = self.town.lane((pfrm, pto, min(lane_id, self.town.lane_count((pfrm, pto)) - 1)))
             candidates += [(self.route_index - 1, plane, plane.length - back) for back in np.arange(0.0, 40.0, 1.0)]
         for index, cand, cs in candidates:
             if cs < 0:
@@ -399,6 +471,8 @@ class World:
         self.deviated = False
         self._wrong_way = False
         self._previous_front = None  # the car was carried: it crossed no bar on the way
+        self._entry_visit, self._entry_to_line, self._entry_stopped = None, None, False
+        self._over_limit_s, self._speeding = 0.0, False
         self.ego_lane = self.town.locate(self.ego.position, self.ego.heading)
         self._contacts = set()
 
@@ -475,6 +549,63 @@ class World:
         self._charged_approach = approach.index
         return [self._record("red_light", approach.index, "traffic_light", approach.index)]
 
+    def _check_junction_rules(self) -> list[Infraction]:
+        """Stop signs and give-way lines (``sim.rules``): entering the junction (the front bumper past the line's
+        far edge) from a STOP or ALL_WAY_STOP entry without a full stop at its line on this visit is a
+        ``stop_sign``; entering from a STOP or YIELD entry in front of priority traffic that would reach its
+        line within ``YIELD_CONFLICT_S`` is ``failed_to_yield``. The entry is the one whose road the car's
+        centre is on, found afresh each step."""
+        ego = self.ego
+        entry: Entry | None = None
+        if self.ego_lane is not None:
+            entry = self.town.entry_for_edge(self.ego_lane[0][:2])
+        if entry is None or entry.control not in (Control.STOP, Control.ALL_WAY_STOP, Control.YIELD):
+            self._entry_visit, self._entry_to_line, self._entry_stopped = None, None, False
+            return []
+        if entry.index != self._entry_visit:
+            self._entry_visit, self._entry_to_line, self._entry_stopped = entry.index, None, False
+        to_line = front_to_line(entry, ego.position, float(ego.heading), ego.LENGTH / 2)
+        if ego.speed < STOP_SPEED_MPS and -0.5 <= to_line <= STOP_ZONE_M:
+            self._entry_stopped = True
+        previous, self._entry_to_line = self._entry_to_line, to_line
+        inside = -ROAD.stop_bar_depth_m  # the line's far edge: the junction begins
+        if previous is None or not (previous > inside >= to_line):
+            return []
+        out: list[Infraction] = []
+        if entry.control in STOP_CONTROLS and not self._entry_stopped:
+            out.append(self._record("stop_sign", entry.index, "stop_sign"))
+        if entry.control in GIVE_WAY_CONTROLS and self.npcs:
+            turn = turn_after(self.town, self.route, self.route_index) if self.route[self.route_index] == entry.edge \
+                else None
+            npcs = self.npcs
+            k = failed_to_yield_by(self.town, entry, np.array([n.position for n in npcs]),
+                                   np.array([float(n.heading) for n in npcs]), np.array([n.speed for n in npcs]),
+                                   np.array([n.LENGTH / 2 for n in npcs]), turn)
+            if k >= 0:
+                out.append(self._record("failed_to_yield", npcs[k].object_id, SemanticClass(npcs[k].kind).name.lower()))
+        return out
+
+    def speed_limit_here_kmh(self) -> int | None:
+        """The posted limit of the road (or junction) the ego is on; None where nothing is posted."""
+        return self.town.speed_limit_kmh(self.ego_lane[0][:2]) if self.ego_lane is not None else None
+
+    def _check_speed(self) -> list[Infraction]:
+        """Speeding: over the posted limit of the road the car is on by more than ``SPEEDING_TOLERANCE`` for
+        ``SPEEDING_MIN_S``; charged once per stretch, which ends when the car is back at or under the limit."""
+        limit = self.speed_limit_here_kmh()
+        kmh = self.ego.speed * 3.6
+        if limit is None or kmh <= limit:
+            self._over_limit_s, self._speeding = 0.0, False
+            return []
+        if kmh <= limit * (1.0 + SPEEDING_TOLERANCE):
+            self._over_limit_s = 0.0
+            return []
+        self._over_limit_s += self.config.dt_s
+        if self._over_limit_s + 1e-9 < SPEEDING_MIN_S or self._speeding:
+            return []
+        self._speeding = True
+        return [self._record("speeding", limit, "speed_limit")]
+
     def _approach_here(self) -> Approach | None:
         """The signalled approach whose stop bar the car is at: its incoming road when the car's centre is
         on it, else the approach it came by when the centre is on a connector of that approach's junction."""
@@ -523,7 +654,8 @@ class World:
         if self.ego_lane is None:
             return float("nan")
         lat0 = self.ego_lane[2] + self.ego_lane[0][2] * self.town.lane_width  # lateral from lane 0's centre
-        return float(max(0.0, -lat0, lat0 - self.town.lane_width))
+        band = (self.town.lane_count(self.ego_lane[0][:2]) - 1) * self.town.lane_width
+        return float(max(0.0, -lat0, lat0 - band))
 
     def lane_offset_m(self) -> float:
         """Signed lateral offset from the current lane's centre (positive: right of it); nan off road."""
@@ -542,11 +674,46 @@ class World:
                 return NextLight(ap.index, self.lights.state(ap.index), along - 0.5)
         return None
 
+    def next_control(self, horizon_m: float = 150.0) -> NextControl | None:
+        """The next junction entry on the route ahead (signal, stop, all-way stop, give way or priority) and the
+        distance to its line; as ``next_light``, the entry whose line the front bumper has not yet passed."""
+        front_s = self.route_s + self.ego.LENGTH / 2
+        along = -front_s
+        for k in range(self.route_index, len(self.route)):
+            along += edge_length(self.town, self.route[k])
+            if along - 0.5 > horizon_m:
+                return None
+            entry = self.town.entry_for_edge(self.route[k])
+            if entry is not None and along > -0.5:
+                return NextControl(entry.index, entry.control, along - ROAD.stop_bar_depth_m, entry.approach)
+        return None
+
+    def signs_near(self, radius_m: float = 60.0) -> list[tuple[Sign, float]]:
+        """The signs within ``radius_m`` of the ego that face its way (their plates readable from here, ahead of
+        the car), nearest first, with their distances."""
+        ego = self.ego
+        ahead = np.array([math.cos(ego.heading), math.sin(ego.heading)])
+        out = []
+        for g in self.town.signs:
+            rel = g.position - ego.position
+            d = float(math.hypot(rel[0], rel[1]))
+            if d > radius_m or float(rel @ ahead) < 0.0:
+                continue
+            if abs(wrap_to_pi(g.facing - float(ego.heading))) > math.pi / 2:
+                continue  # its back is to us
+            out.append((g, d))
+        return sorted(out, key=lambda gd: gd[1])
+
     def object_snapshots(self) -> list[ObjectSnapshot]:
-        """Every moving object's pose and look, built once per step (the renderer and info share it)."""
+        """Every moving object's pose and look, built once per step (the renderer and info share it), and the
+        parked cars within ``PARKED_VIEW_M`` of the ego (static, ids ``PARKED_ID_BASE + k``)."""
         key = (self.step_count, len(self.npcs), id(self.crowd), len(self.crowd.peds))
         if self._snapshots_key != key:
             self._snapshots = [v.snapshot() for v in self.npcs] + [p.snapshot() for p in self.crowd.peds]
+            if self._parked:
+                near = points_within(self._parked_xy, float(self.ego.position[0]), float(self.ego.position[1]),
+                                     PARKED_VIEW_M ** 2)
+                self._snapshots += [p for p, k in zip(self._parked, near.tolist(), strict=True) if k]
             self._snapshots_key = key
         return self._snapshots
 

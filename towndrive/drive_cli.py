@@ -32,6 +32,8 @@ from towndrive.cli import HelpFormatter
 from towndrive.envs.rules_cli import add_rule_arguments, rules_from_arguments
 from towndrive.extras import MissingExtra
 from towndrive.sim.spec import EPISODE_S, WEATHERS
+from towndrive.sim.splits import TOWN_SPLITS, split_towns
+from towndrive.sim.town_style import STYLES
 
 
 def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argparse.Namespace:
@@ -56,7 +58,13 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
     p.add_argument("--alerts", default=None, metavar="PATH", help="with --profile: decisions as JSON lines ('-': stdout)")
     p.add_argument("--serial", default=None, metavar="PORT", help="with --profile: the alert line protocol to PORT")
     p.add_argument("--seed", type=int, default=0, help="first episode seed (traffic, start and route)")
-    p.add_argument("--town-seed", type=int, default=0, help="which town to generate")
+    p.add_argument("--town-seed", type=int, default=None,
+                   help="which town to generate (default 0, or the first town of --split)")
+    p.add_argument("--town-style", default="classic", choices=sorted(STYLES),
+                   help="the kind of town (sim/town_style.py): classic (the original grid of arterials and signals), "
+                        "downtown or suburb")
+    p.add_argument("--split", default=None, choices=list(TOWN_SPLITS),
+                   help="record/evaluate: take the towns from this split's town seeds (docs/environment.md)")
     p.add_argument("--weather", default="noon", choices=WEATHERS, help="lighting preset")
     p.add_argument("--towns", type=int, default=1,
                    help="record/evaluate: cycle episodes through this many towns, from --town-seed up")
@@ -111,6 +119,16 @@ def check_args(args: argparse.Namespace) -> None:
     check_number("--episodes", args.episodes, 1, None, integer=True)
     check_number("--towns", args.towns, 1, None, integer=True)
     check_number("--frames", args.frames, 0, None, integer=True)
+    if args.split is not None:
+        if not (args.record or args.evaluate):
+            raise ValueError(f"--split {args.split} chooses the towns of a recording or an evaluation; add --record or "
+                             "--evaluate (or give a single town with --town-seed).")
+        first = split_towns(args.split, args.towns)[0]
+        if args.town_seed is not None and args.town_seed != first:
+            raise ValueError(f"--split {args.split} starts at town {first}; drop --town-seed {args.town_seed}.")
+        args.town_seed = first
+    elif args.town_seed is None:
+        args.town_seed = 0
     options.town_seed(args.town_seed, "--town-seed")
     options.town_seed(args.town_seed + args.towns - 1, "--town-seed plus --towns - 1")
     options.town_seed(args.seed, "--seed")
@@ -160,9 +178,10 @@ def make_config(args: argparse.Namespace) -> Any:
 
     from towndrive.envs.drive_env import DriveConfig
     from towndrive.sim.render import CameraConfig
+    from towndrive.sim.town import TownConfig
     from towndrive.sim.world import WorldConfig
 
-    world = WorldConfig()
+    world = WorldConfig(town=TownConfig.of_style(args.town_style))
     if args.traffic != 1.0:
         world = replace(world, npc_count=round(world.npc_count * args.traffic),
                         pedestrian_count=round(world.pedestrian_count * args.traffic))

@@ -208,7 +208,7 @@ def label_frame(segmentation: np.ndarray, depth_m: np.ndarray, pose: CameraPose,
         if oid >= LIGHT_ID_BASE:
             ap = town.approaches[oid - LIGHT_ID_BASE]
             hx, hy, hz = HOUSING_HALF
-            zc = Town.LIGHT_HEAD_HEIGHT_M
+            zc = ap.head_height_m
             corners = box_corners(float(ap.light_head[0]), float(ap.light_head[1]), ap.travel_heading + math.pi,
                                   2 * hx, 2 * hy, zc - hz, zc + hz)
             cx, cy = float(ap.light_head[0]), float(ap.light_head[1])
