@@ -62,6 +62,12 @@ class SeededBatches:
         return self.make(rng, self.picks[b * self.batch:(b + 1) * self.batch])
 
 
+def as_built(batch: Any) -> Any:
+    """The batch as ``make`` built it (the DataLoader's default would turn the detector's numpy targets into
+    tensors)."""
+    return batch
+
+
 def seed_of(key: tuple[int, ...]) -> int:
     """A seed for the DataLoader's own generator from a batch key (the same on every run and Python)."""
     return int(np.random.SeedSequence([int(k) for k in key]).generate_state(1)[0])
@@ -107,5 +113,6 @@ def batch_loader(batches: SeededBatches, workers: int, device: torch.device, see
         single_threaded_opencv()
     return torch.utils.data.DataLoader(
         batches, batch_size=None, shuffle=False, num_workers=workers, pin_memory=device.type == "cuda",
-        worker_init_fn=worker_init if workers > 0 else None, generator=generator, multiprocessing_context=context,
+        collate_fn=as_built, worker_init_fn=worker_init if workers > 0 else None, generator=generator,
+        multiprocessing_context=context,
         prefetch_factor=2 if workers > 0 else None, persistent_workers=False)
