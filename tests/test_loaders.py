@@ -84,3 +84,26 @@ def test_a_negative_loader_worker_count_is_one_sentence(tmp_path, capsys):
     assert train.main(["pilotnet", "--data", str(tmp_path), "--out", str(tmp_path / "o"), "--loader-workers", "-1",
                        "--device", "cpu"]) == 2
     assert "--loader-workers -1" in capsys.readouterr().err
+
+
+def test_detector_batches_keep_their_numpy_targets_through_worker_processes():
+    from towndrive.agent.training.detector_eval import Sample
+    from towndrive.agent.training.detector_train_loop import _seeded_batch
+
+    rng = np.random.default_rng(2)
+    images = rng.integers(0, 255, (6, 160, 320, 3), dtype=np.uint8)
+    samples = [Sample(f"frame_{k}.png", "noon", np.array([[40.0 + k, 50, 70 + k, 90], [200, 60, 204, 70]], np.float32),
+                      np.array([0, 2]), np.array([False, k % 2 == 1]), np.array([20.0, 30.0], np.float32))
+               for k in range(6)]
+    make = pilotnet_training.functools.partial(_seeded_batch, images=images, samples=samples, strides=(4, 8, 16),
+                                               scale_prob=0.5)
+    batches = SeededBatches(make, np.array([5, 0, 3, 1, 4, 2]), 3, (0, 1, 0))
+    here = [batches[b] for b in range(len(batches))]
+    loaded = list(batch_loader(batches, 2, torch.device("cpu"), seed=0))
+    assert len(loaded) == 2
+    for (x, targets), (x2, targets2) in zip(here, loaded, strict=True):
+        assert torch.equal(x, x2) and x.shape == (3, 3, 160, 320)
+        for image, image2 in zip(targets, targets2, strict=True):
+            for level, level2 in zip(image, image2, strict=True):
+                assert all(isinstance(v, np.ndarray) and np.array_equal(v, level2[k]) for k, v in level.items())
+    assert sum(len(level["pos"]) for image in here[0][1] for level in image) > 0  # there were targets to carry
