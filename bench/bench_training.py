@@ -9,6 +9,7 @@ reads the training samples per second of every epoch after the first from ``log.
 and the machine's load average (on a shared machine the figures say as much about the neighbours as about the code).
 
   python bench/bench_training.py                                  # 0 vs 2 loader workers, 1 vs 2 processes
+  python bench/bench_training.py --only 3,4,5                     # some of the settings (numbered as listed)
   python bench/bench_training.py --data data/episodes/autopilot --samples 8192 --epochs 4
 """
 
@@ -27,12 +28,14 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# label -> (processes, loader workers per process, torch threads per process; 0: torch's default)
+# label -> (processes, loader workers per process, torch threads per process; 0: torch's default, one per core)
 SETTINGS = {
-    "1 process, 0 loader workers": (1, 0, 0),
-    "1 process, 2 loader workers": (1, 2, 0),
-    "2 processes (torchrun), 0 loader workers": (2, 0, 1),
-    "2 processes (torchrun), 1 loader worker each": (2, 1, 1),
+    "1 process, default threads, 0 loader workers": (1, 0, 0),
+    "1 process, default threads, 2 loader workers": (1, 2, 0),
+    "1 process, 1 thread, 0 loader workers": (1, 0, 1),
+    "1 process, 1 thread, 2 loader workers": (1, 2, 1),
+    "2 processes (torchrun), 1 thread each, 0 loader workers": (2, 0, 1),
+    "2 processes (torchrun), 1 thread each, 1 loader worker each": (2, 1, 1),
 }
 
 
@@ -72,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--epochs", type=int, default=3, help="epochs per setting; the first is not counted")
     ap.add_argument("--samples", type=int, default=4096, help="training samples per epoch (all processes together)")
     ap.add_argument("--batch", type=int, default=64, help="batch per process")
-    ap.add_argument("--only", default="", help="comma-separated setting numbers to run (1-4; default: all)")
+    ap.add_argument("--only", default="", help="comma-separated setting numbers to run (1-6; default: all)")
     args = ap.parse_args(argv)
     chosen = [label for k, label in enumerate(SETTINGS, 1) if not args.only or str(k) in args.only.split(",")]
     with tempfile.TemporaryDirectory() as tmp:
