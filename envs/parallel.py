@@ -44,6 +44,7 @@ import signal
 import sys
 import tempfile
 import time
+import uuid
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -268,6 +269,7 @@ def run_parallel(items: Sequence[WorkItem], driver: DriverSpec, workers: int, de
                             raise RuntimeError(f"worker processes die while starting "
                                                f"({_exit_text(slot.process.exitcode)}); see the errors above.")
                     if slot.index is not None:
+                        _drop_partials(items[slot.index])  # what the dead worker was writing, so the retry can
                         settle(slot.index, None, f"the worker process died ({_exit_text(slot.process.exitcode)})")
                     if len(slots) < min(workers, n - len(results)):
                         start()  # a fresh worker takes the dead one's place
@@ -310,8 +312,9 @@ def run_ray(items: Sequence[WorkItem], driver: DriverSpec, workers: int, address
     ``FileItem``s (recorded episodes) come home: without ``shared_dir`` each is recorded into a scratch folder on
     its worker's node and its finished file is pulled here in chunks through the object store, written as
     ``.partial`` and renamed into place, and the worker's copy deleted (``summary.shipped``); with ``shared_dir``, a
-    folder every node sees at that path, workers write there and the finished files are moved into place (a rename
-    when it is on the same file system; give the destination folder itself to have workers write it directly).
+    folder every node sees at that path, each attempt writes into a folder of its own there and the finished files
+    are moved into place (a rename when it is on the same file system: give the destination folder itself to have
+    workers write beside their files' homes).
     Other items write their files (clips, plots) where they run: on several machines, give an output folder every
     node sees."""
     import ray
@@ -322,7 +325,17 @@ def run_ray(items: Sequence[WorkItem], driver: DriverSpec, workers: int, address
     if shared_dir is not None:
         shared_dir = Path(shared_dir).absolute()
         shared_dir.mkdir(parents=True, exist_ok=True)
-    sent = [item.writing_into(shared_dir) if shared_dir is not None and is_file_item(item) else item for item in items]
+    run_id = uuid.uuid4().hex[:8]
+
+    def attempt(index: int) -> WorkItem:
+        """The item as a worker gets it: with ``shared_dir``, a file item writes into a folder of this attempt's own
+        there (a retry never meets a dead worker's ``.partial``, nor two runs each other's files)."""
+        item = items[index]
+        if shared_dir is None or not is_file_item(item):
+            return item
+        folder = shared_dir / f".towndrive-{run_id}-{index}-{books.attempts[index]}"
+        return item.writing_into(folder)  # type: ignore[attr-defined]
+
     started = False
     if not ray.is_initialized():
         runtime_env = {"env_vars": {k: "1" for k in THREAD_VARIABLES}}
@@ -336,7 +349,7 @@ def run_ray(items: Sequence[WorkItem], driver: DriverSpec, workers: int, address
     actor_class = ray.remote(num_cpus=1, max_restarts=0)(_RayWorker)
     actors: list[Any] = []
     idle: list[Any] = []
-    running: dict[Any, tuple[Any, int]] = {}
+    running: dict[Any, tuple[Any, int, WorkItem]] = {}
 
     def new_actor() -> None:
         actors.append(actor_class.remote(driver))
@@ -350,25 +363,29 @@ def run_ray(items: Sequence[WorkItem], driver: DriverSpec, workers: int, address
                 raise KeyboardInterrupt
             while idle and books.pending:
                 actor, index = idle.pop(), books.pending.popleft()
-                running[actor.run.remote(sent[index], ship)] = (actor, index)
+                sent = attempt(index)
+                running[actor.run.remote(sent, ship)] = (actor, index, sent)
             if not running:
                 new_actor()
                 continue
             ready, _ = ray.wait(list(running), num_returns=1, timeout=0.5)
             for ref in ready:
-                actor, index = running.pop(ref)
+                actor, index, sent = running.pop(ref)
                 try:
                     kind, payload, shipment = ray.get(ref)
                     if kind == "done" and shipment is not None:
                         _bring_home(ray, actor, shipment, books.summary)
-                    elif kind == "done" and sent[index] is not items[index]:
-                        _move_home(sent[index], items[index])  # type: ignore[arg-type]
+                    elif kind == "done" and sent is not items[index]:
+                        _move_home(sent, items[index])  # type: ignore[arg-type]
                 except ray.exceptions.RayActorError as exc:  # its process died (killed, out of memory, crashed)
                     books.settle(index, None, f"the Ray worker died ({' '.join(str(exc).split())[:200]})")
                     new_actor()
                     continue
                 except OSError as exc:  # the file could not be written here: the episode is tried again
                     kind, payload = "error", f"bringing the episode's file home: {describe(exc)}"
+                finally:
+                    if sent is not items[index]:  # this attempt's folder in the shared one, moved home or not
+                        shutil.rmtree(sent.files()[0].parent, ignore_errors=True)  # type: ignore[attr-defined]
                 if kind == "fatal":
                     raise RuntimeError(f"a Ray worker could not start its driver: {payload}")
                 books.settle(index, payload if kind == "done" else None, payload if kind == "error" else None)
@@ -427,6 +444,14 @@ def _bring_home(ray: Any, actor: Any, shipment: _Shipment, summary: RunSummary) 
     finally:  # the worker's copy goes whether it arrived or not (a failed transfer is a retried episode)
         with contextlib.suppress(Exception):
             ray.get(actor.discard.remote(shipment.scratch))
+
+
+def _drop_partials(item: WorkItem) -> None:
+    """Delete the ``.partial`` files a worker that died left for a file item (it could not clean up)."""
+    if is_file_item(item):
+        for path in item.files():  # type: ignore[attr-defined]
+            with contextlib.suppress(OSError):
+                _partial(path).unlink(missing_ok=True)
 
 
 def _move_home(sent: FileItem, item: FileItem) -> None:

@@ -35,8 +35,8 @@ class FaultyAutopilot:
 
     name, privileged = "autopilot", True
 
-    def __init__(self, bad: int, how: str, marker: str | None = None) -> None:
-        self.inner, self.bad, self.how, self.marker = Autopilot(), bad, how, marker
+    def __init__(self, bad: int, how: str, marker: str | None = None, **autopilot: Any) -> None:
+        self.inner, self.bad, self.how, self.marker = Autopilot(**autopilot), bad, how, marker
         self.index, self.steps = -1, 0
 
     def set_episode_index(self, index: int) -> None:
@@ -46,6 +46,10 @@ class FaultyAutopilot:
     def reset(self, env: Any) -> None:
         self.inner.reset(env)
         self.steps = 0
+
+    @property
+    def clean_action(self) -> Any:  # a recording's label: the autopilot's action without its steering noise
+        return self.inner.clean_action
 
     def act(self, observation: dict[str, Any]) -> np.ndarray:
         self.steps += 1
@@ -210,3 +214,32 @@ def test_ray_gives_the_serial_report_and_retries_a_killed_worker(serial, ray_clu
                        summary=summary, ray="local")
     assert marker.exists() and summary.retried == 1 and not summary.failed
     assert json.dumps(metrics, sort_keys=True) == json.dumps(serial, sort_keys=True)
+
+
+@pytest.mark.parametrize("backend", ["workers", "ray, shared folder"])
+def test_a_recording_worker_killed_mid_episode_leaves_nothing_in_the_retry_s_way(serial_recording, backend, tmp_path,
+                                                                                request):
+    """A worker SIGKILLed while it writes episode 1 cannot clean up its ``.partial``; the retry still records it."""
+    from towndrive.drive_cli import RecordEpisode, check_args, episode_options, make_config, parse_args
+    from towndrive.envs.parallel import run_items
+
+    ray, shared = None, None
+    if backend.startswith("ray"):
+        request.getfixturevalue("ray_cluster")
+        ray, shared = "local", tmp_path / "shared"
+    out = tmp_path / "out"
+    args = parse_args(["--record", str(out), *RECORD_FLAGS])
+    check_args(args)
+    config = make_config(args)
+    items = [RecordEpisode(k, args.seed + k, episode_options(args, k), config, out / EPISODE_NAMES[k], True)
+             for k in range(3)]
+    marker = tmp_path / "killed_once"
+    spec = DriverSpec.of(faulty_driver, "autopilot", bad=1, how="kill", marker=str(marker), noise=True,
+                         noise_seed=args.seed)
+    summary = RunSummary()
+    results = run_items(items, spec, 2, summary=summary, ray=ray, progress=False, shared_dir=shared)
+    assert marker.exists() and summary.retried == 1 and not summary.failed
+    assert [r["path"] for r in results] == [str(out / name) for name in EPISODE_NAMES]
+    same_episodes(serial_recording, out)
+    if shared is not None:
+        assert list(shared.iterdir()) == []
