@@ -23,6 +23,12 @@ How the workers run, and why:
   another worker than the one it failed on.
 - ``run_ray`` runs the same items as Ray actor tasks (a local Ray cluster, or an existing one), with the same
   retry rule and the same bar; Ray is an optional extra (``towndrive[cluster]``).
+- Items that make files the user asked for (``FileItem``: a recorded episode) must have them land in the user's
+  folder on the machine that started the run, even when the episode ran on another node. Under Ray a worker
+  therefore records into a scratch folder of its own node and the parent pulls each finished file in chunks
+  through Ray's object store, writes it as ``.partial`` and renames it into place, then has the worker delete its
+  copy; with ``shared_dir`` (a folder every node sees) workers write there and the parent only moves the finished
+  files into place. Either way only finished files arrive, each atomically, and Ctrl-C keeps those that did.
 - Workers ignore SIGINT: Ctrl-C (or the caller's ``should_stop``) reaches the parent, which stops every worker
   with SIGTERM (raised in the worker as ``SystemExit``, so a recording discards its ``.partial``) and raises
   ``Interrupted`` with the episodes that finished.
@@ -33,13 +39,17 @@ from __future__ import annotations
 import contextlib
 import multiprocessing as mp
 import os
+import shutil
 import signal
 import sys
+import tempfile
 import time
+import uuid
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection, wait
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 from tqdm import tqdm
@@ -53,6 +63,8 @@ THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"
 ATTEMPTS = 2  # an episode runs at most twice: once, and once more after a crash
 STARTUP_DEATHS = 3  # workers that die before building their driver, more and the run stops (nothing could run)
 STOP_GRACE_S = 10.0  # how long a stopped worker may take to clean up before it is killed
+CHUNK_BYTES = 8 * 2**20  # a shipped file travels through Ray's object store in pieces of this size
+CHUNKS_IN_FLIGHT = 4  # pieces asked for ahead of the one being written (bounds the object store's share)
 
 
 def parse_workers(text: str | int) -> int:
@@ -139,6 +151,22 @@ class WorkItem(Protocol):
     def failed(self, error: str) -> Any: ...
 
 
+class FileItem(WorkItem, Protocol):
+    """A work item whose product is files in a folder of the user's (a recorded episode's HDF5 file).
+
+    ``files()``: where its finished files belong, on the machine that started the run; ``writing_into(folder)``:
+    the same episode writing them into ``folder`` instead, in the same order, with the same result (which still
+    names the home paths). A file exists under its name only once it is finished."""
+
+    def files(self) -> tuple[Path, ...]: ...
+
+    def writing_into(self, folder: Path) -> FileItem: ...
+
+
+def is_file_item(item: Any) -> bool:
+    return callable(getattr(item, "writing_into", None)) and callable(getattr(item, "files", None))
+
+
 class Interrupted(Exception):
     """Ctrl-C or a stop request: ``results`` holds the finished episodes by index."""
 
@@ -154,6 +182,8 @@ class RunSummary:
     failed: dict[int, str] = field(default_factory=dict)
     retried: int = 0
     wall_s: float = 0.0
+    shipped: dict[str, str] = field(default_factory=dict)  # home path -> the worker's copy it came from (Ray)
+    shipped_bytes: int = 0
 
 
 def describe(exc: BaseException) -> str:
@@ -239,6 +269,7 @@ def run_parallel(items: Sequence[WorkItem], driver: DriverSpec, workers: int, de
                             raise RuntimeError(f"worker processes die while starting "
                                                f"({_exit_text(slot.process.exitcode)}); see the errors above.")
                     if slot.index is not None:
+                        _drop_partials(items[slot.index])  # what the dead worker was writing, so the retry can
                         settle(slot.index, None, f"the worker process died ({_exit_text(slot.process.exitcode)})")
                     if len(slots) < min(workers, n - len(results)):
                         start()  # a fresh worker takes the dead one's place
@@ -261,27 +292,50 @@ LOCAL_RAY = "local"  # ``--ray`` without an address: start a local Ray cluster
 
 def run_items(items: Sequence[WorkItem], driver: DriverSpec, workers: int, desc: str = "episodes",
               should_stop: Callable[[], bool] | None = None, summary: RunSummary | None = None,
-              ray: str | None = None, progress: bool = True) -> list[Any]:
-    """``run_parallel`` on local processes, or with ``ray`` (an address, or ``LOCAL_RAY``) ``run_ray``."""
+              ray: str | None = None, progress: bool = True, shared_dir: Path | None = None) -> list[Any]:
+    """``run_parallel`` on local processes, or with ``ray`` (an address, or ``LOCAL_RAY``) ``run_ray``
+    (``shared_dir``: see there; local workers write the user's folder directly)."""
     if ray is not None:
-        return run_ray(items, driver, workers, None if ray == LOCAL_RAY else ray, desc, should_stop, summary, progress)
+        return run_ray(items, driver, workers, None if ray == LOCAL_RAY else ray, desc, should_stop, summary, progress,
+                       shared_dir)
     return run_parallel(items, driver, workers, desc, should_stop, summary, progress)
 
 
 def run_ray(items: Sequence[WorkItem], driver: DriverSpec, workers: int, address: str | None = None,
             desc: str = "episodes", should_stop: Callable[[], bool] | None = None, summary: RunSummary | None = None,
-            progress: bool = True) -> list[Any]:
+            progress: bool = True, shared_dir: Path | None = None) -> list[Any]:
     """The same work items as Ray actor tasks: ``address`` an existing cluster (``auto``, ``ray://host:10001``),
     or None to start a local cluster with ``workers`` CPUs here (stopped at the end). One actor per worker (one CPU
     each; ``workers`` 1 on a cluster: one per CPU of the cluster) builds its driver once and keeps its simulator.
     An actor that dies takes its episode with it to a fresh actor once, as a local worker's does.
 
-    The items write their files (clips, plots, recorded episodes) where they run: on a cluster of several machines,
-    give an output folder every node sees (a shared file system)."""
+    ``FileItem``s (recorded episodes) come home: without ``shared_dir`` each is recorded into a scratch folder on
+    its worker's node and its finished file is pulled here in chunks through the object store, written as
+    ``.partial`` and renamed into place, and the worker's copy deleted (``summary.shipped``); with ``shared_dir``, a
+    folder every node sees at that path, each attempt writes into a folder of its own there and the finished files
+    are moved into place (a rename when it is on the same file system: give the destination folder itself to have
+    workers write beside their files' homes).
+    Other items write their files (clips, plots) where they run: on several machines, give an output folder every
+    node sees."""
     import ray
 
     books = _Books(items, summary, f"{desc} (Ray)", progress)
     n = len(items)
+    ship = shared_dir is None
+    if shared_dir is not None:
+        shared_dir = Path(shared_dir).absolute()
+        shared_dir.mkdir(parents=True, exist_ok=True)
+    run_id = uuid.uuid4().hex[:8]
+
+    def attempt(index: int) -> WorkItem:
+        """The item as a worker gets it: with ``shared_dir``, a file item writes into a folder of this attempt's own
+        there (a retry never meets a dead worker's ``.partial``, nor two runs each other's files)."""
+        item = items[index]
+        if shared_dir is None or not is_file_item(item):
+            return item
+        folder = shared_dir / f".towndrive-{run_id}-{index}-{books.attempts[index]}"
+        return item.writing_into(folder)  # type: ignore[attr-defined]
+
     started = False
     if not ray.is_initialized():
         runtime_env = {"env_vars": {k: "1" for k in THREAD_VARIABLES}}
@@ -295,7 +349,7 @@ def run_ray(items: Sequence[WorkItem], driver: DriverSpec, workers: int, address
     actor_class = ray.remote(num_cpus=1, max_restarts=0)(_RayWorker)
     actors: list[Any] = []
     idle: list[Any] = []
-    running: dict[Any, tuple[Any, int]] = {}
+    running: dict[Any, tuple[Any, int, WorkItem]] = {}
 
     def new_actor() -> None:
         actors.append(actor_class.remote(driver))
@@ -309,19 +363,29 @@ def run_ray(items: Sequence[WorkItem], driver: DriverSpec, workers: int, address
                 raise KeyboardInterrupt
             while idle and books.pending:
                 actor, index = idle.pop(), books.pending.popleft()
-                running[actor.run.remote(items[index])] = (actor, index)
+                sent = attempt(index)
+                running[actor.run.remote(sent, ship)] = (actor, index, sent)
             if not running:
                 new_actor()
                 continue
             ready, _ = ray.wait(list(running), num_returns=1, timeout=0.5)
             for ref in ready:
-                actor, index = running.pop(ref)
+                actor, index, sent = running.pop(ref)
                 try:
-                    kind, payload = ray.get(ref)
+                    kind, payload, shipment = ray.get(ref)
+                    if kind == "done" and shipment is not None:
+                        _bring_home(ray, actor, shipment, books.summary)
+                    elif kind == "done" and sent is not items[index]:
+                        _move_home(sent, items[index])  # type: ignore[arg-type]
                 except ray.exceptions.RayActorError as exc:  # its process died (killed, out of memory, crashed)
                     books.settle(index, None, f"the Ray worker died ({' '.join(str(exc).split())[:200]})")
                     new_actor()
                     continue
+                except OSError as exc:  # the file could not be written here: the episode is tried again
+                    kind, payload = "error", f"bringing the episode's file home: {describe(exc)}"
+                finally:
+                    if sent is not items[index]:  # this attempt's folder in the shared one, moved home or not
+                        shutil.rmtree(sent.files()[0].parent, ignore_errors=True)  # type: ignore[attr-defined]
                 if kind == "fatal":
                     raise RuntimeError(f"a Ray worker could not start its driver: {payload}")
                 books.settle(index, payload if kind == "done" else None, payload if kind == "error" else None)
@@ -338,6 +402,81 @@ def run_ray(items: Sequence[WorkItem], driver: DriverSpec, workers: int, address
     return books.ordered()
 
 
+@dataclass(frozen=True)
+class _Shipment:
+    """Finished files a Ray worker holds for the parent: its scratch folder and (its copy, home path, bytes)."""
+
+    scratch: str
+    files: tuple[tuple[str, str, int], ...]
+
+
+def _partial(path: Path) -> Path:
+    return path.with_name(path.name + ".partial")
+
+
+def _bring_home(ray: Any, actor: Any, shipment: _Shipment, summary: RunSummary) -> None:
+    """Pull each shipped file from its worker in chunks into ``<home>.partial``, rename it into place, then have
+    the worker delete its scratch copy. A ``.partial`` already there (an interrupted run's) is never overwritten."""
+    try:
+        for remote, home_text, size in shipment.files:
+            home = Path(home_text)
+            home.parent.mkdir(parents=True, exist_ok=True)
+            tmp = _partial(home)
+            with open(tmp, "xb") as fh:  # FileExistsError (an OSError) for a leftover: the episode fails, named
+                try:
+                    offsets = deque(range(0, size, CHUNK_BYTES))
+                    wanted: deque[Any] = deque()
+                    while offsets or wanted:
+                        while offsets and len(wanted) < CHUNKS_IN_FLIGHT:
+                            wanted.append(actor.read.remote(remote, offsets.popleft(), CHUNK_BYTES))
+                        fh.write(ray.get(wanted.popleft()))
+                    fh.flush()
+                    os.fsync(fh.fileno())
+                    if fh.tell() != size:
+                        raise OSError(f"{remote} arrived with {fh.tell()} of its {size} bytes")
+                except BaseException:
+                    fh.close()
+                    tmp.unlink(missing_ok=True)
+                    raise
+            os.replace(tmp, home)
+            summary.shipped[str(home)] = remote
+            summary.shipped_bytes += size
+    finally:  # the worker's copy goes whether it arrived or not (a failed transfer is a retried episode)
+        with contextlib.suppress(Exception):
+            ray.get(actor.discard.remote(shipment.scratch))
+
+
+def _drop_partials(item: WorkItem) -> None:
+    """Delete the ``.partial`` files a worker that died left for a file item (it could not clean up)."""
+    if is_file_item(item):
+        for path in item.files():  # type: ignore[attr-defined]
+            with contextlib.suppress(OSError):
+                _partial(path).unlink(missing_ok=True)
+
+
+def _move_home(sent: FileItem, item: FileItem) -> None:
+    """Move the files a worker wrote into the shared folder to their home: a rename on the same file system, else a
+    copy to ``.partial``, renamed into place, and the shared copy deleted."""
+    for src, dst in zip(sent.files(), item.files(), strict=True):
+        if src == dst or not src.exists():
+            continue
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.replace(src, dst)
+        except OSError:  # another file system (EXDEV): copy, then rename
+            tmp = _partial(dst)
+            try:
+                with open(src, "rb") as a, open(tmp, "xb") as b:
+                    shutil.copyfileobj(a, b, CHUNK_BYTES)
+                    b.flush()
+                    os.fsync(b.fileno())
+            except BaseException:
+                tmp.unlink(missing_ok=True)
+                raise
+            os.replace(tmp, dst)
+            src.unlink()
+
+
 class _RayWorker:
     """A Ray actor: one worker (driver built once, one simulator), as a local worker process is."""
 
@@ -351,13 +490,34 @@ class _RayWorker:
         except Exception as exc:
             self.error = describe(exc)
 
-    def run(self, item: WorkItem) -> tuple[str, Any]:
+    def run(self, item: WorkItem, ship: bool = False) -> tuple[str, Any, _Shipment | None]:
+        """The item's result; with ``ship`` a ``FileItem`` records into a scratch folder here, whose finished files
+        the parent then pulls (``read``) and lets go (``discard``)."""
         if self.worker is None:
-            return "fatal", self.error
+            return "fatal", self.error, None
+        scratch: str | None = None
         try:
-            return "done", item.run(self.worker)
+            if ship and is_file_item(item):
+                scratch = tempfile.mkdtemp(prefix="towndrive-ship-")
+                local = item.writing_into(Path(scratch))  # type: ignore[attr-defined]
+                result = local.run(self.worker)
+                files = tuple((str(a), str(b), a.stat().st_size)
+                              for a, b in zip(local.files(), item.files(), strict=True) if a.is_file())  # type: ignore[attr-defined]
+                return "done", result, _Shipment(scratch, files)
+            return "done", item.run(self.worker), None
         except Exception as exc:
-            return "error", describe(exc)
+            if scratch is not None:
+                shutil.rmtree(scratch, ignore_errors=True)
+            return "error", describe(exc), None
+
+    def read(self, path: str, offset: int, size: int) -> bytes:
+        with open(path, "rb") as fh:
+            fh.seek(offset)
+            return fh.read(size)
+
+    def discard(self, scratch: str) -> None:
+        if os.path.basename(scratch).startswith("towndrive-ship-"):  # only ever a folder ``run`` made
+            shutil.rmtree(scratch, ignore_errors=True)
 
 
 class _Books:

@@ -35,8 +35,8 @@ class FaultyAutopilot:
 
     name, privileged = "autopilot", True
 
-    def __init__(self, bad: int, how: str, marker: str | None = None) -> None:
-        self.inner, self.bad, self.how, self.marker = Autopilot(), bad, how, marker
+    def __init__(self, bad: int, how: str, marker: str | None = None, **autopilot: Any) -> None:
+        self.inner, self.bad, self.how, self.marker = Autopilot(**autopilot), bad, how, marker
         self.index, self.steps = -1, 0
 
     def set_episode_index(self, index: int) -> None:
@@ -46,6 +46,10 @@ class FaultyAutopilot:
     def reset(self, env: Any) -> None:
         self.inner.reset(env)
         self.steps = 0
+
+    @property
+    def clean_action(self) -> Any:  # a recording's label: the autopilot's action without its steering noise
+        return self.inner.clean_action
 
     def act(self, observation: dict[str, Any]) -> np.ndarray:
         self.steps += 1
@@ -109,31 +113,100 @@ def test_an_episode_that_always_crashes_is_reported_failed_and_counted_as_zero(s
     assert "FAILED (counted as 0): RuntimeError" in (tmp_path / "table.md").read_text()
 
 
-def test_two_workers_record_the_serial_run_s_episode_files(tmp_path):
+RECORD_FLAGS = ["--driver", "autopilot", "--episodes", "3", "--seconds", "5", "--width", "64", "--height", "48",
+                "--noise", "--seed", "7", "--towns", "2"]
+EPISODE_NAMES = ["episode_00000.h5", "episode_00001.h5", "episode_00002.h5"]
+
+
+@pytest.fixture(scope="module")
+def serial_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from towndrive.drive_cli import main
 
-    flags = ["--driver", "autopilot", "--episodes", "3", "--seconds", "5", "--width", "64", "--height", "48",
-             "--noise", "--seed", "7", "--towns", "2"]
-    assert main(["--record", str(tmp_path / "serial"), *flags]) == 0
-    assert main(["--record", str(tmp_path / "parallel"), *flags, "--workers", "2"]) == 0
-    names = sorted(p.name for p in (tmp_path / "serial").iterdir())
-    assert names == ["episode_00000.h5", "episode_00001.h5", "episode_00002.h5"]
-    assert sorted(p.name for p in (tmp_path / "parallel").iterdir()) == names
-    for name in names:
-        with h5py.File(tmp_path / "serial" / name) as a, h5py.File(tmp_path / "parallel" / name) as b:
-            for key in ("frames", "actions", "speed", "command"):
-                assert np.array_equal(a[key][()], b[key][()]), (name, key)
-            assert a.attrs["seed"] == b.attrs["seed"] and a.attrs["town_seed"] == b.attrs["town_seed"]
+    folder = tmp_path_factory.mktemp("serial_recording")
+    assert main(["--record", str(folder), *RECORD_FLAGS]) == 0
+    assert sorted(p.name for p in folder.iterdir()) == EPISODE_NAMES
+    return folder
 
 
-def test_ray_gives_the_serial_report_and_retries_a_killed_worker(serial, tmp_path):
-    """The same items as Ray tasks on a local 2-CPU cluster (skipped without towndrive[cluster])."""
-    pytest.importorskip("ray", reason="--ray needs towndrive[cluster]")
+def same_episodes(a_folder: Path, b_folder: Path) -> None:
+    """Every dataset and every attribute of each episode file alike (the files' own timestamps aside)."""
+    assert sorted(p.name for p in b_folder.iterdir()) == EPISODE_NAMES
+    for name in EPISODE_NAMES:
+        with h5py.File(a_folder / name) as a, h5py.File(b_folder / name) as b:
+            keys: list[str] = []
+            a.visit(lambda k, into=keys: into.append(k))
+            assert keys and keys == [k for k in keys if k in b], name
+            for key in keys:
+                if isinstance(a[key], h5py.Dataset):
+                    assert np.array_equal(a[key][()], b[key][()]), (name, key)
+            assert {k: str(v) for k, v in a.attrs.items()} == {k: str(v) for k, v in b.attrs.items()}, name
+
+
+def test_two_workers_record_the_serial_run_s_episode_files(serial_recording, tmp_path):
+    from towndrive.drive_cli import main
+
+    assert main(["--record", str(tmp_path / "parallel"), *RECORD_FLAGS, "--workers", "2"]) == 0
+    same_episodes(serial_recording, tmp_path / "parallel")
+
+
+def test_ray_recordings_come_home_through_the_object_store(serial_recording, ray_cluster, tmp_path, monkeypatch):
+    """Under Ray each worker records into a scratch folder of its node (here: the cluster's TMPDIR, not the
+    recording folder, as on a remote machine); the finished files are pulled home and the scratch copies deleted."""
+    from towndrive.drive_cli import main
+    from towndrive.envs import parallel
+
+    shipped: list[tuple[str, str, int]] = []
+    bring_home = parallel._bring_home
+
+    def watched(ray: Any, actor: Any, shipment: Any, summary: RunSummary) -> None:
+        shipped.extend(shipment.files)
+        bring_home(ray, actor, shipment, summary)
+
+    monkeypatch.setattr(parallel, "_bring_home", watched)
+    monkeypatch.setattr(parallel, "CHUNK_BYTES", 64 * 1024)  # several chunks per file
+    out = tmp_path / "ray"
+    assert main(["--record", str(out), *RECORD_FLAGS, "--workers", "2", "--ray"]) == 0
+    same_episodes(serial_recording, out)
+    assert sorted(Path(home).name for _, home, _ in shipped) == EPISODE_NAMES
+    for remote, home, size in shipped:
+        assert Path(remote).is_relative_to(ray_cluster) and Path(home).parent == out  # a folder of the worker's
+        assert not Path(remote).exists() and Path(home).stat().st_size == size > 64 * 1024  # ... deleted after
+    assert not list(ray_cluster.glob("towndrive-ship-*")) and not list(out.glob("*.partial"))
+
+
+def test_ray_recordings_through_a_shared_folder_are_moved_home(serial_recording, ray_cluster, tmp_path, capsys):
+    from towndrive.drive_cli import main
+
+    shared, out = tmp_path / "shared", tmp_path / "ray"
+    assert main(["--record", str(out), *RECORD_FLAGS, "--workers", "2", "--ray", "--shared-dir", str(shared)]) == 0
+    same_episodes(serial_recording, out)
+    assert list(shared.iterdir()) == [] and not list(ray_cluster.glob("towndrive-ship-*"))
+    # --shared-dir without --ray: one sentence, before anything runs
+    assert main(["--record", str(tmp_path / "no"), *RECORD_FLAGS, "--shared-dir", str(shared)]) == 2
+    assert "--shared-dir" in capsys.readouterr().err and not (tmp_path / "no").exists()
+
+
+@pytest.fixture(scope="module")
+def ray_cluster(tmp_path_factory: pytest.TempPathFactory) -> Any:
+    """One local 2-CPU Ray cluster for the Ray tests (skipped without towndrive[cluster]); its workers' temporary
+    folder is ``node_tmp``, so that a test can see what a worker left behind on its node."""
+    ray = pytest.importorskip("ray", reason="--ray needs towndrive[cluster]")
     import sys
 
     from ray import cloudpickle
 
+    from towndrive.envs.parallel import THREAD_VARIABLES
+
     cloudpickle.register_pickle_by_value(sys.modules[__name__])  # Ray's workers need not find this test file
+    node_tmp = tmp_path_factory.mktemp("ray_node_tmp")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, object_store_memory=300 * 2**20,
+             runtime_env={"env_vars": {**{k: "1" for k in THREAD_VARIABLES}, "TMPDIR": str(node_tmp)}})
+    yield node_tmp
+    ray.shutdown()
+
+
+def test_ray_gives_the_serial_report_and_retries_a_killed_worker(serial, ray_cluster, tmp_path):
+    """The same items as Ray tasks on a local 2-CPU cluster."""
     marker = tmp_path / "killed_once"
     summary = RunSummary()
     spec = DriverSpec.of(faulty_driver, "autopilot", bad=2, how="kill", marker=str(marker))
@@ -141,3 +214,32 @@ def test_ray_gives_the_serial_report_and_retries_a_killed_worker(serial, tmp_pat
                        summary=summary, ray="local")
     assert marker.exists() and summary.retried == 1 and not summary.failed
     assert json.dumps(metrics, sort_keys=True) == json.dumps(serial, sort_keys=True)
+
+
+@pytest.mark.parametrize("backend", ["workers", "ray, shared folder"])
+def test_a_recording_worker_killed_mid_episode_leaves_nothing_in_the_retry_s_way(serial_recording, backend, tmp_path,
+                                                                                request):
+    """A worker SIGKILLed while it writes episode 1 cannot clean up its ``.partial``; the retry still records it."""
+    from towndrive.drive_cli import RecordEpisode, check_args, episode_options, make_config, parse_args
+    from towndrive.envs.parallel import run_items
+
+    ray, shared = None, None
+    if backend.startswith("ray"):
+        request.getfixturevalue("ray_cluster")
+        ray, shared = "local", tmp_path / "shared"
+    out = tmp_path / "out"
+    args = parse_args(["--record", str(out), *RECORD_FLAGS])
+    check_args(args)
+    config = make_config(args)
+    items = [RecordEpisode(k, args.seed + k, episode_options(args, k), config, out / EPISODE_NAMES[k], True)
+             for k in range(3)]
+    marker = tmp_path / "killed_once"
+    spec = DriverSpec.of(faulty_driver, "autopilot", bad=1, how="kill", marker=str(marker), noise=True,
+                         noise_seed=args.seed)
+    summary = RunSummary()
+    results = run_items(items, spec, 2, summary=summary, ray=ray, progress=False, shared_dir=shared)
+    assert marker.exists() and summary.retried == 1 and not summary.failed
+    assert [r["path"] for r in results] == [str(out / name) for name in EPISODE_NAMES]
+    same_episodes(serial_recording, out)
+    if shared is not None:
+        assert list(shared.iterdir()) == []

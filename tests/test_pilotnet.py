@@ -168,6 +168,15 @@ def test_side_cameras_load_with_corrected_labels(tiny_dataset):
     assert np.all(first[1] > first[0]) and np.all(first[2] < first[0])  # left camera steers right, and vice versa
 
 
+def test_episodes_loaded_by_worker_processes_are_the_ones_loaded_here(tiny_dataset):
+    from towndrive.agent.training.pilotnet_data import load_frames
+
+    here, there = load_frames([tiny_dataset]), load_frames([tiny_dataset], workers=2)
+    assert len(here) > 0 and there.episode_paths == here.episode_paths
+    for name in ("images", "steer", "speed", "command", "episode"):
+        assert np.array_equal(getattr(here, name), getattr(there, name)), name
+
+
 def _train(folder, out, *extra):
     import train
 

@@ -21,7 +21,7 @@ import json
 import signal
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -90,7 +90,12 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
                    help="record/evaluate/scenario all: run the episodes as Ray tasks, on a local Ray cluster of "
                         "--workers CPUs (default: every available core), or on the cluster at ADDRESS ('auto', "
                         "'ray://host:10001'; one task per CPU unless --workers says otherwise). Needs towndrive[cluster]; "
-                        "on several machines, --out and the recording folder must be on a file system every node sees")
+                        "on several machines, --out must be on a file system every node sees (recorded episodes "
+                        "come back to the recording folder)")
+    p.add_argument("--shared-dir", type=Path, default=None, metavar="DIR",
+                   help="record --ray: a folder every Ray node sees at this path; workers write their episodes there "
+                        "and each finished one is moved into the recording folder (without it, each comes back "
+                        "through Ray's object store)")
     p.add_argument("--until", type=float, default=None, metavar="SECONDS",
                    help="evaluate: stop each episode at this time and save its last frame (replay an event: the "
                         "report gives seed, town and weather)")
@@ -152,6 +157,8 @@ def check_args(args: argparse.Namespace) -> None:
         import_for("ray", "--ray")
         if args.ray == LOCAL_RAY and args.workers == 1:
             args.workers = available_cores()
+    if args.shared_dir is not None and not (args.ray and args.record):
+        raise ValueError(f"--shared-dir {args.shared_dir}: a folder Ray's workers record into; it needs record --ray.")
     if args.until is not None:
         if not args.evaluate:
             raise ValueError(f"--until {args.until} replays an evaluation episode up to a time: it needs --evaluate.")
@@ -309,6 +316,7 @@ class RecordEpisode:
     config: Any  # DriveConfig
     path: Path
     noise: bool = False
+    home: Path | None = None  # where the file belongs when this copy records it elsewhere (a Ray worker's folder)
 
     def attrs(self, driver: Any, route_total_m: float) -> dict[str, Any]:
         c = self.config
@@ -354,8 +362,15 @@ class RecordEpisode:
             raise
 
     def run(self, worker: Any) -> dict[str, Any]:
-        path, frames = self.record(worker.env(self.config, render_mode=None), worker.driver)
-        return {"path": str(path), "frames": frames}
+        _, frames = self.record(worker.env(self.config, render_mode=None), worker.driver)
+        return {"path": str(self.home or self.path), "frames": frames}
+
+    def files(self) -> tuple[Path, ...]:
+        return (self.path,)
+
+    def writing_into(self, folder: Path) -> RecordEpisode:
+        """The same episode recorded into ``folder`` (``envs.parallel.FileItem``: Ray brings the file home)."""
+        return replace(self, path=Path(folder) / self.path.name, home=self.home or self.path)
 
     def failed(self, error: str) -> dict[str, Any]:
         return {"path": None, "frames": 0, "error": error}
@@ -431,7 +446,7 @@ def _record_parallel(args: argparse.Namespace, config: Any) -> int:
     with StopSignals() as stop:
         try:
             results = run_items(items, spec, args.workers, f"recording ({args.workers} workers)",
-                                lambda: stop.requested, summary, args.ray)
+                                lambda: stop.requested, summary, args.ray, shared_dir=args.shared_dir)
         except Interrupted as exc:
             kept = [r for r in exc.results.values() if r["path"]]
             signum = stop.signum or signal.SIGINT

@@ -7,17 +7,24 @@ stride-4 head, stride 4 up to 32 px and stride 8 from 16 to 64 px). Smaller boxe
 in shared cells. Cells whose centre lies in an ignore region get no objectness loss. Loss: ``1 - GIoU`` for
 boxes, BCE for objectness (weighted by each map's cell count relative to stride 16, as YOLOv5 weights P3 4x)
 and BCE for classes, in YOLOv5's proportions.
+
+Batches are built in the training process from one random stream (``--loader-workers 0``, as always), or by
+DataLoader workers from a generator per batch (``loaders.py``). Started by ``torchrun``, each process trains on
+its share of every epoch's frames with DistributedDataParallel (``devices.py``, as PilotNet does); rank 0
+validates and writes the checkpoints.
 """
 
 from __future__ import annotations
 
 import argparse
 import copy
+import functools
 import json
 import math
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -29,7 +36,17 @@ from towndrive.agent.perception.checkpoints import save_checkpoint as save
 from towndrive.agent.perception.classes import CLASSES
 from towndrive.agent.perception.detector import INPUT_HW, STRIDES, DecodedDetector, Detector, DetectorConfig, postprocess
 from towndrive.agent.training.detector_eval import Sample, detection_report, load_split, read_rgb
-from towndrive.agent.training.devices import autocast, backward_step, grad_scaler, resolve_device, to_device
+from towndrive.agent.training.devices import (
+    Distributed,
+    autocast,
+    backward_step,
+    data_parallel,
+    grad_scaler,
+    process_group,
+    start_training,
+    to_device,
+)
+from towndrive.agent.training.loaders import SeededBatches, batch_loader, check_loader_workers, seed_of
 
 LOSS_WEIGHTS = {"box": 0.05, "obj": 0.2, "cls": 0.04}
 # Objectness weight per stride, proportional to the number of cells (YOLOv5's P3:P4 = 4:1), so every cell weighs
@@ -215,6 +232,12 @@ def make_batch(images: np.ndarray, samples: list[Sample], idx: np.ndarray, rng: 
     return x, tgs
 
 
+def _seeded_batch(rng: np.random.Generator, idx: np.ndarray, images: np.ndarray, samples: list[Sample],
+                  strides: tuple[int, ...], scale_prob: float):
+    """``make_batch`` in the argument order of ``loaders.SeededBatches``."""
+    return make_batch(images, samples, idx, rng, strides, scale_prob)
+
+
 class EMA:
     """Exponential moving average of weights (YOLOv5's ModelEMA): steadier evaluations and checkpoints."""
 
@@ -261,18 +284,26 @@ def save_checkpoint(path: Path, model: Detector, meta: dict) -> None:
 
 # --------------------------------------------------------------------------- training
 def train(args: argparse.Namespace) -> int:
-    """``train.py detector train``: AdamW, cosine schedule, EMA, best checkpoint by val mAP@0.5."""
+    """``train.py detector train``: AdamW, cosine schedule, EMA, best checkpoint by val mAP@0.5; under torchrun one
+    DistributedDataParallel process per GPU (or gloo process on the CPU)."""
     try:  # before any work: a missing GPU is one sentence
-        device = resolve_device(getattr(args, "device", "cpu"))
+        dist, device = start_training(getattr(args, "device", "cpu"))
+        workers = check_loader_workers(getattr(args, "loader_workers", 0))
     except ValueError as exc:
         print(f"towndrive train detector train: {exc}", file=sys.stderr)
         return 2
+    with process_group(dist, device):
+        return _train(args, device, dist, workers)
+
+
+def _train(args: argparse.Namespace, device: torch.device, dist: Distributed, workers: int) -> int:
     torch.manual_seed(args.seed)
     torch.set_num_threads(max(1, args.threads))
     rng = np.random.default_rng(args.seed)
     train_s = [x for name in str(getattr(args, "train_splits", "train")).split(",") for x in load_split(args.data, name)]
     val_s = load_split(args.data, "val")
-    train_x, val_x = load_images(train_s, "train"), load_images(val_s, "val")
+    train_x = load_images(train_s, "train")
+    val_x = load_images(val_s, "val") if dist.is_main else None  # rank 0 alone validates
     strides = tuple(int(v) for v in str(getattr(args, "strides", "8,16")).split(","))
     model = Detector(DetectorConfig(width=getattr(args, "width", 32), strides=strides,
                                     s4_blocks=getattr(args, "s4_blocks", 0),
@@ -304,12 +335,14 @@ def train(args: argparse.Namespace) -> int:
     model.to(device)
     scaler = grad_scaler(device)
     ema = EMA(model)
+    trained = data_parallel(model, device, dist)  # under torchrun: rank 0's weights everywhere, gradients averaged
     decay, no_decay = [], []
     for name, p in model.named_parameters():
         (no_decay if p.ndim <= 1 or name.endswith(".bias") else decay).append(p)
     opt = torch.optim.AdamW([{"params": decay, "weight_decay": 5e-4}, {"params": no_decay, "weight_decay": 0.0}],
                             lr=args.lr)
-    steps_per_epoch = len(train_s) // args.batch
+    steps_per_epoch = len(train_s) // (args.batch * dist.world_size)  # per process: each trains on its share
+    in_process = workers == 0 and not dist.enabled  # the one random stream of before loader workers and torchrun
     total = steps_per_epoch * args.epochs
     warmup = min(300, total // 10)
     out = Path(args.out)
@@ -318,23 +351,34 @@ def train(args: argparse.Namespace) -> int:
     best, t0, step = -1.0, time.perf_counter(), 0
     history = []
     print(f"train {len(train_s)} frames, val {len(val_s)} frames, {steps_per_epoch} steps/epoch, "
-          f"{sum(p.numel() for p in model.parameters())} parameters, {torch.get_num_threads()} thread(s), on {device}")
+          f"{sum(p.numel() for p in model.parameters())} parameters, {torch.get_num_threads()} thread(s), on {device}"
+          + (f", {workers} loader worker{'s' if workers > 1 else ''}" if workers else "") + dist.label)
     stop = False
     for epoch in range(args.epochs):
-        model.train()
-        order = rng.permutation(len(train_s))
-        bar = tqdm(range(steps_per_epoch), desc=f"epoch {epoch + 1}/{args.epochs}", unit="batch")
+        trained.train()
+        if in_process:
+            order = rng.permutation(len(train_s))
+            batches: Any = (make_batch(train_x, train_s, order[b * args.batch:(b + 1) * args.batch], rng, strides,
+                                       scale_prob) for b in range(steps_per_epoch))
+        else:  # every rank the same permutation, each its own slice; batch b augmented from (seed, epoch, rank, b)
+            order = np.random.default_rng((args.seed, epoch)).permutation(len(train_s))
+            mine = order[dist.rank::dist.world_size][:steps_per_epoch * args.batch]
+            make = functools.partial(_seeded_batch, images=train_x, samples=train_s, strides=strides,
+                                     scale_prob=scale_prob)
+            key = (args.seed, epoch, dist.rank)
+            batches = batch_loader(SeededBatches(make, mine, args.batch, key), workers, device, seed_of(key))
+        bar = tqdm(batches, total=steps_per_epoch, desc=f"epoch {epoch + 1}/{args.epochs}", unit="batch",
+                   disable=not dist.is_main)
         run = {"box": 0.0, "obj": 0.0, "cls": 0.0}
-        for b in bar:
+        for b, (x, tgs) in enumerate(bar):
             lr = args.lr * (step / max(warmup, 1) if step < warmup
                             else 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * (step - warmup) / max(total - warmup, 1))))
             for g in opt.param_groups:
                 g["lr"] = lr
-            x, tgs = make_batch(train_x, train_s, order[b * args.batch:(b + 1) * args.batch], rng, strides, scale_prob)
             # On CUDA: a pinned non-blocking copy, an autocast forward, the loss in fp32, fp16 through a GradScaler;
             # on the CPU each of these is a no-op (float() of an fp32 map is the map itself).
             with autocast(device):
-                maps = model(to_device(x, device))
+                maps = trained(to_device(x, device))
             loss, parts = yolo_loss([m.float() for m in maps], tgs, strides, obj_iou, box_l1)
             opt.zero_grad(set_to_none=True)
             backward_step(loss, opt, scaler, clip=(model.parameters(), 10.0))
@@ -343,10 +387,16 @@ def train(args: argparse.Namespace) -> int:
             for k in run:
                 run[k] = 0.9 * run[k] + 0.1 * parts[k] if b else parts[k]
             bar.set_postfix(box=f"{run['box']:.3f}", obj=f"{run['obj']:.4f}", cls=f"{run['cls']:.3f}", lr=f"{lr:.1e}")
-            if args.time_limit_min and time.perf_counter() - t0 > args.time_limit_min * 60:
-                stop = True
+            if args.time_limit_min and dist.agree(time.perf_counter() - t0 > args.time_limit_min * 60):
+                stop = True  # every rank at the same step (their next all-reduce would wait for the others)
                 break
         bar.close()
+        if not dist.is_main:
+            dist.barrier()  # rank 0 validates and writes the epoch's checkpoints
+            if stop:
+                break
+            continue
+        assert val_x is not None
         rep = evaluate_model(ema.model, val_x, val_s)
         score = rep["map50"]
         entry = {"epoch": epoch + 1, "steps": step, "minutes": round((time.perf_counter() - t0) / 60, 2),
@@ -367,8 +417,11 @@ def train(args: argparse.Namespace) -> int:
             best = score
             save_checkpoint(out, ema.model, meta)
             print(f"  best so far: saved {out}")
+        dist.barrier()
         if stop:
             print(f"Time limit of {args.time_limit_min} min reached after {step} steps.")
             break
+    if not dist.is_main:
+        return 0
     print(f"Training took {(time.perf_counter() - t0) / 60:.1f} min; best val mAP@0.5 {best:.3f} -> {out}")
     return 0

@@ -18,7 +18,7 @@ import json
 import time
 from pathlib import Path
 
-from towndrive.agent.training.devices import add_device_argument
+from towndrive.agent.training.devices import add_device_argument, add_loader_argument
 from towndrive.agent.training.outputs import add_replace_shipped
 
 DEFAULT_DATA = "data/datasets/detector"
@@ -73,7 +73,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="also save every epoch's EMA weights next to --out (NAME.eN.pt), to choose by another val figure")
     p.add_argument("--scale-prob", type=float, default=1.0,
                    help="share of training frames rescaled (0.75-1.3x); the rest are shifted by whole pixels")
-    add_device_argument(p)
+    add_loader_argument(p)
+    add_device_argument(p, more="Several GPUs (or CPU processes): start with torchrun --nproc_per_node N train.py "
+                                "detector train ... (DDP; --batch per process)")
 
     p = sub.add_parser("refiner", help="train the second-stage pedestrian refiner on the detector's candidates")
     p.add_argument("--data", default=DEFAULT_DATA, help="dataset root")

@@ -1,8 +1,10 @@
 """Where training runs: ``--device auto|cpu|cuda|cuda:K``, mixed precision on CUDA, and torchrun's processes.
 
 ``resolve_device`` turns the flag into a ``torch.device`` (auto: CUDA when torch sees one). ``Distributed``
-reads the environment ``torchrun`` sets (RANK, WORLD_SIZE, LOCAL_RANK) and starts the process group: nccl
-on CUDA, gloo on the CPU. Nothing here changes the single-process CPU path.
+reads the environment ``torchrun`` sets (RANK, WORLD_SIZE, LOCAL_RANK); ``start_training`` gives a command its
+process and device, ``process_group`` starts and ends the group (nccl on CUDA, gloo on the CPU) and
+``data_parallel`` wraps the model. PilotNet and the detector train under torchrun through these same calls.
+Nothing here changes the single-process CPU path.
 """
 
 from __future__ import annotations
@@ -10,7 +12,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -23,6 +25,14 @@ DEVICE_HELP = "auto (CUDA when present), cpu, cuda or cuda:K; mixed precision on
 def add_device_argument(p: argparse.ArgumentParser, default: str = "auto", more: str = "") -> None:
     """``--device``, the same for every training command (``more``: what this command adds to the help)."""
     p.add_argument("--device", default=default, help=f"where to train: {DEVICE_HELP}" + (f". {more}" if more else ""))
+
+
+def add_loader_argument(p: argparse.ArgumentParser) -> None:
+    """``--loader-workers``, the same for PilotNet and the detector (see ``loaders.py``)."""
+    p.add_argument("--loader-workers", type=int, default=0, metavar="N",
+                   help="build the batches in N DataLoader worker processes (pinned memory on CUDA), so that a GPU "
+                        "does not wait for augmentation; 0 (default): in the training process, as before. The same "
+                        "seed gives the same weights for any N >= 1; 0 and N >= 1 draw different augmentations")
 
 
 def resolve_device(text: str = "auto", local_rank: int | None = None) -> torch.device:
@@ -129,6 +139,23 @@ class Distributed:
         if self.enabled and torch.distributed.is_initialized():
             torch.distributed.destroy_process_group()
 
+    def agree(self, flag: bool) -> bool:
+        """True on every rank when it is true on any (a time limit, say: all ranks must stop at the same step, or
+        the others wait forever in their next all-reduce)."""
+        import torch
+
+        if not (self.enabled and torch.distributed.is_initialized()):
+            return flag
+        t = torch.tensor([1.0 if flag else 0.0])
+        if torch.distributed.get_backend() == "nccl":
+            t = t.cuda()
+        torch.distributed.all_reduce(t, op=torch.distributed.ReduceOp.MAX)
+        return bool(t.item() > 0)
+
+    @property
+    def label(self) -> str:
+        return f", rank {self.rank} of {self.world_size}" if self.enabled else ""
+
 
 def distributed_from_env() -> Distributed:
     """The torchrun process this is (rank 0 of 1 when not started by torchrun)."""
@@ -148,3 +175,30 @@ def init_distributed(dist: Distributed, device: torch.device) -> None:
         torch.cuda.set_device(device)
     torch.distributed.init_process_group("nccl" if device.type == "cuda" else "gloo",
                                          rank=dist.rank, world_size=dist.world_size)
+
+
+def start_training(device_text: str) -> tuple[Distributed, torch.device]:
+    """This process's place in a torchrun job (rank 0 of 1 without torchrun) and its device; ``cuda`` is the
+    local rank's GPU under torchrun. ValueError in one sentence for a device that is not there."""
+    dist = distributed_from_env()
+    return dist, resolve_device(device_text, dist.local_rank if dist.enabled else None)
+
+
+@contextlib.contextmanager
+def process_group(dist: Distributed, device: torch.device) -> Iterator[Distributed]:
+    """The process group for the duration of a training run (nothing without torchrun)."""
+    init_distributed(dist, device)
+    try:
+        yield dist
+    finally:
+        dist.close()
+
+
+def data_parallel(model: torch.nn.Module, device: torch.device, dist: Distributed) -> torch.nn.Module:
+    """The model as the training loop drives it: under torchrun wrapped in DistributedDataParallel (rank 0's
+    initial weights and buffers broadcast to every rank, gradients averaged), else the model itself."""
+    import torch
+
+    if not dist.enabled:
+        return model
+    return torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)

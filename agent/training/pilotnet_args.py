@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from towndrive.agent.training.devices import add_device_argument
+from towndrive.agent.training.devices import add_device_argument, add_loader_argument
 from towndrive.agent.training.outputs import add_replace_shipped
 
 
@@ -35,5 +35,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dagger-episodes", type=int, default=8, help="learner episodes per DAgger round")
     p.add_argument("--dagger-epochs", type=int, default=4, help="training epochs per DAgger round")
     p.add_argument("--dagger-seconds", type=float, default=60.0, help="length of each DAgger episode")
+    add_loader_argument(p)
     add_device_argument(p, more="Several GPUs (or CPU processes): start with torchrun --nproc_per_node N "
                                 "train.py pilotnet ... (DDP)")

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -121,34 +122,59 @@ class FrameSet:
 
 
 def load_frames(folders: list[Path], min_speed_mps: float = 1.0, side_cameras: bool = True,
-                crop: Crop = DEFAULT_CROP) -> FrameSet:
+                crop: Crop = DEFAULT_CROP, workers: int = 0) -> FrameSet:
     """Read every episode in ``folders``: frames where the car moves (standing still teaches nothing about
-    steering), preprocessed, with their steering labels; side-camera frames too, when recorded."""
+    steering), preprocessed, with their steering labels; side-camera frames too, when recorded.
+
+    ``workers`` > 0 reads and preprocesses the episodes in that many processes (spawned: each imports its own
+    libraries and opens the HDF5 files it reads, which an h5py handle inherited through a fork would not survive);
+    the result is the same, in the same order."""
     paths: list[Path] = []
     for folder in folders:
         found = list_episodes(Path(folder))
         if not found:
             raise EpisodeError(f"{folder}: no episodes in this folder; record some with drive.py --record {folder}.")
         paths += found
+    read = partial(_episode_views, min_speed_mps=min_speed_mps, side_cameras=side_cameras, crop=crop)
+    bar = partial(tqdm, total=len(paths), desc="loading episodes", unit="episode", mininterval=2.0)
+    if workers > 0 and len(paths) > 1:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(min(workers, len(paths)), mp_context=mp.get_context("spawn")) as pool:
+            episodes = list(bar(pool.map(read, paths)))
+    else:
+        episodes = [read(path) for path in bar(paths)]
     images, steer, speed, command, episode = [], [], [], [], []
-    for index, path in enumerate(tqdm(paths, desc="loading episodes", unit="episode", mininterval=2.0)):
-        ep = read_episode(path)
-        assert ep.frames is not None
-        keep = np.flatnonzero(ep.speed >= min_speed_mps)
-        views: list[tuple[np.ndarray, float]] = [(ep.frames, 0.0)]
-        offset = float(ep.attrs.get("side_camera_offset_m", 0.0) or 0.0)
-        if side_cameras and offset > 0 and "side_left" in ep.extras:
-            views += [(ep.extras["side_left"], -offset), (ep.extras["side_right"], offset)]
-        for frames, shift in views:
-            images.append(np.stack([preprocess(frames[t], crop) for t in keep]) if len(keep) else
-                          np.zeros((0, INPUT_HEIGHT, INPUT_WIDTH, 3), np.uint8))
-            label = ep.actions[keep, 0]
-            steer.append(corrected_steer(label, shift, 0.0, ep.speed[keep]) if shift else label.astype(np.float32))
-            speed.append(ep.speed[keep].astype(np.float32))
-            command.append(ep.command[keep].astype(np.int64))
-            episode.append(np.full(len(keep), index))
+    for index, views in enumerate(episodes):
+        for view_images, view_steer, view_speed, view_command in views:
+            images.append(view_images)
+            steer.append(view_steer)
+            speed.append(view_speed)
+            command.append(view_command)
+            episode.append(np.full(len(view_steer), index))
     return FrameSet(np.concatenate(images), np.concatenate(steer), np.concatenate(speed), np.concatenate(command),
                     np.concatenate(episode), paths)
+
+
+def _episode_views(path: Path, min_speed_mps: float, side_cameras: bool,
+                   crop: Crop) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """One episode's kept frames per camera: (preprocessed images, steering labels, speeds, commands)."""
+    ep = read_episode(path)
+    assert ep.frames is not None
+    keep = np.flatnonzero(ep.speed >= min_speed_mps)
+    views: list[tuple[np.ndarray, float]] = [(ep.frames, 0.0)]
+    offset = float(ep.attrs.get("side_camera_offset_m", 0.0) or 0.0)
+    if side_cameras and offset > 0 and "side_left" in ep.extras:
+        views += [(ep.extras["side_left"], -offset), (ep.extras["side_right"], offset)]
+    out = []
+    for frames, shift in views:
+        images = (np.stack([preprocess(frames[t], crop) for t in keep]) if len(keep) else
+                  np.zeros((0, INPUT_HEIGHT, INPUT_WIDTH, 3), np.uint8))
+        label = ep.actions[keep, 0]
+        steer = corrected_steer(label, shift, 0.0, ep.speed[keep]) if shift else label.astype(np.float32)
+        out.append((images, steer, ep.speed[keep].astype(np.float32), ep.command[keep].astype(np.int64)))
+    return out
 
 
 def split_by_episode(frames: FrameSet, validation_fraction: float, seed: int) -> tuple[FrameSet, FrameSet]:

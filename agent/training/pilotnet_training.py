@@ -3,13 +3,15 @@
   python train.py pilotnet --data data/episodes/autopilot --out out/pilotnet --epochs 12 --seed 0
   python train.py pilotnet --data ... --resume                 # continue from out/pilotnet/last.pt
   python train.py pilotnet --data ... --dagger 2               # then DAgger rounds (see agent.training.pilotnet_dagger)
+  python train.py pilotnet --data ... --loader-workers 2      # batches built by 2 DataLoader worker processes
   torchrun --standalone --nproc_per_node 2 train.py pilotnet --data ...   # DistributedDataParallel, one process per GPU
 
 A run folder holds ``last.pt`` (every epoch, for resuming), ``best.pt`` (lowest validation loss),
 ``log.csv`` and ``loss.png``. At the end the best checkpoint is written to ``--model`` (default
 ``data/models/pilotnet.pt``) with its ONNX twin, checked against torch within 1e-4.
-Training is deterministic for a seed: one thread of sampling and augmentation drawn from the seed, and
-torch's generator seeded per epoch.
+Training is deterministic for a seed: sampling drawn from the seed, and torch's generator seeded per epoch;
+augmentation in one stream in the training process (``--loader-workers 0``, the default), or with loader workers
+from a generator per batch, so the weights are the same for any number of them (``loaders.py``).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import csv
+import functools
 import json
 import math
 import shutil
@@ -45,12 +48,13 @@ from towndrive.agent.training.devices import (
     Distributed,
     autocast,
     backward_step,
-    distributed_from_env,
+    data_parallel,
     grad_scaler,
-    init_distributed,
-    resolve_device,
+    process_group,
+    start_training,
     to_device,
 )
+from towndrive.agent.training.loaders import SeededBatches, batch_loader, check_loader_workers, seed_of
 from towndrive.agent.training.outputs import replace_shipped
 from towndrive.agent.training.pilotnet_args import add_arguments as pilotnet_arguments
 from towndrive.agent.training.pilotnet_data import Augment, Augmenter, FrameSet, balance_weights, load_frames, split_by_episode
@@ -114,20 +118,37 @@ def predict(model: torch.nn.Module, images: np.ndarray, command: np.ndarray, bat
 
 def _batches(rng: np.random.Generator, train: FrameSet, weights: np.ndarray, samples: int, batch: int,
              augmenter: Augmenter | None):
-    """Balanced draws with replacement, augmented; yields (images, commands, steer) tensors."""
+    """Balanced draws with replacement, augmented, in this process from one stream (``--loader-workers 0``);
+    yields (images, commands, steer) tensors."""
     picks = rng.choice(len(train), size=samples, p=weights)
     for i in range(0, samples, batch):
-        idx = picks[i:i + batch]
-        imgs = np.empty((len(idx), INPUT_HEIGHT, INPUT_WIDTH, 3), np.uint8)
-        steer = np.empty(len(idx), np.float32)
-        cmd = np.empty(len(idx), np.int64)
-        for j, k in enumerate(idx):
-            if augmenter is None:
-                imgs[j], steer[j], cmd[j] = train.images[k], train.steer[k], train.command[k]
-            else:
-                imgs[j], steer[j], cmd[j] = augmenter(rng, train.images[k], float(train.steer[k]),
-                                                      float(train.speed[k]), int(train.command[k]))
-        yield to_tensor(imgs), torch.from_numpy(cmd), torch.from_numpy(steer)
+        yield _batch(rng, picks[i:i + batch], train, augmenter)
+
+
+def _batch(rng: np.random.Generator, idx: np.ndarray, train: FrameSet,
+           augmenter: Augmenter | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One batch of the frames ``idx``, augmented with draws from ``rng``."""
+    imgs = np.empty((len(idx), INPUT_HEIGHT, INPUT_WIDTH, 3), np.uint8)
+    steer = np.empty(len(idx), np.float32)
+    cmd = np.empty(len(idx), np.int64)
+    for j, k in enumerate(idx):
+        if augmenter is None:
+            imgs[j], steer[j], cmd[j] = train.images[k], train.steer[k], train.command[k]
+        else:
+            imgs[j], steer[j], cmd[j] = augmenter(rng, train.images[k], float(train.steer[k]),
+                                                  float(train.speed[k]), int(train.command[k]))
+    return to_tensor(imgs), torch.from_numpy(cmd), torch.from_numpy(steer)
+
+
+def epoch_batches(rng: np.random.Generator, train: FrameSet, weights: np.ndarray, samples: int, batch: int,
+                  augmenter: Augmenter | None, workers: int, key: tuple[int, ...], device: torch.device):
+    """The epoch's batches: drawn from ``rng`` here (``workers`` 0), or built by ``workers`` DataLoader processes,
+    batch b augmented from a generator seeded by ``(*key, b)`` (the same batches for any number of workers)."""
+    if workers == 0:
+        return _batches(rng, train, weights, samples, batch, augmenter)
+    picks = rng.choice(len(train), size=samples, p=weights)
+    make = functools.partial(_batch, train=train, augmenter=augmenter)
+    return batch_loader(SeededBatches(make, picks, batch, key), workers, device, seed=seed_of(key))
 
 
 def fit(model: torch.nn.Module, train: FrameSet, val: FrameSet, args: argparse.Namespace, out: Path,
@@ -154,6 +175,7 @@ def fit(model: torch.nn.Module, train: FrameSet, val: FrameSet, args: argparse.N
         samples = math.ceil(samples / dist.world_size)
     augmenter = None if args.no_augment else Augmenter(
         CameraConfig(), Augment(flip_p=0.0 if args.no_flip else 0.5))
+    workers = check_loader_workers(getattr(args, "loader_workers", 0))
     log_path = out / "log.csv"
     new_log = not log_path.exists() or first_epoch == 0
     with log_path.open("w" if new_log else "a", newline="") if dist.is_main else contextlib.nullcontext() as fh:
@@ -169,7 +191,9 @@ def fit(model: torch.nn.Module, train: FrameSet, val: FrameSet, args: argparse.N
                 torch.manual_seed(args.seed * 1000 + epoch)
             model.train()
             t0, losses = time.perf_counter(), []
-            bar = tqdm(_batches(rng, train, weights, samples, args.batch, augmenter), total=math.ceil(samples / args.batch),
+            batches = epoch_batches(rng, train, weights, samples, args.batch, augmenter, workers,
+                                    (args.seed, epoch, dist.rank), device)
+            bar = tqdm(batches, total=math.ceil(samples / args.batch),
                        desc=f"epoch {epoch + 1}/{total}", unit="batch", mininterval=2.0, file=sys.stderr,
                        disable=not dist.is_main)
             for x, cmd, y in bar:
@@ -253,9 +277,9 @@ def plot_log(log_path: Path, png: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    dist = distributed_from_env()  # torchrun sets RANK, WORLD_SIZE, LOCAL_RANK
     try:
-        device = resolve_device(getattr(args, "device", "cpu"), dist.local_rank if dist.enabled else None)
+        dist, device = start_training(getattr(args, "device", "cpu"))  # torchrun sets RANK, WORLD_SIZE, LOCAL_RANK
+        check_loader_workers(getattr(args, "loader_workers", 0))
     except ValueError as exc:
         print(f"towndrive train pilotnet: {exc}", file=sys.stderr)
         return 2
@@ -266,11 +290,8 @@ def run(args: argparse.Namespace) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
-    init_distributed(dist, device)
-    try:
+    with process_group(dist, device):
         return _run(args, device, dist)
-    finally:
-        dist.close()
 
 
 def _run(args: argparse.Namespace, device: torch.device, dist: Distributed) -> int:
@@ -279,7 +300,8 @@ def _run(args: argparse.Namespace, device: torch.device, dist: Distributed) -> i
         args.model = out / "pilotnet.pt"
     out.mkdir(parents=True, exist_ok=True)
     try:
-        frames = load_frames(args.data, side_cameras=not args.no_side_cameras)
+        frames = load_frames(args.data, side_cameras=not args.no_side_cameras,
+                             workers=getattr(args, "loader_workers", 0))
     except EpisodeError as exc:
         print(f"towndrive train pilotnet: {exc}", file=sys.stderr)
         return 2
@@ -302,15 +324,12 @@ def _run(args: argparse.Namespace, device: torch.device, dist: Distributed) -> i
         first_epoch, opt_state, best = int(ckpt["epoch"]), ckpt.get("optimizer"), float(ckpt.get("best_val", math.inf))
         print(f"resuming after epoch {first_epoch} (best validation loss {best:.4f})", file=sys.stderr)
     print(f"{'conditional ' if conditional else ''}PilotNet, {parameter_count(model):,} parameters, on {device}"
-          + (f", rank {dist.rank} of {dist.world_size}" if dist.enabled else ""), file=sys.stderr)
+          + dist.label, file=sys.stderr)
     remaining = max(0, args.epochs - first_epoch)
     if remaining:
         model = model.to(device)
-        trained: torch.nn.Module = model
-        if dist.enabled:  # the same initial weights on every rank (broadcast from rank 0), gradients averaged
-            trained = torch.nn.parallel.DistributedDataParallel(
-                model, device_ids=[device.index] if device.type == "cuda" else None)
-        fit(trained, train, val, args, out, first_epoch, opt_state, best, remaining, meta, dist)
+        fit(data_parallel(model, device, dist), train, val, args, out, first_epoch, opt_state, best, remaining, meta,
+            dist)
     if not dist.is_main:
         return 0  # rank 0 exports
     best_model, best_meta = load_model(out / "best.pt")
