@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -348,6 +349,10 @@ class AgentDriver:
         times[stage] = times.get(stage, 0.0) + (self._now() - t0) * 1000.0
         return out
 
+    def _detect_started(self, started: threading.Event, times: dict[str, float], image: np.ndarray) -> list[Detection]:
+        started.set()
+        return self._timed("detector", times, self.detector, image)
+
     def _lanes_and_stop(self, image: np.ndarray, times: dict[str, float]) -> tuple[LaneResult, StopLine | None]:
         lanes = self._timed("lanes", times, self.stages.lanes.detect, image)
         return lanes, self._timed("stop_line", times, self.stages.stop.detect, image, lanes)
@@ -376,9 +381,16 @@ class AgentDriver:
         detected: Future | None = None
         lane_job: Future | None = None
         if worker is not None:
+            started = threading.Event()
             if run:
-                detected = worker.submit(self._timed, "detector", times, self.detector, image)
+                detected = worker.submit(self._detect_started, started, times, image)
             lane_job = worker.submit(self._lanes_and_stop, image, times)
+            if run and look is not None and st.blind_spot.plan(
+                    self._frame, command, st.junction.placed,
+                    self._last_view.lanes if self._last_view is not None else None)[1] is not None:
+                # The mirror render holds the GIL for milliseconds: let the worker reach ONNX Runtime (which
+                # runs without it) first, so the two overlap.
+                started.wait(0.05)
         held = None
         if look is not None:
             detect = self.detector
