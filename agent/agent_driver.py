@@ -339,6 +339,13 @@ class AgentDriver:
             self._pools, self._pool_pid = {}, os.getpid()
         pool = self._pools.get(name)
         if pool is None:
+            if name == "stages":
+                # The two stage threads hold both cores: OpenCV's own worker threads (they wait actively between
+                # calls) would only fight them over the small bird's-eye images. ONNX Runtime runs one thread per
+                # call already (``threads``); numba's kernels here are serial.
+                import cv2
+
+                cv2.setNumThreads(1)
             pool = self._pools[name] = ThreadPoolExecutor(1, thread_name_prefix=f"agent-{name}")
         return pool
 

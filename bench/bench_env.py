@@ -20,6 +20,7 @@ import pybullet as p
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.timing import machine_line  # noqa: E402
 from towndrive.agent.autopilot import Autopilot
 from towndrive.envs.drive_env import DriveConfig, DriveEnv
 from towndrive.sim.render import CameraConfig, _projection
@@ -81,6 +82,7 @@ def main() -> int:
     args = ap.parse_args()
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
+    print(machine_line())
     print(f"Drive-v0 on the default town with traffic, {args.steps} steps each, one core")
     print(f"{'camera':>10} {'steps/s':>9} {'p50 ms':>8} {'p95 ms':>8} {'bare render ms':>15} {'sim overhead':>13}"
           f"  {'steps/s target':>20}  {'overhead <= 30%':>15}")
@@ -98,6 +100,7 @@ def main() -> int:
     print(f"{'none':>10} {res['steps_per_s']:9.1f} {res['step_ms_p50']:8.2f} {res['step_ms_p95']:8.2f}")
     print("targets: >=150 steps/s at 200x66, >=60 at 320x160, simulation overhead <= 30% of the step")
     print("all targets met" if ok else "some targets NOT met (see rows above)")
+    print(f"load average at the end: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     return 0
 
 
