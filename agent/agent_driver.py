@@ -37,6 +37,7 @@ overlays, ``agent.agent_overlay``); the episode's ADAS events in ``adas``. ``doc
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import threading
@@ -194,6 +195,10 @@ class AgentDriver:
                                         "`python train.py detector train` and `python train.py detector export`.")
             detect = OnnxDetector(detector, self.config.score_threshold, threads=threads, refiner=refiner)
         self.detector = detect
+        # The main frame's detection (on the worker) and the mirror's (on the calling thread) may overlap: ONNX
+        # Runtime sessions may be run from two threads at once; any other backend (a profile's TensorRT context)
+        # is used by one thread at a time.
+        self._detector_lock = contextlib.nullcontext() if getattr(detect, "thread_safe", False) else threading.Lock()
         self.controller = Controller(self.config.controller, VEHICLE.max_accel_mps2, VEHICLE.max_brake_mps2,
                                      self.config.road)
         self.adas = Adas(self.config.adas)
@@ -358,7 +363,18 @@ class AgentDriver:
 
     def _detect_started(self, started: threading.Event, times: dict[str, float], image: np.ndarray) -> list[Detection]:
         started.set()
-        return self._timed("detector", times, self.detector, image)
+        return self._timed("detector", times, self._detect, image)
+
+    def _detect(self, image: np.ndarray) -> list[Detection]:
+        with self._detector_lock:
+            return self.detector(image)
+
+    def _detect_vehicles(self, image: np.ndarray) -> list[Detection]:
+        """The mirror look's detection: only vehicles are read, so only they are looked for where the detector
+        can (``detect_only``: the pedestrian refiner is not run)."""
+        only = getattr(self.detector, "detect_only", None)
+        with self._detector_lock:
+            return only(image, VEHICLES) if only is not None else self.detector(image)
 
     def _lanes_and_stop(self, image: np.ndarray, times: dict[str, float]) -> tuple[LaneResult, StopLine | None]:
         lanes = self._timed("lanes", times, self.stages.lanes.detect, image)
@@ -400,12 +416,9 @@ class AgentDriver:
                 started.wait(0.05)
         held = None
         if look is not None:
-            detect = self.detector
-            only = getattr(detect, "detect_only", None)
-            mirror_detect = (lambda rgb: only(rgb, VEHICLES)) if only is not None else detect  # vehicles are read
             held = st.blind_spot.check(t, self._frame, command, st.junction.placed,
                                        self._last_view.lanes if self._last_view is not None else None, look,
-                                       mirror_detect)
+                                       self._detect_vehicles)
         lap("blind_spot")
         pilot = float(self.net.steer(image, 0 if held else command))  # held: follow the lane, do not change it
         lap("pilotnet")
@@ -421,7 +434,7 @@ class AgentDriver:
             dets = detected.result() if detected is not None else None
             lap("wait")
         else:
-            dets = self._timed("detector", times, self.detector, image) if run else None
+            dets = self._timed("detector", times, self._detect, image) if run else None
             clock = self._now()
         times.setdefault("detector", 0.0)
         if dets is not None:

@@ -272,7 +272,10 @@ class TorchDetector:
 
 class OnnxDetector:
     """Frames in, detections out, through ONNX Runtime (the deployment path); ``refiner``: an exported
-    pedestrian refiner (.onnx), run after the detector."""
+    pedestrian refiner (.onnx), run after the detector. Two threads may call it at once (ONNX Runtime's
+    ``run`` is thread-safe and nothing else here keeps state)."""
+
+    thread_safe = True
 
     def __init__(self, path: str | Path = "data/models/detector.onnx", score_threshold: float = 0.3,
                  threads: int = 0, refiner: str | Path | None = None) -> None:
