@@ -18,13 +18,15 @@ wires stages, each an object with a small typed input and output, and times them
 
 The controller and the junction guidance share one stop-line track (``agent.decision.stop_line_track``).
 
-**Both cores in one frame** (``AgentConfig.stage_threads``, 2 by default): the stages that do not depend on each
-other run at the same time, because their libraries release the GIL (ONNX Runtime, OpenCV). The detector (with
+**Both cores in one frame** (``AgentConfig.stage_threads``): the stages that do not depend on each other run at
+the same time, because their libraries release the GIL (ONNX Runtime, OpenCV). The detector (with
 its refiner) and then lanes and the stop line go to a worker thread while the calling thread takes the mirror
 look and PilotNet; whichever thread is free first takes the lanes. Every stage still runs once per frame on the
 same inputs and its results are consumed in the fixed order above, so the actions are bit for bit those of
 the serial order (``stage_threads=1``, one stage after another on the calling thread). The simulator is only
-ever called from the calling thread (the mirror look renders through it).
+ever called from the calling thread (the mirror look renders through it). The default, ``stage_threads=0``, times
+both ways now and then and keeps the faster: on a machine whose other jobs hold both cores, a second thread only
+waits for a core and one thread is faster (``StageThreadChoice``).
 
 **Pipelined** (``AgentConfig.pipeline``, off by default): ``act`` starts the perception and decision of the
 frame it is given on a thread of its own and returns the action decided on the frame before, so that the
@@ -113,8 +115,9 @@ class AgentConfig:
     road_clear_m: float = 8.0  # the approach lane is measured only while the stop line is farther than this
     #                            (close to it, the crosswalk's stripes look like lane lines)
     clock: str = "wall"  # stage timings in wall-clock time, or "cpu": CPU time of the thread that ran the stage
-    stage_threads: int = 2  # threads for one frame's independent stages: 2 uses two cores, 1 runs them one after
-    #                         another on the calling thread (the actions are the same either way)
+    stage_threads: int = 0  # threads for one frame's independent stages: 2 uses two cores, 1 runs them one after
+    #                         another on the calling thread, 0 chooses the faster now and then (the actions are
+    #                         the same either way)
     pipeline: bool = False  # act on frame t while the simulator renders frame t+1 (one frame of latency)
     ldw_min_lane_confidence: float = 0.5  # lane departure is only judged on a well-seen lane
     light_box_pad_px: float = 1.0  # light boxes come out about a pixel taller than the housing (measured)
@@ -125,6 +128,36 @@ class AgentConfig:
     blind_spot: BlindSpotConfig = field(default_factory=BlindSpotConfig)
     adas: AdasConfig = field(default_factory=AdasConfig)
     sort: SortConfig = field(default_factory=SortConfig)
+
+
+class StageThreadChoice:
+    """One thread or two for a frame's stages, whichever is faster on this machine now: every ``period`` frames,
+    ``trial`` frames with each, then the one with the lower median wall-clock time until the next trial. Two
+    threads win when a core is free; when other jobs hold both cores, the second thread only waits for one (and
+    each hand-over between the threads waits with it). Only the speed depends on the choice, never the actions."""
+
+    def __init__(self, period: int = 400, trial: int = 15) -> None:
+        self.period, self.trial = period, trial
+        self.frame = -10  # the first trial after a few frames (the first runs of ONNX Runtime are slow)
+        self.samples: dict[int, list[float]] = {1: [], 2: []}
+        self.chosen = 2
+
+    def now(self) -> int:
+        """The number of threads for this frame."""
+        k = self.frame % self.period
+        self.frame += 1
+        if k < 2 * self.trial:
+            return 1 if k < self.trial else 2
+        if k == 2 * self.trial and all(self.samples.values()):
+            one, two = (float(np.median(self.samples[n])) for n in (1, 2))
+            self.chosen = 1 if one < two else 2
+            self.samples = {1: [], 2: []}
+        return self.chosen
+
+    def took(self, threads: int, seconds: float) -> None:
+        """A frame's wall-clock time with ``threads``, counted while trying."""
+        if (self.frame - 1) % self.period < 2 * self.trial:
+            self.samples[threads].append(seconds)
 
 
 @dataclass
@@ -186,8 +219,9 @@ class AgentDriver:
         self._now = time.thread_time if self.config.clock == "cpu" else time.perf_counter
         if self.config.detect_every < 1:
             raise ValueError("detect_every must be at least 1 (1 = detect on every frame).")
-        if self.config.stage_threads not in (1, 2):
-            raise ValueError(f"stage_threads must be 1 (serial) or 2; got {self.config.stage_threads}.")
+        if self.config.stage_threads not in (0, 1, 2):
+            raise ValueError(f"stage_threads must be 0 (the faster), 1 (serial) or 2; got {self.config.stage_threads}.")
+        self._threads = StageThreadChoice() if self.config.stage_threads == 0 else None
         self.net = net if net is not None else PilotNetModel(model, backend, threads)
         if detect is None:
             if not Path(detector).is_file():
@@ -382,7 +416,7 @@ class AgentDriver:
 
     def _act(self, observation: dict[str, Any],
              look: Callable[[str], np.ndarray] | None) -> tuple[np.ndarray, AgentView, dict[str, float]]:
-        t_start = self._now()
+        t_start, t_wall = self._now(), time.perf_counter()
         times: dict[str, float] = {}
         clock = t_start
 
@@ -400,7 +434,8 @@ class AgentDriver:
         run = self._frame % self.config.detect_every == 0
         # Two cores: the detector, then lanes and the stop line, on the worker while this thread looks in the
         # mirror and runs PilotNet (each stage's own thread times it); else all on this thread, in this order.
-        worker = self._pool("stages") if self.config.stage_threads > 1 else None
+        threads = self._threads.now() if self._threads is not None else self.config.stage_threads
+        worker = self._pool("stages") if threads > 1 else None
         detected: Future | None = None
         lane_job: Future | None = None
         if worker is not None:
@@ -474,6 +509,8 @@ class AgentDriver:
                          centre, lanes.lane_width_m,
                          (st.blind_spot.holding(t, "left"), st.blind_spot.holding(t, "right")))
         self._last_view = view
+        if self._threads is not None:
+            self._threads.took(threads, time.perf_counter() - t_wall)
         return decision.action(), view, times
 
     def _decide(self, speed: float, command: int, pilot: float, hold: float | None, turn: float | None,

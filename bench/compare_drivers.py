@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
         piped = args.pipeline and name == "agent"
         if name == "agent":
             # One worker process per core: each agent then keeps to its own core (the actions are the same).
-            kwargs["stage_threads"] = 1 if args.workers > 1 or args.ray else 2
+            kwargs["stage_threads"] = 1 if args.workers > 1 or args.ray else 0
         if piped:
             kwargs["pipeline"] = True
             label += " (pipelined)"

@@ -76,6 +76,36 @@ def test_two_threads_decide_bit_for_bit_what_one_thread_decides(recorded) -> Non
 
 
 @needs_models
+def test_switching_between_one_and_two_threads_changes_nothing(recorded) -> None:
+    from towndrive.agent.agent_driver import StageThreadChoice
+
+    serial = drive(AgentDriver(stage_threads=1), recorded)
+    chooser = AgentDriver(stage_threads=0)
+    chooser._threads = StageThreadChoice(period=8, trial=2)  # try, choose and try again within the short drive
+    chooser._threads.frame = 0
+    switching = drive(chooser, recorded)
+    assert [a.tobytes() for a in switching[0]] == [a.tobytes() for a in serial[0]]
+    assert switching[1] == serial[1]
+
+
+def test_the_faster_thread_count_is_kept() -> None:
+    from towndrive.agent.agent_driver import StageThreadChoice
+
+    choice = StageThreadChoice(period=10, trial=2)
+    choice.frame = 0
+    tried = []
+    for _ in range(10):
+        n = choice.now()
+        tried.append(n)
+        choice.took(n, 0.010 if n == 1 else 0.020)  # one thread faster: the machine's cores are taken
+    assert tried == [1, 1, 2, 2, 1, 1, 1, 1, 1, 1]
+    for _ in range(10):
+        n = choice.now()
+        choice.took(n, 0.020 if n == 1 else 0.010)
+    assert choice.chosen == 2  # the machine freed a core: two threads again
+
+
+@needs_models
 def test_the_pipelined_agent_is_the_serial_one_a_frame_late(recorded) -> None:
     serial = drive(AgentDriver(stage_threads=1), recorded)
     piped = drive(AgentDriver(pipeline=True), recorded)

@@ -45,9 +45,10 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
                    help="pilotnet/agent: PilotNet's inference backend, named as in the profiles (default: torch for a "
                         "--model .pt, else onnxruntime)")
     p.add_argument("--target-speed", type=float, default=None, help="pilotnet: cruise speed in m/s (default 7)")
-    p.add_argument("--threads", type=int, default=None, choices=(1, 2),
-                   help="agent: threads for a frame's independent stages (default 2; 1 with --workers or --ray: one "
-                        "core per worker); 1 runs them one after another, the actions are the same")
+    p.add_argument("--threads", type=int, default=None, choices=(0, 1, 2),
+                   help="agent: threads for a frame's independent stages: 1 one after another, 2 on two cores, 0 the "
+                        "faster of the two, timed now and then (default; 1 with --workers or --ray: one core per "
+                        "worker); the actions are the same")
     p.add_argument("--pipeline", action="store_true",
                    help="agent: perceive frame t while the simulator renders frame t+1, acting a frame late")
     p.add_argument("--profile", default=None, metavar="NAME",
@@ -218,7 +219,7 @@ def driver_spec(args: argparse.Namespace) -> Any:
     threads, pipeline = getattr(args, "threads", None), getattr(args, "pipeline", False)
     if args.driver == "agent":
         parallel = getattr(args, "workers", 1) > 1 or bool(getattr(args, "ray", None))
-        kwargs["stage_threads"] = threads if threads is not None else (1 if parallel else 2)
+        kwargs["stage_threads"] = threads if threads is not None else (1 if parallel else 0)
         if pipeline:
             kwargs["pipeline"] = True
     elif threads is not None or pipeline:
