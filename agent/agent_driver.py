@@ -45,7 +45,7 @@ import os
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -388,6 +388,13 @@ class AgentDriver:
             pool = self._pools[name] = ThreadPoolExecutor(1, thread_name_prefix=f"agent-{name}")
         return pool
 
+    @staticmethod
+    def _settle(*jobs: Future | None) -> None:
+        """Cancel the jobs not started and wait for the others (their results and errors are dropped)."""
+        for job in jobs:
+            if job is not None and not job.cancel():
+                wait([job])
+
     def _timed(self, stage: str, times: dict[str, float], fn: Callable[..., Any], *args: Any) -> Any:
         """``fn(*args)``, its time added to ``times[stage]`` (measured on the thread that runs it)."""
         t0 = self._now()
@@ -449,14 +456,18 @@ class AgentDriver:
                 # The mirror render holds the GIL for milliseconds: let the worker reach ONNX Runtime (which
                 # runs without it) first, so the two overlap.
                 started.wait(0.05)
-        held = None
-        if look is not None:
-            held = st.blind_spot.check(t, self._frame, command, st.junction.placed,
-                                       self._last_view.lanes if self._last_view is not None else None, look,
-                                       self._detect_vehicles)
-        lap("blind_spot")
-        pilot = float(self.net.steer(image, 0 if held else command))  # held: follow the lane, do not change it
-        lap("pilotnet")
+        try:
+            held = None
+            if look is not None:
+                held = st.blind_spot.check(t, self._frame, command, st.junction.placed,
+                                           self._last_view.lanes if self._last_view is not None else None, look,
+                                           self._detect_vehicles)
+            lap("blind_spot")
+            pilot = float(self.net.steer(image, 0 if held else command))  # held: follow the lane, do not change it
+            lap("pilotnet")
+        except BaseException:
+            self._settle(detected, lane_job)  # the worker's stages must not outlive this frame
+            raise
         self._frame += 1
         if worker is not None:
             assert lane_job is not None

@@ -135,3 +135,28 @@ def test_the_mirror_look_finds_the_vehicles_the_full_detector_finds(recorded) ->
 def test_stage_threads_is_checked() -> None:
     with pytest.raises(ValueError, match="stage_threads"):
         AgentDriver(net=object(), detect=lambda rgb: [], stage_threads=3)
+
+
+def test_a_failing_stage_leaves_no_worker_stage_running() -> None:
+    import threading
+    import time
+
+    running = threading.Event()
+
+    def slow_detector(rgb: np.ndarray) -> list:
+        running.set()
+        time.sleep(0.05)
+        running.clear()
+        return []
+
+    class FailingNet:
+        def steer(self, rgb: np.ndarray, command: int) -> float:
+            raise ValueError("no steering")
+
+    driver = AgentDriver(net=FailingNet(), detect=slow_detector, stage_threads=2)
+    driver.reset(DriverContext(camera=CAMERA, dt_s=0.05))
+    obs = {"image": np.zeros((CAMERA.height, CAMERA.width, 3), np.uint8), "speed": np.zeros(1, np.float32),
+           "command": 0}
+    with pytest.raises(ValueError, match="no steering"):
+        driver.act(obs)
+    assert not running.is_set()  # the detector had finished before the error came out
