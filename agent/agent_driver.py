@@ -17,15 +17,35 @@ wires stages, each an object with a small typed input and output, and times them
 7. **Controller** (``agent.decision.controller``) and **ADAS** warnings (``agent.decision.adas``).
 
 The controller and the junction guidance share one stop-line track (``agent.decision.stop_line_track``).
+
+**Both cores in one frame** (``AgentConfig.stage_threads``): the stages that do not depend on each other run at
+the same time, because their libraries release the GIL (ONNX Runtime, OpenCV). The detector (with
+its refiner) and then lanes and the stop line go to a worker thread while the calling thread takes the mirror
+look and PilotNet; whichever thread is free first takes the lanes. Every stage still runs once per frame on the
+same inputs and its results are consumed in the fixed order above, so the actions are bit for bit those of
+the serial order (``stage_threads=1``, one stage after another on the calling thread). The simulator is only
+ever called from the calling thread (the mirror look renders through it). The default, ``stage_threads=0``, times
+both ways now and then and keeps the faster: on a machine whose other jobs hold both cores, a second thread only
+waits for a core and one thread is faster (``StageThreadChoice``).
+
+**Pipelined** (``AgentConfig.pipeline``, off by default): ``act`` starts the perception and decision of the
+frame it is given on a thread of its own and returns the action decided on the frame before, so that the
+simulator renders the next frame while the agent thinks, as a real car's stack runs with a frame of latency.
+The mirror frame a look needs is rendered before the thread starts (``BlindSpot.plan`` says which).
+
 Per-stage timings (ms) for every frame are kept in ``timings``; the last frame's whole state in ``view`` (for
 overlays, ``agent.agent_overlay``); the episode's ADAS events in ``adas``. ``docs/design.md`` draws the flow.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
+import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -33,7 +53,7 @@ from typing import Any
 import numpy as np
 
 from towndrive.agent.decision.adas import Adas, AdasConfig
-from towndrive.agent.decision.blind_spot import BlindSpot, BlindSpotConfig, MirrorMount
+from towndrive.agent.decision.blind_spot import VEHICLES, BlindSpot, BlindSpotConfig, MirrorMount
 from towndrive.agent.decision.controller import Controller, ControllerConfig, Decision, Scene
 from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
 from towndrive.agent.decision.odometry import Odometry
@@ -53,7 +73,8 @@ from towndrive.sim.spec import CAMERA, MIRRORS, ROAD, VEHICLE, CameraConfig, Roa
 
 DEFAULT_DETECTOR = DETECTOR_ONNX
 DEFAULT_REFINER = REFINER_ONNX
-STAGES = ("blind_spot", "pilotnet", "detector", "tracking", "lanes", "stop_line", "distance", "control", "adas")
+STAGES = ("blind_spot", "pilotnet", "detector", "tracking", "lanes", "stop_line", "distance", "control", "adas",
+          "wait")  # wait: the calling thread waiting for the worker's stages (stage_threads > 1)
 
 
 @dataclass(frozen=True)
@@ -93,7 +114,11 @@ class AgentConfig:
     road_min_confidence: float = 0.25  # a lane fit this sure measures the approach lane
     road_clear_m: float = 8.0  # the approach lane is measured only while the stop line is farther than this
     #                            (close to it, the crosswalk's stripes look like lane lines)
-    clock: str = "wall"  # stage timings in wall-clock time, or "cpu": CPU time of this thread (load-independent)
+    clock: str = "wall"  # stage timings in wall-clock time, or "cpu": CPU time of the thread that ran the stage
+    stage_threads: int = 0  # threads for one frame's independent stages: 2 uses two cores, 1 runs them one after
+    #                         another on the calling thread, 0 chooses the faster now and then (the actions are
+    #                         the same either way)
+    pipeline: bool = False  # act on frame t while the simulator renders frame t+1 (one frame of latency)
     ldw_min_lane_confidence: float = 0.5  # lane departure is only judged on a well-seen lane
     light_box_pad_px: float = 1.0  # light boxes come out about a pixel taller than the housing (measured)
     row_sigma_px: float = 1.0  # box-edge uncertainty, for the geometry fusion
@@ -103,6 +128,36 @@ class AgentConfig:
     blind_spot: BlindSpotConfig = field(default_factory=BlindSpotConfig)
     adas: AdasConfig = field(default_factory=AdasConfig)
     sort: SortConfig = field(default_factory=SortConfig)
+
+
+class StageThreadChoice:
+    """One thread or two for a frame's stages, whichever is faster on this machine now: every ``period`` frames,
+    ``trial`` frames with each, then the one with the lower median wall-clock time until the next trial. Two
+    threads win when a core is free; when other jobs hold both cores, the second thread only waits for one (and
+    each hand-over between the threads waits with it). Only the speed depends on the choice, never the actions."""
+
+    def __init__(self, period: int = 400, trial: int = 15) -> None:
+        self.period, self.trial = period, trial
+        self.frame = -10  # the first trial after a few frames (the first runs of ONNX Runtime are slow)
+        self.samples: dict[int, list[float]] = {1: [], 2: []}
+        self.chosen = 2
+
+    def now(self) -> int:
+        """The number of threads for this frame."""
+        k = self.frame % self.period
+        self.frame += 1
+        if k < 2 * self.trial:
+            return 1 if k < self.trial else 2
+        if k == 2 * self.trial and all(self.samples.values()):
+            one, two = (float(np.median(self.samples[n])) for n in (1, 2))
+            self.chosen = 1 if one < two else 2
+            self.samples = {1: [], 2: []}
+        return self.chosen
+
+    def took(self, threads: int, seconds: float) -> None:
+        """A frame's wall-clock time with ``threads``, counted while trying."""
+        if (self.frame - 1) % self.period < 2 * self.trial:
+            self.samples[threads].append(seconds)
 
 
 @dataclass
@@ -164,6 +219,9 @@ class AgentDriver:
         self._now = time.thread_time if self.config.clock == "cpu" else time.perf_counter
         if self.config.detect_every < 1:
             raise ValueError("detect_every must be at least 1 (1 = detect on every frame).")
+        if self.config.stage_threads not in (0, 1, 2):
+            raise ValueError(f"stage_threads must be 0 (the faster), 1 (serial) or 2; got {self.config.stage_threads}.")
+        self._threads = StageThreadChoice() if self.config.stage_threads == 0 else None
         self.net = net if net is not None else PilotNetModel(model, backend, threads)
         if detect is None:
             if not Path(detector).is_file():
@@ -171,6 +229,10 @@ class AgentDriver:
                                         "`python train.py detector train` and `python train.py detector export`.")
             detect = OnnxDetector(detector, self.config.score_threshold, threads=threads, refiner=refiner)
         self.detector = detect
+        # The main frame's detection (on the worker) and the mirror's (on the calling thread) may overlap: ONNX
+        # Runtime sessions may be run from two threads at once; any other backend (a profile's TensorRT context)
+        # is used by one thread at a time.
+        self._detector_lock = contextlib.nullcontext() if getattr(detect, "thread_safe", False) else threading.Lock()
         self.controller = Controller(self.config.controller, VEHICLE.max_accel_mps2, VEHICLE.max_brake_mps2,
                                      self.config.road)
         self.adas = Adas(self.config.adas)
@@ -180,6 +242,12 @@ class AgentDriver:
         self._look: Callable[[str], np.ndarray] | None = None  # the blind-spot camera, where there is one
         self.stage_hook = stage_hook  # wraps the stages once built (a profile's module rates)
         self._mirror_camera = MIRRORS.camera
+        self._pools: dict[str, ThreadPoolExecutor] = {}  # made on first use, in the process that uses them
+        self._pool_pid = -1
+        self._pending: Future | None = None  # pipelined: the frame being worked on
+        self._primed = False  # pipelined: the episode's first frame has been decided
+        self._last_action = np.zeros(2, np.float32)
+        self._last_view: AgentView | None = None  # the last frame worked on (pipelined: newer than ``view``)
         self._setup(CAMERA, 0.05)
 
     def build_stages(self, camera: CameraConfig) -> Stages:
@@ -219,6 +287,7 @@ class AgentDriver:
     def reset(self, context: DriverContext | Any) -> None:
         """Start an episode: only the sensor rig and the time step are read (``DriverContext``), never a world."""
         context = DriverContext.of(context)
+        self._drain()
         if self.config.distance == "stereo" and not context.stereo:
             raise ValueError("The agent's stereo distance needs the stereo pair: use DriveConfig(observe_stereo=True, "
                              "camera=CameraConfig(stereo=True)), or distance='geometry'.")
@@ -228,7 +297,7 @@ class AgentDriver:
         self._setup(context.camera, context.dt_s)
         self.adas.reset()
         self.timings = []
-        self.view = None
+        self.view = self._last_view = None
         self._frame = 0
         self._restart()
 
@@ -236,6 +305,7 @@ class AgentDriver:
         """The safety driver took over and put the car back on its lane: what was tracked and dead-reckoned
         (stop line, lights, objects, the junction's arc) describes the place the car left, so it starts afresh,
         as a car's system does when it is engaged again. The episode's timings and warnings stay."""
+        self._drain()
         self._setup(self.camera, self.dt)
         self._restart()
 
@@ -261,7 +331,99 @@ class AgentDriver:
 
     # ------------------------------------------------------------------ the driver
     def act(self, observation: dict[str, Any]) -> np.ndarray:
-        t_start = self._now()
+        if not self.config.pipeline:
+            return self._finish(*self._act(observation, self._look))
+        # Pipelined: the frame before must be done (its state is this frame's); the mirror frame this frame will
+        # look at is rendered here, on the caller's thread; the frame is worked on while the caller steps, and
+        # the action decided on the frame before is returned. The first frame of an episode is decided at once,
+        # and its action is given again on the second.
+        earlier = self._pending.result() if self._pending is not None else None
+        look = self._look
+        if look is not None:
+            st = self.stages
+            _, side = st.blind_spot.plan(self._frame, int(observation["command"]), st.junction.placed,
+                                         self._last_view.lanes if self._last_view is not None else None)
+            frame = look(side) if side is not None else None
+            look = (lambda _side: frame) if frame is not None else self._refuse_look
+        job = self._pool("pipeline").submit(self._act, observation, look)
+        if earlier is not None:
+            self._pending = job
+            return self._finish(*earlier)
+        if self._primed:  # the second frame of an episode: the first frame's action again
+            self._pending = job
+            return self._last_action
+        self._primed = True
+        return self._finish(*job.result())
+
+    def _finish(self, action: np.ndarray, view: AgentView, times: dict[str, float]) -> np.ndarray:
+        self.view = view
+        self.timings.append(times)
+        self._last_action = action
+        return action
+
+    @staticmethod
+    def _refuse_look(side: str) -> np.ndarray:
+        raise RuntimeError(f"The mirror look on the {side} was not planned (BlindSpot.plan and check disagree).")
+
+    def _drain(self) -> None:
+        """Wait for a pipelined frame still being worked on (its action is dropped: the episode moved on)."""
+        self._primed = False
+        if self._pending is not None:
+            pending, self._pending = self._pending, None
+            pending.result()
+
+    def _pool(self, name: str) -> ThreadPoolExecutor:
+        """A one-thread executor, made in the process that uses it (a forked worker gets threads of its own)."""
+        if self._pool_pid != os.getpid():
+            self._pools, self._pool_pid = {}, os.getpid()
+        pool = self._pools.get(name)
+        if pool is None:
+            if name == "stages":
+                # The two stage threads hold both cores: OpenCV's own worker threads (they wait actively between
+                # calls) would only fight them over the small bird's-eye images. ONNX Runtime runs one thread per
+                # call already (``threads``); numba's kernels here are serial.
+                import cv2
+
+                cv2.setNumThreads(1)
+            pool = self._pools[name] = ThreadPoolExecutor(1, thread_name_prefix=f"agent-{name}")
+        return pool
+
+    @staticmethod
+    def _settle(*jobs: Future | None) -> None:
+        """Cancel the jobs not started and wait for the others (their results and errors are dropped)."""
+        for job in jobs:
+            if job is not None and not job.cancel():
+                wait([job])
+
+    def _timed(self, stage: str, times: dict[str, float], fn: Callable[..., Any], *args: Any) -> Any:
+        """``fn(*args)``, its time added to ``times[stage]`` (measured on the thread that runs it)."""
+        t0 = self._now()
+        out = fn(*args)
+        times[stage] = times.get(stage, 0.0) + (self._now() - t0) * 1000.0
+        return out
+
+    def _detect_started(self, started: threading.Event, times: dict[str, float], image: np.ndarray) -> list[Detection]:
+        started.set()
+        return self._timed("detector", times, self._detect, image)
+
+    def _detect(self, image: np.ndarray) -> list[Detection]:
+        with self._detector_lock:
+            return self.detector(image)
+
+    def _detect_vehicles(self, image: np.ndarray) -> list[Detection]:
+        """The mirror look's detection: only vehicles are read, so only they are looked for where the detector
+        can (``detect_only``: the pedestrian refiner is not run)."""
+        only = getattr(self.detector, "detect_only", None)
+        with self._detector_lock:
+            return only(image, VEHICLES) if only is not None else self.detector(image)
+
+    def _lanes_and_stop(self, image: np.ndarray, times: dict[str, float]) -> tuple[LaneResult, StopLine | None]:
+        lanes = self._timed("lanes", times, self.stages.lanes.detect, image)
+        return lanes, self._timed("stop_line", times, self.stages.stop.detect, image, lanes)
+
+    def _act(self, observation: dict[str, Any],
+             look: Callable[[str], np.ndarray] | None) -> tuple[np.ndarray, AgentView, dict[str, float]]:
+        t_start, t_wall = self._now(), time.perf_counter()
         times: dict[str, float] = {}
         clock = t_start
 
@@ -276,19 +438,52 @@ class AgentDriver:
         speed = float(observation["speed"][0])
         command = int(observation["command"])
         t = self._frame * self.dt
-        held = None
-        if self._look is not None:
-            held = st.blind_spot.check(t, self._frame, command, st.junction.placed,
-                                       self.view.lanes if self.view is not None else None, self._look, self.detector)
-        lap("blind_spot")
-        pilot = float(self.net.steer(image, 0 if held else command))  # held: follow the lane, do not change it
-        lap("pilotnet")
         run = self._frame % self.config.detect_every == 0
+        # Two cores: the detector, then lanes and the stop line, on the worker while this thread looks in the
+        # mirror and runs PilotNet (each stage's own thread times it); else all on this thread, in this order.
+        threads = self._threads.now() if self._threads is not None else self.config.stage_threads
+        worker = self._pool("stages") if threads > 1 else None
+        detected: Future | None = None
+        lane_job: Future | None = None
+        if worker is not None:
+            started = threading.Event()
+            if run:
+                detected = worker.submit(self._detect_started, started, times, image)
+            lane_job = worker.submit(self._lanes_and_stop, image, times)
+            if run and look is not None and st.blind_spot.plan(
+                    self._frame, command, st.junction.placed,
+                    self._last_view.lanes if self._last_view is not None else None)[1] is not None:
+                # The mirror render holds the GIL for milliseconds: let the worker reach ONNX Runtime (which
+                # runs without it) first, so the two overlap.
+                started.wait(0.05)
+        try:
+            held = None
+            if look is not None:
+                held = st.blind_spot.check(t, self._frame, command, st.junction.placed,
+                                           self._last_view.lanes if self._last_view is not None else None, look,
+                                           self._detect_vehicles)
+            lap("blind_spot")
+            pilot = float(self.net.steer(image, 0 if held else command))  # held: follow the lane, do not change it
+            lap("pilotnet")
+        except BaseException:
+            self._settle(detected, lane_job)  # the worker's stages must not outlive this frame
+            raise
         self._frame += 1
-        times["detector"] = 0.0
-        if run:
-            dets = self.detector(image)
-            lap("detector")
+        if worker is not None:
+            assert lane_job is not None
+            clock = self._now()
+            if lane_job.cancel():  # the worker has not started them (the detector takes longer): run them here
+                lanes, stop = self._lanes_and_stop(image, times)
+                clock = self._now()
+            else:
+                lanes, stop = lane_job.result()
+            dets = detected.result() if detected is not None else None
+            lap("wait")
+        else:
+            dets = self._timed("detector", times, self._detect, image) if run else None
+            clock = self._now()
+        times.setdefault("detector", 0.0)
+        if dets is not None:
             self._lights = [d for d in dets if d.name in LIGHT_CLASSES]
             movers = [d for d in dets if d.name in TRACKED]
             boxes = np.array([d.box for d in movers], float).reshape(-1, 4)
@@ -297,10 +492,9 @@ class AgentDriver:
         else:
             tracks = self.sort.predict()
         lap("tracking")
-        lanes = st.lanes.detect(image)
-        lap("lanes")
-        stop = st.stop.detect(image, lanes)
-        lap("stop_line")
+        if worker is None:
+            lanes, stop = self._lanes_and_stop(image, times)
+            clock = self._now()
         depth = None
         if st.stereo is not None and "stereo" in observation:
             pair = observation["stereo"]
@@ -322,11 +516,13 @@ class AgentDriver:
         warnings = self.adas.update(t, speed, offset, lanes.lane_width_m, in_path, turning=command in (1, 2))
         lap("adas")
         times["total"] = (self._now() - t_start) * 1000.0
-        self.timings.append(times)
-        self.view = AgentView(image, t, speed, command, lanes, stop, objects, tracks, light, decision, warnings,
-                              centre, lanes.lane_width_m,
-                              (st.blind_spot.holding(t, "left"), st.blind_spot.holding(t, "right")))
-        return decision.action()
+        view = AgentView(image, t, speed, command, lanes, stop, objects, tracks, light, decision, warnings,
+                         centre, lanes.lane_width_m,
+                         (st.blind_spot.holding(t, "left"), st.blind_spot.holding(t, "right")))
+        self._last_view = view
+        if self._threads is not None:
+            self._threads.took(threads, time.perf_counter() - t_wall)
+        return decision.action(), view, times
 
     def _decide(self, speed: float, command: int, pilot: float, hold: float | None, turn: float | None,
                 held: str | None, objects: list[PerceivedObject], light: LightSeen | None, stop: StopLine | None,
@@ -365,6 +561,7 @@ class AgentDriver:
 
     def adas_summary(self) -> dict[str, Any]:
         """The episode's ADAS events (closes the open ones); the evaluation report stores this per episode."""
+        self._drain()
         self.adas.close(self._frame * self.dt)
         return self.adas.summary()
 

@@ -20,6 +20,7 @@ import pybullet as p
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.timing import machine_line  # noqa: E402
 from towndrive.agent.autopilot import Autopilot
 from towndrive.envs.drive_env import DriveConfig, DriveEnv
 from towndrive.sim.render import CameraConfig, _projection
@@ -120,6 +121,7 @@ def main() -> int:
     args = ap.parse_args()
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
+    print(machine_line())
     if args.styles_only:
         return 0 if style_rows(args.steps, args.seed) else 1
     print(f"Drive-v0 on the default town with traffic, {args.steps} steps each, one core")
@@ -140,6 +142,7 @@ def main() -> int:
     print("targets: >=150 steps/s at 200x66, >=60 at 320x160, simulation overhead <= 30% of the step")
     ok &= style_rows(args.steps, args.seed)
     print("all targets met" if ok else "some targets NOT met (see rows above)")
+    print(f"load average at the end: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     return 0
 
 

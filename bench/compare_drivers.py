@@ -61,6 +61,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="run the episodes as Ray tasks: a local cluster of --workers CPUs, or the cluster at ADDRESS "
                          "(needs towndrive[cluster])")
     ap.add_argument("--out", type=Path, default=Path("out/compare"))
+    ap.add_argument("--pipeline", action="store_true",
+                    help="the agent pipelined: it perceives frame t while the simulator renders frame t+1 and acts a "
+                         "frame late (AgentConfig.pipeline); its row is 'agent (pipelined)'")
     add_rule_arguments(ap)
     ap.add_argument("--reuse", action="store_true",
                     help="take a driver's row from an earlier run in --out with the same settings instead of re-running")
@@ -92,14 +95,22 @@ def main(argv: list[str] | None = None) -> int:
     for spec in args.drivers:
         name, _, model = spec.partition("@")
         label = f"{name} ({Path(model).stem})" if model else name
+        kwargs: dict = {"model": Path(model)} if model else {}
+        piped = args.pipeline and name == "agent"
+        if name == "agent":
+            # One worker process per core: each agent then keeps to its own core (the actions are the same).
+            kwargs["stage_threads"] = 1 if args.workers > 1 or args.ray else 0
+        if piped:
+            kwargs["pipeline"] = True
+            label += " (pipelined)"
         t0 = time.perf_counter()
-        folder = args.out / (f"{name}_{Path(model).stem}" if model else name)
+        folder = args.out / ((f"{name}_{Path(model).stem}" if model else name) + ("_pipelined" if piped else ""))
         earlier = folder / "settings.json"
         if args.reuse and earlier.is_file() and json.loads(earlier.read_text()) == settings:
             metrics = json.loads((folder / "metrics.json").read_text())
             print(f"{name}: reusing {folder / 'metrics.json'}")
         else:
-            spec = DriverSpec.of(make_driver, name, **({"model": Path(model)} if model else {}))
+            spec = DriverSpec.of(make_driver, name, **kwargs)
             driver = spec.build()
             # A privileged driver never looks at the pictures: without a video, skip rendering them (the
             # world, and so every figure, is the same; it runs about 50 times faster).

@@ -35,3 +35,30 @@ def measure(fn: Callable[[], object], repeats: int = 200, warmup: int = 10) -> L
         fn()
         samples.append(time.perf_counter() - t0)
     return latency_of(samples)
+
+
+def machine_line() -> str:
+    """Which machine a figure is from: CPU model, cores, vector extensions and the load average now.
+
+    Why: the same code runs 1.5x apart on two 2-core machines (AVX-512 or not), and a shared machine's other
+    jobs move every figure; a table row is only comparable with rows of the same machine class and load."""
+    import os
+    import platform
+
+    model, flags = platform.processor() or "unknown CPU", set()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                if key.strip() == "model name" and model in ("unknown CPU", "", platform.machine()):
+                    model = value.strip()
+                elif key.strip() == "flags":
+                    flags = set(value.split())
+                    break
+    except OSError:
+        pass
+    wanted = (("avx2", "AVX2"), ("avx512f", "AVX-512"), ("avx512_vnni", "AVX-512 VNNI"), ("avx_vnni", "AVX-VNNI"))
+    vector = ", ".join(name for flag, name in wanted if flag in flags) or "none of AVX2 / AVX-512 / VNNI"
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    load = " ".join(f"{x:.2f}" for x in os.getloadavg()) if hasattr(os, "getloadavg") else "n/a"
+    return f"machine: {model}, {os.cpu_count()} cores ({cores} usable), {vector}; load average {load}"

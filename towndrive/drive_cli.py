@@ -47,6 +47,12 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
                    help="pilotnet/agent: PilotNet's inference backend, named as in the profiles (default: torch for a "
                         "--model .pt, else onnxruntime)")
     p.add_argument("--target-speed", type=float, default=None, help="pilotnet: cruise speed in m/s (default 7)")
+    p.add_argument("--threads", type=int, default=None, choices=(0, 1, 2),
+                   help="agent: threads for a frame's independent stages: 1 one after another, 2 on two cores, 0 the "
+                        "faster of the two, timed now and then (default; 1 with --workers or --ray: one core per "
+                        "worker); the actions are the same")
+    p.add_argument("--pipeline", action="store_true",
+                   help="agent: perceive frame t while the simulator renders frame t+1, acting a frame late")
     p.add_argument("--profile", default=None, metavar="NAME",
                    help="run the agent with a deployment profile (agent/deploy/profiles/NAME.yaml, or a .yaml path): its "
                         "backends, module rates, budgets, camera and alerts; a real camera runs without the simulator")
@@ -236,6 +242,14 @@ def driver_spec(args: argparse.Namespace) -> Any:
         raise ValueError(f"--target-speed is for the pilotnet driver, not {args.driver}.")
     elif args.model is not None and args.driver not in ("rl", "agent"):
         raise ValueError(f"--model is for the pilotnet, agent and rl drivers, not {args.driver}.")
+    threads, pipeline = getattr(args, "threads", None), getattr(args, "pipeline", False)
+    if args.driver == "agent":
+        parallel = getattr(args, "workers", 1) > 1 or bool(getattr(args, "ray", None))
+        kwargs["stage_threads"] = threads if threads is not None else (1 if parallel else 0)
+        if pipeline:
+            kwargs["pipeline"] = True
+    elif threads is not None or pipeline:
+        raise ValueError(f"--threads and --pipeline are for the agent driver, not {args.driver}.")
     return DriverSpec.of(make_driver, args.driver, **kwargs)
 
 

@@ -124,11 +124,12 @@ class BlindSpot:
         where = "" if near is None else f" ({-near[0]:.0f} m back when last seen)"
         return f"vehicle in the {side} blind spot{where}: lane change held"
 
-    def check(self, t: float, frame: int, command: int, junction_placed: bool, lanes: LaneResult | None,
-              look: Callable[[str], np.ndarray], detect: Callable[[np.ndarray], list[Detection]]) -> str | None:
-        """Look through a mirror camera when it is time; the side of a pending lane change that is held, else None.
+    def plan(self, frame: int, command: int, junction_placed: bool,
+             lanes: LaneResult | None) -> tuple[str | None, str | None]:
+        """The side of a pending lane change (or None) and the side ``check`` looks through on ``frame`` (or None).
         Pending: a left or right command, no junction turn placed yet, and no solid line seen on that side last
-        frame (``lanes``; a solid line there is the road's edge or centre line: no lane to go to)."""
+        frame (``lanes``; a solid line there is the road's edge or centre line: no lane to go to). A caller that
+        must render the mirror frame ahead of time (the agent's pipelined mode) asks here which one."""
         cfg = self.config
         side = {1: "left", 2: "right"}.get(command)
         if side is not None and junction_placed:
@@ -142,6 +143,13 @@ class BlindSpot:
             looked = side
         elif side is None and frame % cfg.idle_every == 0:
             looked = ("left", "right")[(frame // cfg.idle_every) % 2]
+        return side, looked
+
+    def check(self, t: float, frame: int, command: int, junction_placed: bool, lanes: LaneResult | None,
+              look: Callable[[str], np.ndarray], detect: Callable[[np.ndarray], list[Detection]]) -> str | None:
+        """Look through a mirror camera when it is time (``plan``); the side of a pending lane change that is
+        held, else None. ``detect`` need only find vehicles: nothing else in the picture is read."""
+        side, looked = self.plan(frame, command, junction_placed, lanes)
         if looked is not None:
             self.update(t, looked, detect(look(looked)))
         return side if self.holding(t, side) else None

@@ -176,15 +176,19 @@ class DecodedDetector(nn.Module):
 
 # --------------------------------------------------------------------------- post-processing
 def postprocess(pred: np.ndarray, score_threshold: float = 0.3, iou_threshold: float = 0.5,
-                max_detections: int = 100) -> list[Detection]:
-    """One image's decoded cells (cells x (4 + 1 + C)) -> detections after per-group NMS (OpenCV)."""
+                max_detections: int = 100, classes: tuple[int, ...] | None = None) -> list[Detection]:
+    """One image's decoded cells (cells x (4 + 1 + C)) -> detections after per-group NMS (OpenCV). ``classes``:
+    only these (NMS runs within class groups, so their boxes are those of the full call)."""
     import cv2
 
     obj = pred[:, 4:5]
     scores_all = obj * pred[:, 5:]
     cls = scores_all.argmax(1)
     score = scores_all[np.arange(len(cls)), cls]
-    keep = np.flatnonzero(score >= score_threshold)
+    wanted = score >= score_threshold
+    if classes is not None:
+        wanted &= np.isin(cls, classes)
+    keep = np.flatnonzero(wanted)
     if len(keep) == 0:
         return []
     if len(keep) > 2000:
@@ -223,6 +227,16 @@ def load_detector(path: str | Path) -> Detector:
     return model.eval()
 
 
+def detect_only_classes(raw: np.ndarray, rgb: np.ndarray, score_threshold: float, refine: Refine | None,
+                        names: tuple[str, ...]) -> list[Detection]:
+    """The detections of the classes ``names`` alone, as ``detect_and_refine`` gives them: without pedestrians
+    the refiner (which only re-places and re-scores pedestrian boxes) has nothing to do and is not run. The
+    mirror look reads only vehicles."""
+    if "pedestrian" in names:
+        return [d for d in detect_and_refine(raw, rgb, score_threshold, refine) if d.name in names]
+    return postprocess(raw, score_threshold, classes=tuple(CLASSES.index(n) for n in names))
+
+
 def detect_and_refine(raw: np.ndarray, rgb: np.ndarray, score_threshold: float,
                       refine: Refine | None) -> list[Detection]:
     """Post-processing, then the pedestrian refiner if there is one (it sees candidates down to its own
@@ -251,10 +265,17 @@ class TorchDetector:
     def __call__(self, rgb: np.ndarray) -> list[Detection]:
         return detect_and_refine(self.raw(rgb), rgb, self.score_threshold, self.refine)
 
+    def detect_only(self, rgb: np.ndarray, names: tuple[str, ...]) -> list[Detection]:
+        """``detect_only_classes`` with this detector."""
+        return detect_only_classes(self.raw(rgb), rgb, self.score_threshold, self.refine, names)
+
 
 class OnnxDetector:
     """Frames in, detections out, through ONNX Runtime (the deployment path); ``refiner``: an exported
-    pedestrian refiner (.onnx), run after the detector."""
+    pedestrian refiner (.onnx), run after the detector. Two threads may call it at once (ONNX Runtime's
+    ``run`` is thread-safe and nothing else here keeps state)."""
+
+    thread_safe = True
 
     def __init__(self, path: str | Path = "data/models/detector.onnx", score_threshold: float = 0.3,
                  threads: int = 0, refiner: str | Path | None = None) -> None:
@@ -271,3 +292,7 @@ class OnnxDetector:
 
     def __call__(self, rgb: np.ndarray) -> list[Detection]:
         return detect_and_refine(self.raw(rgb), rgb, self.score_threshold, self.refine)
+
+    def detect_only(self, rgb: np.ndarray, names: tuple[str, ...]) -> list[Detection]:
+        """``detect_only_classes`` with this detector."""
+        return detect_only_classes(self.raw(rgb), rgb, self.score_threshold, self.refine, names)

@@ -64,10 +64,16 @@ def preprocess(rgb: np.ndarray, crop: Crop = DEFAULT_CROP) -> np.ndarray:
     return cv2.cvtColor(resized, cv2.COLOR_RGB2YUV)
 
 
+def to_array(yuv: np.ndarray) -> np.ndarray:
+    """uint8 (N x) 66 x 200 x 3 YUV -> float32 N x 3 x 66 x 200 (0..255; the network normalises), in NumPy: the
+    ONNX Runtime path never calls torch (whose thread pool made the conversion take ms of waiting under load)."""
+    arr = yuv if yuv.ndim == 4 else yuv[None]
+    return np.ascontiguousarray(arr.transpose(0, 3, 1, 2), dtype=np.float32)
+
+
 def to_tensor(yuv: np.ndarray) -> torch.Tensor:
     """uint8 (N x) 66 x 200 x 3 YUV -> float32 N x 3 x 66 x 200 (0..255; the network normalises)."""
-    arr = yuv if yuv.ndim == 4 else yuv[None]
-    return torch.from_numpy(np.ascontiguousarray(arr.transpose(0, 3, 1, 2))).float()
+    return torch.from_numpy(to_array(yuv))
 
 
 class Normalize(nn.Module):
@@ -188,15 +194,16 @@ class PilotNetModel:
             torch.set_num_threads(threads)
 
     def steer(self, rgb: np.ndarray, command: int) -> float:
-        x = to_tensor(preprocess(rgb, self.crop))
+        x = to_array(preprocess(rgb, self.crop))
         cmd = np.array([int(command)], np.int64)
         if self.backend == "onnx":
-            feeds = {"image": x.numpy()}
+            feeds = {"image": x}
             if self.conditional:
                 feeds["command"] = cmd
             return float(self.session.run(["steer"], feeds)[0][0, 0])
         import torch
 
+        x = torch.from_numpy(x)
         with torch.no_grad():
             y = self.model(x, torch.from_numpy(cmd)) if self.conditional else self.model(x)
         return float(y[0, 0])
