@@ -269,7 +269,7 @@ class DriveEnv(gym.Env):
     def map_view(self, size_px: int) -> np.ndarray:
         """The top-down map, 35 m around the car, ``size_px`` square (the ground truth beside the camera)."""
         world = self._require_world()
-        if self._topdown is None:
+        if self._topdown is None or self._topdown.town is not world.town:  # a new town, camera or not
             self._topdown = TopDownMap(world.town, pixels_per_m=3.0)
         return self._topdown.render_around(world, size_px=size_px, radius_m=35.0)
 

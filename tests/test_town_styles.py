@@ -361,3 +361,23 @@ def test_no_lane_turns_tighter_than_the_car_can(towns):
         for index in town.lane_info:
             radius, _ = tightest_turn(town.lane(index))
             assert radius > VEHICLE.min_turn_radius_m, (town.config.style, town.seed, index, radius)
+
+
+def test_the_map_follows_the_town_without_a_camera():
+    """The map view (the clips' ground truth) is drawn from the episode's own town when towns change between
+    episodes, also when no camera is rendered: it kept the first town's map, whose lights a town with fewer
+    signals does not have (an IndexError that failed whole evaluations)."""
+    from towndrive.envs.drive_env import DriveConfig, DriveEnv
+    from towndrive.sim.world import WorldConfig
+
+    env = DriveEnv(DriveConfig(render_camera=False, world=WorldConfig(town=TownConfig.of_style("suburb"))))
+    try:
+        counts = []
+        for town_seed in (4000, 4001, 4002, 4003):
+            env.reset(seed=1, options={"town_seed": town_seed})
+            env.map_view(64)
+            counts.append(len(env.world.town.approaches))
+            assert env._topdown.town is env.world.town
+        assert len(set(counts)) > 1  # the towns differ in their signals
+    finally:
+        env.close()
