@@ -250,7 +250,8 @@ def oncoming_conflict(town: Town, approach: Approach, agents: Agents, skip_id: i
     heading_ok = np.abs((agents.headings - opposite.travel_heading + np.pi) % (2 * np.pi) - np.pi) < 0.7
     candidates = (~agents.is_pedestrian) & (agents.ids != skip_id) & heading_ok & (before > -2.0) & (before < 70.0)
     candidates &= (lateral > -0.5) & (lateral < 8.0)
-    setback = town.config.stop_line_setback_m
+    lane = town.lane((*opposite.edge, 0))  # the opposite stop line's distance from the centre (its lanes' end)
+    setback = float((centre - lane.position(lane.length, 0.0)) @ travel)
     for k in np.nonzero(candidates)[0]:
         if before[k] < setback + 1.0:
             return True  # already in the junction
