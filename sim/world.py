@@ -9,6 +9,7 @@ actions replay bit for bit.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from functools import lru_cache
 
@@ -661,30 +662,30 @@ class World:
         """Signed lateral offset from the current lane's centre (positive: right of it); nan off road."""
         return float(self.ego_lane[2]) if self.ego_lane is not None else float("nan")
 
-    def next_light(self, horizon_m: float = 150.0) -> NextLight | None:
-        """The next signal on the route ahead and the distance to its stop line."""
-        front_s = self.route_s + self.ego.LENGTH / 2
-        along = -front_s
+    def _edges_ahead(self, horizon_m: float) -> Iterator[tuple[Edge, float]]:
+        """The route's edges from the current one, each with the distance from the front bumper to its end,
+        while that end lies within ``horizon_m`` (plus the stop bar's depth)."""
+        along = -(self.route_s + self.ego.LENGTH / 2)
         for k in range(self.route_index, len(self.route)):
             along += edge_length(self.town, self.route[k])
-            if along - 0.5 > horizon_m:
-                return None
-            ap = self.town.approach_for_edge(self.route[k])
-            if ap is not None and along > -0.5:
-                return NextLight(ap.index, self.lights.state(ap.index), along - 0.5)
+            if along - ROAD.stop_bar_depth_m > horizon_m:
+                return
+            yield self.route[k], along
+
+    def next_light(self, horizon_m: float = 150.0) -> NextLight | None:
+        """The next signal on the route ahead and the distance to its stop line."""
+        for edge, along in self._edges_ahead(horizon_m):
+            ap = self.town.approach_for_edge(edge)
+            if ap is not None and along > -ROAD.stop_bar_depth_m:
+                return NextLight(ap.index, self.lights.state(ap.index), along - ROAD.stop_bar_depth_m)
         return None
 
     def next_control(self, horizon_m: float = 150.0) -> NextControl | None:
         """The next junction entry on the route ahead (signal, stop, all-way stop, give way or priority) and the
         distance to its line; as ``next_light``, the entry whose line the front bumper has not yet passed."""
-        front_s = self.route_s + self.ego.LENGTH / 2
-        along = -front_s
-        for k in range(self.route_index, len(self.route)):
-            along += edge_length(self.town, self.route[k])
-            if along - 0.5 > horizon_m:
-                return None
-            entry = self.town.entry_for_edge(self.route[k])
-            if entry is not None and along > -0.5:
+        for edge, along in self._edges_ahead(horizon_m):
+            entry = self.town.entry_for_edge(edge)
+            if entry is not None and along > -ROAD.stop_bar_depth_m:
                 return NextControl(entry.index, entry.control, along - ROAD.stop_bar_depth_m, entry.approach)
         return None
 
