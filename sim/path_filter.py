@@ -20,6 +20,7 @@ from highway_env.road.lane import AbstractLane, CircularLane, StraightLane
 KIND_STRAIGHT, KIND_CIRCULAR, KIND_OTHER = 0.0, 1.0, 2.0
 ROW_SIZE = 7  # kind, x, y (start or centre), ux, uy (direction), length, radius
 MARGIN_M = 0.5  # widening of every bound: rounding is at most a few nanometres here
+BUMPER_SWING_M = 0.3  # a vehicle's bumpers count in a path search when they swing this far out of its centre's line
 
 _ROWS: weakref.WeakKeyDictionary[AbstractLane, np.ndarray] = weakref.WeakKeyDictionary()
 
@@ -75,14 +76,14 @@ def _lateral_reach(k: int, headings: np.ndarray, speeds: np.ndarray, half_length
     """(lateral tolerance, reach) of agent ``k`` in ``sim.traffic.path_gap``: the tolerance it is held to
     and how far its extra points (bumpers, a walking pedestrian's place ahead) lie from its centre.
     ``tolerances`` = vehicle, walking pedestrian, standing pedestrian. The choices repeat path_gap's
-    comparisons on the same numbers, except the angle to the path, which is recomputed and so is given
-    bumpers whenever it is within a microradian of the threshold."""
+    comparisons on the same numbers, except the bumpers' swing, which is recomputed and so is given bumpers
+    whenever it is within a micrometre of the threshold."""
     if is_pedestrian[k]:
         walking = speeds[k] > 0.1
         tol = tolerances[1] if walking or on_crossing[k] else tolerances[2]
         return tol, lookahead_s * speeds[k] if walking else 0.0
-    angle = abs((headings[k] - path_heading + np.pi) % (2 * np.pi) - np.pi)
-    return tolerances[0], half_lengths[k] if angle > 0.5 - 1e-6 else 0.0
+    swing = half_lengths[k] * abs(np.sin(headings[k] - path_heading))
+    return tolerances[0], half_lengths[k] if swing > BUMPER_SWING_M - 1e-6 else 0.0
 
 
 @nb.njit(cache=True, nogil=True)

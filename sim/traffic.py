@@ -26,7 +26,7 @@ from towndrive.sim.ego import EgoVehicle
 from towndrive.sim.geometry import wrap_to_pi
 from towndrive.sim.idm import idm_acceleration as idm
 from towndrive.sim.objects import LightState, ObjectSnapshot, SemanticClass, snapshot_of
-from towndrive.sim.path_filter import clearly_nearest_lane, lanes_may_hold, path_candidates, path_rows, zone_holds
+from towndrive.sim.path_filter import BUMPER_SWING_M, clearly_nearest_lane, lanes_may_hold, path_candidates, path_rows, zone_holds
 from towndrive.sim.routes import random_next_edge
 from towndrive.sim.rules import STOP_CONTROLS, JunctionRules
 from towndrive.sim.town import OPPOSITE, Approach, Command, Control, Entry, LaneIndex, Town, lanes_for
@@ -150,9 +150,9 @@ def path_gap(path: list[tuple[AbstractLane, float]], my_s: float, my_half: float
         ahead = np.array([math.cos(h), math.sin(h)])
         if ped and agents.speeds[k] > 0.1:  # a walking pedestrian counts where it will be soon, too
             points.append((agents.positions[k] + PEDESTRIAN_LOOKAHEAD_S * float(agents.speeds[k]) * ahead, half_k))
-        elif not ped and abs(wrap_to_pi(h - path_heading)) > 0.5:
-            # A vehicle at an angle to the path (turning, crossing) can poke its bumper into the lane
-            # while its centre is a lane away: its two bumpers count as well.
+        elif not ped and half_k * abs(math.sin(h - path_heading)) > BUMPER_SWING_M:
+            # A vehicle at an angle to the path (turning, crossing, a long truck leaving it) can poke a bumper
+            # into the lane while its centre is a lane away: its two bumpers count as well.
             points += [(agents.positions[k] + half_k * ahead, 0.0), (agents.positions[k] - half_k * ahead, 0.0)]
         # A standing pedestrian (waiting at a kerb) blocks only what would brush it; a walking one
         # blocks the whole lane it is in or stepping into.

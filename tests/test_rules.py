@@ -385,3 +385,21 @@ def test_autopilot_waits_for_the_turning_lane_rather_than_turn_across_the_other(
 
 def _edge_into(town: Town, node: str) -> tuple[str, str]:
     return next((frm, to) for frm, tos in town.network.graph.items() for to in tos if to == node)
+
+
+def test_a_truck_leaving_the_path_still_blocks_it_with_its_rear():
+    """A truck turning off the path at 0.45 rad has its centre 2.9 m beside the lane but its rear bumper in it:
+    the path search counts its bumpers whenever they swing more than BUMPER_SWING_M out of its centre's line
+    (before, only beyond 0.5 rad, and a car going straight on rear-ended such a truck)."""
+    from highway_env.road.lane import StraightLane
+
+    from towndrive.sim.traffic import Agents, path_gap
+
+    lane = StraightLane(np.array([0.0, 0.0]), np.array([100.0, 0.0]), width=3.5)
+    heading = 0.45  # turning right (y down) off the path
+    centre = np.array([30.0 + 3.4 * math.cos(heading), 1.45 + 3.4 * math.sin(heading)])  # rear bumper in the lane
+    agents = Agents(positions=centre[None, :], headings=np.array([heading]), speeds=np.array([0.5]),
+                    half_lengths=np.array([3.4]), is_pedestrian=np.array([False]), ids=np.array([7]),
+                    on_crossing=np.array([False]))
+    gap, _ = path_gap([(lane, 0.0)], 5.0, 2.3, agents, skip_id=999, origin=np.array([5.0, 0.0]), lookahead_m=60.0)
+    assert gap is not None and gap == pytest.approx(30.0 - 5.0 - 2.3, abs=0.5)
