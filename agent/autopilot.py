@@ -42,7 +42,7 @@ from towndrive.sim.traffic import (
     path_gap,
     posted_speed_cap,
 )
-from towndrive.sim.world import EGO_ID, World
+from towndrive.sim.world import EGO_ID, NextControl, World
 
 if TYPE_CHECKING:
     from towndrive.envs.drive_env import DriveEnv
@@ -117,19 +117,26 @@ class Autopilot:
                 for k in range(world.town.lane_count(edge))]
         return lats.index(min(lats))
 
-    def wrong_lane_gap(self, world: World, chosen: int) -> float | None:
-        """Distance to where a lane change stops being possible, while the announced turn must start from
-        another lane than the one the car keeps to (``chosen``: it has not begun to change): the car waits
-        there for that lane to clear rather than turn across it."""
+    @staticmethod
+    def _turn_lanes(world: World) -> tuple[int, ...] | None:
+        """The lanes the announced turn may start from, while the car is on a road and a turn is announced
+        (None otherwise: any lane will do)."""
         town = world.town
         edge = world.route[world.route_index]
         if town.lane_info[(*edge, 0)].kind != "road" or world.route_index + 1 >= len(world.route):
             return None
         if world.command() not in (Command.LEFT, Command.RIGHT):
             return None
-        if chosen in lanes_for(town.lane_info[(*world.route[world.route_index + 1], 0)].command, town.lane_count(edge)):
+        return lanes_for(town.lane_info[(*world.route[world.route_index + 1], 0)].command, town.lane_count(edge))
+
+    def wrong_lane_gap(self, world: World, chosen: int) -> float | None:
+        """Distance to where a lane change stops being possible, while the announced turn must start from
+        another lane than the one the car keeps to (``chosen``: it has not begun to change): the car waits
+        there for that lane to clear rather than turn across it."""
+        allowed = self._turn_lanes(world)
+        if allowed is None or chosen in allowed:
             return None
-        lane = town.lane((*edge, chosen))
+        lane = world.town.lane((*world.route[world.route_index], chosen))
         s = float(lane.local_coordinates(world.ego.position)[0])
         return max(0.0, lane.length - LANE_CHANGE_ROOM_M - s - world.ego.LENGTH / 2)
 
@@ -139,17 +146,12 @@ class Autopilot:
 
         It waits for the route command to announce the turn, as a driver who only hears the command would:
         a lane change the camera sees under "follow" would teach a cloned driver to weave."""
-        town = world.town
         edge = world.route[world.route_index]
         current = self._lane_on(world, edge)
-        if town.lane_info[(*edge, 0)].kind != "road" or world.route_index + 1 >= len(world.route):
+        allowed = self._turn_lanes(world)
+        if allowed is None or current in allowed:
             return current
-        if world.command() not in (Command.LEFT, Command.RIGHT):
-            return current
-        allowed = lanes_for(town.lane_info[(*world.route[world.route_index + 1], 0)].command, town.lane_count(edge))
-        if current in allowed:
-            return current
-        target = town.network.graph[edge[0]][edge[1]][allowed[0]]
+        target = world.town.lane((*edge, allowed[0]))
         s0 = float(target.local_coordinates(world.ego.position)[0])
         if target.length - s0 < LANE_CHANGE_ROOM_M:
             return current  # too late to change lanes (wrong_lane_gap held the car short of here while it could)
@@ -198,10 +200,11 @@ class Autopilot:
         wheel = math.atan2(2.0 * ego.LENGTH * math.sin(alpha), max(math.hypot(dx, dy), 1e-3))
         return max(-1.0, min(1.0, wheel / ego.MAX_STEER_RAD))
 
-    def junction_stop_gap(self, world: World, agents: Agents, zebra: float | None) -> float | None:
-        """At an unsignalled junction ahead: the distance to where the car must stop, if the rules say wait
-        (``sim.traffic.junction_gap``: the world's rules, the NPCs' too), else None."""
-        control = world.next_control()
+    def junction_stop_gap(self, world: World, control: NextControl | None, agents: Agents,
+                          zebra: float | None) -> float | None:
+        """At an unsignalled junction ahead (``control``: the next one on the route): the distance to where the
+        car must stop, if the rules say wait (``sim.traffic.junction_gap``: the world's rules, the NPCs' too),
+        else None."""
         if control is None or control.control == Control.SIGNAL:
             return None
         entry = world.town.entries[control.entry]
@@ -213,12 +216,11 @@ class Autopilot:
         zebra_beyond = None if zebra is None else zebra - 0.8
         return junction_gap(world.town, world.junctions, EGO_ID, entry, turn, gap, agents, zebra_beyond)
 
-    def stop_gap(self, world: World, agents: Agents) -> float | None:
-        """Distance to where the car must stop for a light or an unprotected left turn, if it must."""
-        if world.town.entries and world.next_control() is not None:
-            control = world.next_control()
-            if control is not None and control.control != Control.SIGNAL:
-                return None  # an unsignalled junction comes first: junction_stop_gap
+    def stop_gap(self, world: World, control: NextControl | None, agents: Agents) -> float | None:
+        """Distance to where the car must stop for a light or an unprotected left turn, if it must
+        (``control``: the next junction entry on the route)."""
+        if control is not None and control.control != Control.SIGNAL:
+            return None  # an unsignalled junction comes first: junction_stop_gap
         light = world.next_light()
         if light is None or self.ignore_lights:
             return None
@@ -248,11 +250,10 @@ class Autopilot:
         cruise = min(self.target_speed, curve_speed_limit(path, s0))
         if world.town.speed_limits_kmh:
             cruise = min(cruise, posted_speed_cap(world.town, path, self._path_lanes, s0))
-        if world.town.entries and not self.ignore_lights:
-            control = world.next_control()
-            if control is not None and control.control == Control.YIELD and control.distance_m > 0.0:
-                # a give-way line: slow enough to stop at it after a last look
-                cruise = min(cruise, math.sqrt(YIELD_APPROACH_MPS ** 2 + 2.0 * CURVE_BRAKE_MPS2 * control.distance_m))
+        control = world.next_control()  # the next junction entry (asked once a step)
+        give_way = control is not None and control.control == Control.YIELD and control.distance_m > 0.0
+        if give_way and not self.ignore_lights:  # a give-way line: slow enough to stop at it after a last look
+            cruise = min(cruise, math.sqrt(YIELD_APPROACH_MPS ** 2 + 2.0 * CURVE_BRAKE_MPS2 * control.distance_m))
         accel = self.speed_pid(cruise - ego.speed, dt) * ego.MAX_ACCEL_MPS2
         agents = world.agents()
         lookahead = 15.0 + 3.0 * ego.speed
@@ -265,12 +266,12 @@ class Autopilot:
             accel = min(accel, idm_acceleration(ego.speed, self.target_speed, gap, ego.speed - lead_speed,
                                                 min_gap_m=LEAD_GAP_M))
             hold |= gap < LEAD_GAP_M + HOLD_MARGIN_M and lead_speed < 0.5
-        stop = self.stop_gap(world, agents)
+        stop = self.stop_gap(world, control, agents)
         wrong = self.wrong_lane_gap(world, self._path_lanes[0][2])
         if wrong is not None:
             stop = wrong if stop is None else min(stop, wrong)
         if not self.ignore_lights:  # the signs too: an autopilot that ignores lights tests the infraction checks
-            wait = self.junction_stop_gap(world, agents, zebra)
+            wait = self.junction_stop_gap(world, control, agents, zebra)
             if wait is not None:
                 stop = wait if stop is None else min(stop, wait)
         if stop is not None:

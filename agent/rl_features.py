@@ -78,7 +78,7 @@ class StateFeatures:
             f[13 + {LightState.GREEN: 0, LightState.YELLOW: 1, LightState.RED: 2}[LightState(light.state)]] = 1.0
             f[17] = min(max(light.distance_m, 0.0) / 50.0, 1.0)
         agents = world.agents()
-        stop = self.planner.stop_gap(world, agents)
+        stop = self.planner.stop_gap(world, world.next_control(), agents)
         f[18] = 1.0 if stop is None else min(stop / 50.0, 1.0)
         lookahead = 50.0
         gap, lead_speed = path_gap(path, s0, ego.LENGTH / 2, agents, EGO_ID, ego.position, lookahead)

@@ -838,11 +838,15 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
                 lane = network.graph[edge[0]][edge[1]][0]
                 at = lane.position(LIMIT_SIGN_AFTER_M, street.half_width_m - street.lane_width_m / 2 + 0.7)
                 signs.append(Sign(len(signs), SignKind.SPEED_LIMIT, at, math.atan2(d[1], d[0]), edge, street.limit_kmh))
+        arriving: dict[str, list[str]] = {}  # node -> the nodes whose edges end there
+        for frm, tos in network.graph.items():
+            for to in tos:
+                arriving.setdefault(to, []).append(frm)
         for frm, tos in network.graph.items():
             for to in tos:
                 if (frm, to) in speed_limits:
                     continue
-                before = [speed_limits.get((f, frm)) for f, t in _edges_into(network, frm)]
+                before = [speed_limits.get((f, frm)) for f in arriving.get(frm, [])]
                 after = [speed_limits.get((to, t)) for t in network.graph.get(to, {})]
                 known = [v for v in before + after if v is not None]
                 if known:
@@ -1005,11 +1009,6 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
     town._approach_by_edge = {ap.edge: ap for ap in town.approaches}
     town._entry_by_edge = {e.edge: e for e in town.entries}
     return town
-
-
-def _edges_into(network: RoadNetwork, node: str) -> list[tuple[str, str]]:
-    """The edges of a network that end at a node."""
-    return [(frm, to) for frm, tos in network.graph.items() for to in tos if to == node]
 
 
 def _cuts_bend(points: np.ndarray, bend: np.ndarray, radius: float) -> bool:
