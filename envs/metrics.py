@@ -1,7 +1,8 @@
 """Closed-loop driving metrics, CARLA Leaderboard style, plus NVIDIA's autonomy.
 
 Per episode:
-  route_completion     % of the route's length driven along the route (0-100)
+  route_completion     % of the route's length driven along the route (0-100); 100 once the car has arrived
+                       (within ``sim.world.ROUTE_ARRIVAL_M`` of the end, where the episode ends)
   infraction_penalty   product of the Leaderboard multipliers, once per infraction:
                        pedestrian collision 0.50, vehicle 0.60, static object 0.65, red light 0.70,
                        stop sign 0.80, failed to yield 0.70, speeding 0.90 (kinds without a multiplier, e.g.
@@ -106,6 +107,7 @@ class EpisodeTrace:
     takeover_penalty: float = 0.70
     audit: dict[str, Any] | None = None  # envs.audit's comparison, when the evaluation ran it
     route_progress_m: float = 0.0
+    route_completion: float = 0.0  # 0-1, the world's: 1 once the car has arrived
     distance_m: float = 0.0
     town_seed: int = 0
     weather: str = "noon"
@@ -121,6 +123,7 @@ class EpisodeTrace:
         self.lane_offset.append(info["lane_offset_m"])
         self.infractions += info["infractions"]
         self.route_progress_m = info["route"]["progress_m"]
+        self.route_completion = info["route"]["completion"]
         self.distance_m = info["distance_m"]
 
     @property
@@ -155,7 +158,7 @@ def episode_metrics(trace: EpisodeTrace) -> dict[str, Any]:
         counts[inf["kind"]] = counts.get(inf["kind"], 0) + 1
     penalty = infraction_penalty(trace.infractions)
     penalty *= trace.takeover_penalty ** len(trace.interventions)
-    completion = 100.0 * min(1.0, trace.route_progress_m / max(trace.route_total_m, 1e-6))
+    completion = 100.0 * trace.route_completion
     km = trace.distance_m / 1000.0
     offsets = np.abs(np.array([o for o in trace.lane_offset if math.isfinite(o)]))
     elapsed = max(trace.elapsed_s, 1e-6)

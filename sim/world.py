@@ -51,6 +51,7 @@ from towndrive.sim.traffic import Agents, TownVehicle, step_vehicles
 
 PEDESTRIAN_ID_BASE = 1000
 EGO_ID = 999
+ROUTE_ARRIVAL_M = 5.0  # the car has arrived when this close to the route's end (the episode ends)
 PARKED_ID_BASE = 5000  # parked car k of the town is object PARKED_ID_BASE + k (below SIGN_ID_BASE)
 PARKED_VIEW_M = 160.0  # parked cars this near the ego are in object_snapshots (the camera sees no further in towns)
 SIGN_POST_RADIUS_M = 0.05  # a sign's post, for collisions (light poles are 0.15 m)
@@ -632,11 +633,15 @@ class World:
 
     @property
     def route_completion(self) -> float:
+        """The share of the route driven (0-1); 1 once the car has arrived (``route_done``), since the episode
+        ends there, ``ROUTE_ARRIVAL_M`` short of the route's last point."""
+        if self.route_done:
+            return 1.0
         return min(1.0, max(0.0, self.route_progress_m / max(self.route_total_m, 1e-6)))
 
     @property
     def route_done(self) -> bool:
-        return self.route_total_m - self.route_progress_m < 5.0
+        return self.route_total_m - self.route_progress_m < ROUTE_ARRIVAL_M
 
     def command(self) -> Command:
         """The route command here (``command_at``). Kept while the route and the place on it stay the same:

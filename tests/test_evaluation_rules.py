@@ -84,7 +84,7 @@ def test_the_minimum_speed_rule_uses_the_leaderboard_formula():
 def test_a_takeover_costs_its_penalty_and_is_an_event():
     trace = EpisodeTrace(seed=1, route_total_m=100.0, dt_s=0.05, takeover_penalty=0.7)
     info = {"ego": {"x": 0.0, "y": 0.0, "speed_mps": 5.0}, "lane_offset_m": 0.0, "infractions": [],
-            "route": {"progress_m": 100.0}, "distance_m": 100.0}
+            "route": {"progress_m": 100.0, "completion": 1.0}, "distance_m": 100.0}
     trace.add_step(info, np.zeros(2))
     trace.interventions = [1.0, 2.0]
     assert episode_metrics(trace)["driving_score"] == pytest.approx(100.0 * 0.49)

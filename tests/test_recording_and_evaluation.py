@@ -92,7 +92,7 @@ def test_noise_injection_perturbs_but_labels_stay_clean():
 def test_metrics_follow_the_leaderboard_rules():
     trace = EpisodeTrace(seed=1, route_total_m=400.0, dt_s=0.05)
     info = {"ego": {"x": 0.0, "y": 0.0, "speed_mps": 5.0}, "lane_offset_m": 0.2, "infractions": [],
-            "route": {"progress_m": 300.0}, "distance_m": 500.0}
+            "route": {"progress_m": 300.0, "completion": 0.75}, "distance_m": 500.0}
     for _ in range(1200):  # 60 s
         trace.add_step(info, np.zeros(2))
     trace.infractions = [{"kind": "collision_vehicle"}, {"kind": "red_light"}, {"kind": "wrong_way"}]

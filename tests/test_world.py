@@ -234,3 +234,17 @@ def test_action_maps_to_limits(town, action):
     assert ego.action["steering"] == pytest.approx(action[0] * ego.MAX_STEER_RAD)
     expected = action[1] * (ego.MAX_ACCEL_MPS2 if action[1] >= 0 else ego.MAX_BRAKE_MPS2) - ego.DRAG_MPS2
     assert ego.action["acceleration"] == pytest.approx(expected)
+
+
+def test_an_arrived_route_counts_as_complete(town):
+    """The episode ends ROUTE_ARRIVAL_M short of the route's last point; that is arriving, so completion is 1,
+    not the share of the length driven (a clean route scored about 99 before)."""
+    from towndrive.sim.world import ROUTE_ARRIVAL_M
+
+    world = quiet_world(town)
+    world.route_index = len(world.route) - 1
+    last = world._route_starts[-1] - world._route_starts[-2]
+    world.route_s = last - ROUTE_ARRIVAL_M - 1.0
+    assert not world.route_done and world.route_completion < 1.0
+    world.route_s = last - ROUTE_ARRIVAL_M + 0.5
+    assert world.route_done and world.route_completion == 1.0
