@@ -28,7 +28,7 @@ from towndrive.sim.idm import idm_acceleration as idm
 from towndrive.sim.objects import LightState, ObjectSnapshot, SemanticClass, snapshot_of
 from towndrive.sim.path_filter import BUMPER_SWING_M, clearly_nearest_lane, lanes_may_hold, path_candidates, path_rows, zone_holds
 from towndrive.sim.routes import random_next_edge
-from towndrive.sim.rules import STOP_CONTROLS, JunctionRules
+from towndrive.sim.rules import PRIORITY_STANDING_M, STOP_CONTROLS, JunctionRules
 from towndrive.sim.town import OPPOSITE, Approach, Command, Control, Entry, LaneIndex, Town, lanes_for
 
 
@@ -43,6 +43,7 @@ class Agents:
     is_pedestrian: np.ndarray
     ids: np.ndarray
     on_crossing: np.ndarray  # pedestrians out on the road (crossing), even while they stand still
+    turning_left: np.ndarray | None = None  # vehicles whose next junction move is a left turn (None: unknown)
 
     @cached_property
     def crossing_positions(self) -> np.ndarray:
@@ -261,10 +262,13 @@ def oncoming_conflict(town: Town, approach: Approach, agents: Agents, skip_id: i
 
 
 def oncoming_priority_conflict(town: Town, entry: Entry, agents: Agents, skip_id: int, horizon_s: float = 4.5) -> bool:
-    """``oncoming_conflict`` on a priority street: whether traffic from the opposite priority arm is in the
-    junction or would reach its line within ``horizon_s`` (a left turn from ``entry`` waits for it)."""
+    """``oncoming_conflict`` at an unsignalled junction: whether traffic from the opposite arm, when that arm has
+    the same control as ``entry`` (both priority streets, or both give-way lines), is in the junction or would
+    reach its line within ``horizon_s``; a left turn from ``entry`` waits for it. Oncoming vehicles that turn
+    left themselves are left out: the two left turns pass in front of each other, and two left-turners waiting
+    for each other would wait for ever."""
     opposite = next((e for e in town.entries_at(entry.node) if e.arm == OPPOSITE[entry.arm]), None)
-    if opposite is None or opposite.control != Control.PRIORITY:
+    if opposite is None or opposite.control != entry.control:
         return False
     travel = np.array([math.cos(opposite.travel_heading), math.sin(opposite.travel_heading)])
     side = np.array([-travel[1], travel[0]])
@@ -276,9 +280,11 @@ def oncoming_priority_conflict(town: Town, entry: Entry, agents: Agents, skip_id
     heading_ok = np.abs((agents.headings - opposite.travel_heading + np.pi) % (2 * np.pi) - np.pi) < 0.7
     candidates = (~agents.is_pedestrian) & (agents.ids != skip_id) & heading_ok & (before > -inside) & (before < 70.0)
     candidates &= np.abs(lateral) < opposite.lane_count * town.lane_width / 2 + 0.6
+    if agents.turning_left is not None:
+        candidates &= ~(agents.turning_left & (before > 0.0))  # once in the junction it is in the way, whatever it does
     for k in np.nonzero(candidates)[0]:
-        if before[k] < 0.5:
-            return True  # at the line or already in the junction
+        if before[k] < PRIORITY_STANDING_M:
+            return True  # at its line (about to go) or already in the junction
         if agents.speeds[k] > 0.5 and before[k] / float(agents.speeds[k]) < horizon_s:
             return True
     return False
@@ -288,10 +294,12 @@ def junction_gap(town: Town, rules: JunctionRules | None, vehicle_id: int, entry
                  gap: float, agents: Agents, zebra: float | None) -> float | None:
     """At an unsignalled entry: the gap to its line if the vehicle must stop there (``sim.rules``: a full stop
     first, its turn, a free junction, a gap in the priority traffic, no one on the zebra just beyond), else
-    None. On a priority street only a left turn waits, for oncoming priority traffic."""
+    None. On a priority street only a left turn waits, for oncoming priority traffic; at a give-way line a left
+    turn also waits for oncoming traffic from the opposite give-way line (``oncoming_priority_conflict``)."""
+    if turn == Command.LEFT and entry.control in (Control.PRIORITY, Control.YIELD) and oncoming_priority_conflict(
+            town, entry, agents, vehicle_id):
+        return max(gap, 0.0)
     if entry.control == Control.PRIORITY:
-        if turn == Command.LEFT and oncoming_priority_conflict(town, entry, agents, vehicle_id):
-            return max(gap, 0.0)
         return None
     if rules is None:
         return None
@@ -545,6 +553,15 @@ class TownVehicle(IDMVehicle):
                 return max(gap, 0.0)  # unprotected left: wait for the oncoming traffic
             return None
         return None
+
+    def next_turn(self) -> Command | None:
+        """The command of the next junction move on this vehicle's route (the one it is on, inside a junction)."""
+        frm, to, _ = self.target_lane_index
+        info = self.town.lane_info.get((frm, to, 0))
+        if info is not None and info.kind == "connector":
+            return info.command
+        following = next(((r[0], r[1]) for r in self.route if (r[0], r[1]) != (frm, to)), None)
+        return None if following is None else self.town.lane_info[(*following, 0)].command
 
     def step(self, dt: float) -> None:
         super().step(dt)

@@ -337,7 +337,11 @@ class World:
         is_ped = np.arange(n) >= len(vehicles)
         crossing = np.array([False] * len(vehicles) + [p.state == "crossing" for p in peds], dtype=bool)
         ids = np.array([EGO_ID] + [v.object_id for v in self.npcs] + [p.object_id for p in peds], dtype=np.int64)
-        return Agents(pos, head, spd, half, is_ped, ids, crossing)
+        left = np.zeros(n, dtype=bool)
+        if self._unsignalled:  # the intents matter only where drivers give way by rule
+            left[0] = turn_after(self.town, self.route, self.route_index) == Command.LEFT
+            left[1:len(vehicles)] = [npc.next_turn() == Command.LEFT for npc in self.npcs]
+        return Agents(pos, head, spd, half, is_ped, ids, crossing, left)
 
     def step(self, action: np.ndarray) -> list[Infraction]:
         """Advance one tick of ``config.dt_s`` with the ego's ``[steer, throttle_brake]``."""
