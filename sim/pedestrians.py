@@ -212,6 +212,13 @@ class PedestrianCrowd:
             moving, standing = cars_in_the_way(where, vehicles, speeds, headings, sizes)
             in_the_way = dict(zip(map(id, looking), zip(moving.tolist(), standing.tolist(), strict=True),
                                   strict=True))
+        if tick % 4 == 0 and len(vehicles):
+            # A vehicle's wait at a zebra counts from when it stood there, not from when the next walker came to
+            # ask (one who arrives and asks at once would otherwise always find the clock just started).
+            for index in {ped.crosswalk for ped in self.peds if ped.state == "crossing" and not ped.jaywalk}:
+                cw = self.town.crosswalks[index]
+                if cw.approach < 0:
+                    self._vehicles_turn(cw, vehicles, speeds, headings, tick * dt)
         for ped in self.peds:
             ped.moving = False
             if ped.state == "waiting":
