@@ -203,6 +203,37 @@ def test_a_vehicle_that_has_waited_at_an_unsignalled_zebra_gets_its_turn():
     assert not crowd._vehicles_turn(cw, car, standing, head, 13.0 + ZEBRA_TURN_S)  # a new wait starts afresh
 
 
+def test_a_vehicles_wait_counts_from_when_it_stood_not_from_the_next_walkers_arrival():
+    """A car stands at a zebra while one walker crosses; the next walker arrives after ZEBRA_TURN_S: it lets the
+    car go first. Before, the car's clock started only when a waiting walker first asked, so a walker who
+    arrived and asked at once always found it just started and stepped out (a car inside a junction waited
+    23 s for one walker after another)."""
+    from towndrive.sim.lights import LightTiming, TrafficLights
+    from towndrive.sim.pedestrians import ZEBRA_TURN_S, Pedestrian
+
+    town = _town()
+    crowd = PedestrianCrowd(town, 0, np.random.default_rng(0), 1000)
+    cw = next(c for c in town.crosswalks if c.approach < 0)
+    centre = cw.polygon.mean(axis=0)
+    heading = math.atan2(*(centre - cw.start)[::-1]) + math.pi / 2
+    car = (centre - 6.0 * np.array([math.cos(heading), math.sin(heading)]))[None, :]
+    first = Pedestrian(1000, cw.start.copy(), 0.0, 0.3, (0.5, 0.5, 0.5), cw.index, True, state="crossing",
+                       target=cw.end.copy())
+    crowd.peds = [first]
+    lights = TrafficLights(town, LightTiming(), np.random.default_rng(0))
+    dt, tick = 0.05, 0
+    for _ in range(round((ZEBRA_TURN_S + 1.0) / dt)):
+        crowd.step(dt, lights, car, np.array([0.0]), np.array([heading]), tick)
+        tick += 1
+    assert first.state == "crossing"  # still on the zebra: the car still waits
+    second = Pedestrian(1001, cw.start.copy(), 0.0, 1.3, (0.5, 0.5, 0.5), cw.index, True)
+    crowd.peds = [second]
+    for _ in range(8):
+        crowd.step(dt, lights, car, np.array([0.0]), np.array([heading]), tick)
+        tick += 1
+    assert second.state == "waiting"
+
+
 @pytest.mark.parametrize("style", ["classic", "suburb", "downtown"])
 def test_pedestrians_turn_the_corner_to_another_crossing_on_foot(style):
     """Every kerb end of a crossing leads to another crossing of the junction, walked without stepping on a
@@ -403,3 +434,38 @@ def test_a_truck_leaving_the_path_still_blocks_it_with_its_rear():
                     on_crossing=np.array([False]))
     gap, _ = path_gap([(lane, 0.0)], 5.0, 2.3, agents, skip_id=999, origin=np.array([5.0, 0.0]), lookahead_m=60.0)
     assert gap is not None and gap == pytest.approx(30.0 - 5.0 - 2.3, abs=0.5)
+
+
+def _opposite_give_way_pair() -> tuple[Town, Entry, Entry]:
+    for seed in range(1000, 1040):
+        town = _town(seed)
+        for e in town.entries:
+            if e.control != Control.YIELD:
+                continue
+            other = next((o for o in town.entries_at(e.node) if o.control == Control.YIELD and o.arm != e.arm
+                          and abs(math.remainder(o.travel_heading - e.travel_heading, 2 * math.pi)) > 3.0), None)
+            if other is not None:
+                return town, e, other
+    raise AssertionError("no junction with two opposite give-way lines")
+
+
+@pytest.mark.parametrize("oncoming_turns_left", [False, True])
+def test_a_left_turn_from_a_give_way_line_waits_for_the_oncoming_give_way_traffic(oncoming_turns_left: bool):
+    """Two give-way lines face each other across a priority street: the left turn waits for the car coming the
+    other way (before, both saw a free junction in the same step, went, and collided in the exit lane), unless
+    that car turns left too (the two pass in front of each other; waiting for each other would be for ever)."""
+    from towndrive.sim.rules import JunctionRules
+    from towndrive.sim.town import Command
+    from towndrive.sim.traffic import Agents, junction_gap
+
+    town, mine, other = _opposite_give_way_pair()
+    lane = town.lane((*other.edge, 0))
+    pos = lane.position(lane.length - 20.0, 0.0)  # 20 m before its line, on its lane, heading in at 6 m/s
+    agents = Agents(positions=pos[None, :], headings=np.array([other.travel_heading]), speeds=np.array([6.0]),
+                    half_lengths=np.array([2.25]), is_pedestrian=np.array([False]), ids=np.array([7]),
+                    on_crossing=np.array([False]), turning_left=np.array([oncoming_turns_left]))
+    rules = JunctionRules(town)
+    wait_left = junction_gap(town, rules, 1, mine, Command.LEFT, 0.3, agents, None)
+    wait_straight = junction_gap(town, rules, 1, mine, Command.STRAIGHT, 0.3, agents, None)
+    assert wait_straight is None
+    assert (wait_left is None) == oncoming_turns_left
