@@ -469,3 +469,24 @@ def test_a_left_turn_from_a_give_way_line_waits_for_the_oncoming_give_way_traffi
     wait_straight = junction_gap(town, rules, 1, mine, Command.STRAIGHT, 0.3, agents, None)
     assert wait_straight is None
     assert (wait_left is None) == oncoming_turns_left
+
+
+@pytest.mark.parametrize(("lateral_m", "blocks"), [(2.5, True), (3.3, False)])
+def test_a_turning_cars_swept_front_is_kept_clear_of_a_standing_vehicle(lateral_m: float, blocks: bool):
+    """The car steers its rear along the path, so in a turn its front runs outside the arc by length^2 / (2 R)
+    (0.88 m on a 12 m turn): a truck standing 2.5 m from a turn's centre line (centre points count within
+    2.2 m on a straight) is in the way (a turning car clipped one standing at the exit), one 3.3 m away is not."""
+    from highway_env.road.lane import CircularLane
+
+    from towndrive.sim.traffic import Agents, front_sweep_m, path_gap
+
+    lane = CircularLane(np.array([0.0, 0.0]), 12.0, 0.0, math.pi / 2, clockwise=True, width=3.5)
+    assert front_sweep_m(lane, 2.3) == pytest.approx(4.6 ** 2 / 24.0)
+    s = 12.0
+    outside = min((lane.position(s, side * lateral_m) for side in (1.0, -1.0)), key=lambda p: -np.hypot(*p))
+    centre = outside  # on the outside of the arc, where the front swings
+    agents = Agents(positions=centre[None, :], headings=np.array([lane.heading_at(s)]), speeds=np.array([0.0]),
+                    half_lengths=np.array([3.4]), is_pedestrian=np.array([False]), ids=np.array([7]),
+                    on_crossing=np.array([False]))
+    gap, _ = path_gap([(lane, 0.0)], 2.0, 2.3, agents, skip_id=999, origin=lane.position(2.0, 0.0), lookahead_m=40.0)
+    assert (gap is not None) == blocks
