@@ -294,3 +294,35 @@ def in_view_wedge(pos: np.ndarray, radius: np.ndarray, x: float, y: float, headi
         reach = half_fov + math.asin(min(max(r / max(dist, 1e-6), 0.0), 1.0)) + margin
         out[k] = (dist <= r + 3.0) or (dist <= range_m + r and ang <= reach)
     return out
+
+
+@nb.njit(cache=True, nogil=True)
+def merge_share(rgba: np.ndarray, buf: np.ndarray, seg: np.ndarray, rgba_b: np.ndarray, buf_b: np.ndarray,
+                seg_b: np.ndarray) -> int:
+    """Fold another process's TinyRenderer buffers (the same camera, a disjoint set of bodies) into these, in place,
+    as if one call had drawn both sets of bodies; returns how many pixels came from the other buffers.
+
+    TinyRenderer keeps a fragment when its depth is at least the z-buffer's, so a pixel shows the last fragment, in
+    draw order, of those nearest the camera; bodies are drawn in the order of their unique ids. So per pixel the
+    nearer of the two wins (smaller depth-buffer value), and at equal depth the body with the larger id (segmentation
+    mask: body id in the low 24 bits, link + 1 above; -1 where nothing was drawn). Exact unless two fragments of
+    bodies in different shares lie so close in depth that the depth buffer's float32 holds the same value for both
+    and the earlier body's was the nearer (the tests and bench/README.md count how often)."""
+    h, w = seg.shape
+    taken = 0
+    for i in range(h):
+        for j in range(w):
+            sb = seg_b[i, j]
+            if sb < 0:
+                continue
+            sa = seg[i, j]
+            if sa >= 0:
+                da, db = buf[i, j], buf_b[i, j]
+                if db > da or (db == da and (sb & 0xFFFFFF) < (sa & 0xFFFFFF)):
+                    continue
+            seg[i, j] = sb
+            buf[i, j] = buf_b[i, j]
+            for c in range(4):
+                rgba[i, j, c] = rgba_b[i, j, c]
+            taken += 1
+    return taken
