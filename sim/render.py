@@ -183,6 +183,7 @@ class _FrameSetup:
 
 SIGN_NIGHT_GLOW = 0.45  # at night a plate's face shows this share of its colour (the headlights' retroreflection)
 SIGN_RANGE_M = 150.0  # signs farther than this are not drawn (a 0.75 m plate is about a pixel wide there at 320 px)
+COST_PER_TRIANGLE = 30.0  # TinyRenderer's work for one triangle's vertices, in pixels of a bounding box (balancing)
 TILE_M = 120.0  # static meshes are split into tiles of this size for view culling (few bodies: resets stay cheap)
 
 
@@ -263,14 +264,16 @@ class SceneRenderer:
 
     # ----------------------------------------------------------------- shares (processes > 1)
     def _mine(self, uid: int) -> bool:
-        """Whether this process draws body ``uid`` (always, with one process). The calibration patch is the main
-        process's: only it learns the ground palette."""
+        """Whether this process draws body ``uid`` (always, with one process), for all bodies but the static tiles
+        (``_tile_owner``). The calibration patch is the main process's: only it learns the ground palette."""
         return self._count == 1 or (self._rank == 0 if uid == self._calibration_uid else uid % self._count == self._rank)
 
     def _hide_others_static(self) -> None:
         """Alpha 0 on the static tiles, lights, signs and calibration patch another process draws."""
+        self._draw_tiles(self._tile_shown, self._tile_owner)
+        tiles = {t.uid for t in self._tiles}
         for uid in range(p.getNumBodies(**self._cid)):
-            if not self._mine(uid):
+            if uid not in tiles and not self._mine(uid):
                 for entry in p.getVisualShapeData(uid, **self._cid):
                     p.changeVisualShape(uid, int(entry[1]), rgbaColor=[*entry[7][:3], 0.0], **self._cid)
 
@@ -310,6 +313,7 @@ class SceneRenderer:
     def _build_static(self, seed: int) -> None:
         """One body per (mesh group, spatial tile), so that tiles out of view can be skipped."""
         self._tiles: list[_Tile] = []
+        tris = []  # each tile's triangles, world frame (for the cost estimate that balances processes' shares)
         for g in build_static_groups(self.town, seed):
             v, _, nrm = g.mesh.arrays()
             verts = np.asarray(v, float).reshape(-1, 3, 3)
@@ -328,10 +332,15 @@ class SceneRenderer:
                 # Footprint in the map frame (world y flipped back).
                 lo, hi = tv[:, :2].min(axis=0), tv[:, :2].max(axis=0)
                 self._tiles.append(_Tile(uid, tuple(g.rgba), np.array([lo[0], -hi[1]]), np.array([hi[0], -lo[1]])))
+                tris.append(verts[sel])
             self.triangle_count += g.mesh.triangle_count
         self._tile_lo = np.array([t.lo for t in self._tiles])
         self._tile_hi = np.array([t.hi for t in self._tiles])
-        self._tile_shown = np.ones(len(self._tiles), bool)
+        self._tile_shown = np.ones(len(self._tiles), bool)  # in the view wedge
+        self._tile_drawn = np.ones(len(self._tiles), bool)  # alpha 1: in view and this process's
+        self._tile_owner = np.array([t.uid % self._count for t in self._tiles], np.int64)  # the process that draws it
+        self._tile_tris = np.concatenate(tris) if tris else np.zeros((0, 3, 3))
+        self._tile_first = np.cumsum([0] + [len(t) for t in tris]).astype(np.int64)
 
     def _mesh_shape(self, vertices: np.ndarray, normals: np.ndarray, rgba: Sequence[float],
                     specular: Sequence[float] | None = (0.0, 0.0, 0.0)) -> int:
@@ -382,11 +391,17 @@ class SceneRenderer:
         inside = np.all((eye_xy >= lo - 1.0) & (eye_xy <= hi + 1.0), axis=1)
         near = np.min(np.hypot(rel[..., 0], rel[..., 1]), axis=1) <= camera.far_m
         show = inside | (near & (overlap | wraps))
-        for k in np.nonzero(show != self._tile_shown)[0]:
-            t = self._tiles[k]
-            if self._mine(t.uid):
-                p.changeVisualShape(t.uid, -1, rgbaColor=[*t.rgba[:3], 1.0 if show[k] else 0.0], **self._cid)
+        self._draw_tiles(show, self._tile_owner)
         self._tile_shown = show
+
+    def _draw_tiles(self, shown: np.ndarray, owner: np.ndarray) -> None:
+        """Alpha 1 on the tiles in view that this process draws, 0 on the others (touching only those that change)."""
+        want = shown & (owner == self._rank)
+        for k in np.nonzero(want != self._tile_drawn)[0]:
+            t = self._tiles[k]
+            p.changeVisualShape(t.uid, -1, rgbaColor=[*t.rgba[:3], 1.0 if want[k] else 0.0], **self._cid)
+        self._tile_drawn = want
+        self._tile_owner = owner
 
     def _build_calibration_patch(self) -> None:
         """A grey quad out of every view: its lit colour tells how TinyRenderer shades flat ground."""
@@ -774,9 +789,14 @@ class SceneRenderer:
 
     def _render(self, camera_pose: tuple[float, float, float], camera: CameraConfig, lighting: str,
                 lateral_m: float) -> CameraFrame:
-        for partner in self._partners:
-            partner.ask(camera_pose, camera, lighting, lateral_m)
-        rgba, buf, seg, eye, forward, setup = self._draw(camera_pose, camera, lighting, lateral_m)
+        if self._partners:
+            eye, forward, view, setup = self._prepare(camera_pose, camera, lighting, lateral_m)
+            owner = self._balance(eye, view, camera)
+            for partner in self._partners:
+                partner.ask(camera_pose, camera, lighting, lateral_m, owner)
+            _, _, rgba, buf, seg = p.getCameraImage(camera.width, camera.height, viewMatrix=view, **setup.camera_args)
+        else:
+            rgba, buf, seg, eye, forward, setup = self._draw(camera_pose, camera, lighting, lateral_m)
         h, w = camera.height, camera.width
         rgba, buf, seg = np.asarray(rgba, np.uint8).reshape(h, w, 4), np.asarray(buf, np.float32).reshape(h, w), \
             np.asarray(seg, np.int32).reshape(h, w)
@@ -785,14 +805,36 @@ class SceneRenderer:
         return self._shade(rgba, buf, seg, eye, forward, setup, camera)
 
     def draw(self, camera_pose: tuple[float, float, float], camera: CameraConfig, lighting: str,
-             lateral_m: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+             lateral_m: float = 0.0, tile_owner: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """TinyRenderer's raw RGBA, depth buffer and segmentation mask (flat arrays) of this process's bodies, as
-        ``render`` would see them before shading (what a helper process of ``sim.render_share`` hands back)."""
+        ``render`` would see them before shading (what a helper process of ``sim.render_share`` hands back);
+        ``tile_owner``: which process draws each static tile (the main renderer's ``_balance``)."""
+        if tile_owner is not None:
+            self._draw_tiles(self._tile_shown, tile_owner)
         return self._draw(camera_pose, camera, lighting, lateral_m)[:3]
+
+    def _balance(self, eye: np.ndarray, view: Sequence[float], camera: CameraConfig) -> np.ndarray:
+        """Share the static tiles in view out between the processes by estimated TinyRenderer work
+        (``render_kernels.tile_costs``, costliest first to the least loaded), draw this process's, and return the
+        owners for the helpers. Only the speed depends on it: any share gives the same frame."""
+        pv = (np.asarray(_projection(camera)).reshape(4, 4).T @ np.asarray(view).reshape(4, 4).T)
+        cost = kernels.tile_costs(self._tile_tris, self._tile_first, self._tile_shown, pv, eye, camera.width,
+                                  camera.height, camera.near_m, COST_PER_TRIANGLE)
+        owner = self._tile_owner.copy()
+        kernels.share_out(cost, self._tile_shown, owner, self._count, np.zeros(self._count))
+        self._draw_tiles(self._tile_shown, owner)
+        return owner
 
     def _draw(self, camera_pose: tuple[float, float, float], camera: CameraConfig, lighting: str,
               lateral_m: float) -> tuple[Any, Any, Any, np.ndarray, np.ndarray, _FrameSetup]:
         """Cull for the camera and call ``getCameraImage``: its buffers, the eye and forward vector, the setup."""
+        eye, forward, view, setup = self._prepare(camera_pose, camera, lighting, lateral_m)
+        _, _, rgba, buf, seg = p.getCameraImage(camera.width, camera.height, viewMatrix=view, **setup.camera_args)
+        return rgba, buf, seg, eye, forward, setup
+
+    def _prepare(self, camera_pose: tuple[float, float, float], camera: CameraConfig, lighting: str,
+                 lateral_m: float) -> tuple[np.ndarray, np.ndarray, Any, _FrameSetup]:
+        """Cull for the camera: the eye, forward vector, view matrix and the frame's setup."""
         eye, forward = self.camera_position(camera_pose, camera, lateral_m)
         eye_xy = np.array([eye[0], -eye[1]])
         cull_key = (camera.hfov_deg, camera.far_m)
@@ -807,9 +849,7 @@ class SceneRenderer:
         fx, fy, fz = forward.tolist()
         ex, ey, ez = eye.tolist()
         view = p.computeViewMatrix([ex, ey, ez], [ex + fx, ey + fy, ez + fz], [0.0, 0.0, 1.0], **self._cid)
-        setup = self._setup(lighting, camera)
-        _, _, rgba, buf, seg = p.getCameraImage(camera.width, camera.height, viewMatrix=view, **setup.camera_args)
-        return rgba, buf, seg, eye, forward, setup
+        return eye, forward, view, self._setup(lighting, camera)
 
     def _shade(self, rgba: np.ndarray, buf: np.ndarray, seg: np.ndarray, eye: np.ndarray, forward: np.ndarray,
                setup: _FrameSetup, camera: CameraConfig) -> CameraFrame:

@@ -24,6 +24,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import time
 import traceback
 from multiprocessing.connection import Connection
 from typing import Any
@@ -83,6 +84,7 @@ class SharePartner:
             theirs.close()
         self.conn = Connection(ours.detach())
         self.rank = rank
+        self.draw_ms = 0.0  # the helper's CPU time for its share of the last frame (cull and getCameraImage)
         self.frame: _Frame | None = None
         self._waiting = 1  # replies owed: the "ready" after the helper built its scene
         self.conn.send(("init", town, seed, rank, count))
@@ -93,15 +95,17 @@ class SharePartner:
         except OSError as exc:
             raise RuntimeError(f"render helper process {self.rank} is gone ({exc}); see its output above") from exc
 
-    def ask(self, camera_pose: tuple[float, float, float], camera: Any, lighting: str, lateral_m: float) -> None:
-        """Start the helper on its share of a frame (``collect`` fetches it)."""
+    def ask(self, camera_pose: tuple[float, float, float], camera: Any, lighting: str, lateral_m: float,
+            tile_owner: np.ndarray) -> None:
+        """Start the helper on its share of a frame (``collect`` fetches it); ``tile_owner``: which process draws
+        each static tile."""
         pixels, path = camera.width * camera.height, None
         if self.frame is None or self.frame.pixels < pixels:
             if self.frame is not None:
                 self.frame.unlink()
             self.frame = _Frame(pixels)
             path = self.frame.path
-        self.send(("render", camera_pose, camera, lighting, lateral_m, path, self.frame.pixels))
+        self.send(("render", camera_pose, camera, lighting, lateral_m, tile_owner, path, self.frame.pixels))
         self._waiting += 1
 
     def _reply(self) -> Any:
@@ -119,7 +123,7 @@ class SharePartner:
     def collect(self, h: int, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The helper's RGBA, depth buffer and segmentation mask of the frame last asked for."""
         while self._waiting:
-            self._reply()
+            self.draw_ms = self._reply() or 0.0
             self._waiting -= 1
         assert self.frame is not None
         self.frame.unlink()  # the helper has it mapped by now; the memory goes when both let go
@@ -170,17 +174,18 @@ def serve(fd: int) -> None:
             elif kind == "lights":
                 renderer.set_light_states(message[1])
             elif kind == "render":
-                _, camera_pose, camera, lighting, lateral_m, path, pixels = message
+                _, camera_pose, camera, lighting, lateral_m, tile_owner, path, pixels = message
                 if path is not None:
                     frame = _Frame(pixels, path)
                 assert frame is not None
-                rgba, buf, seg = renderer.draw(camera_pose, camera, lighting, lateral_m)
+                start = time.thread_time()
+                rgba, buf, seg = renderer.draw(camera_pose, camera, lighting, lateral_m, tile_owner)
                 h, w = camera.height, camera.width
                 out_rgba, out_buf, out_seg = frame.views(h, w)
                 out_rgba[...] = np.asarray(rgba, np.uint8).reshape(h, w, 4)
                 out_buf[...] = np.asarray(buf, np.float32).reshape(h, w)
                 out_seg[...] = np.asarray(seg, np.int32).reshape(h, w)
-                conn.send(("done", None))
+                conn.send(("done", 1000.0 * (time.thread_time() - start)))
             elif kind == "close":
                 renderer.close()
                 return
