@@ -84,6 +84,8 @@ class DriveConfig:
     town_seed: int = 0
     weather: str = "noon"
     render_camera: bool = True  # False: no pictures at all (image is zeros), for fast non-visual use
+    render_processes: int = 1  # >1: each frame's TinyRenderer work is shared with helper processes, one per extra
+    #                            core (the same frames; see sim.render.SceneRenderer); pays only with free cores
     observe_depth: bool = False
     observe_segmentation: bool = False
     observe_stereo: bool = False
@@ -111,6 +113,7 @@ class DriveEnv(gym.Env):
         if config.weather not in LIGHTING_PRESETS:
             raise ValueError(f"Unknown weather {config.weather!r}; choose one of {sorted(LIGHTING_PRESETS)}.")
         episode_seconds(config.max_time_s, "max_time_s")
+        check_number("render_processes", config.render_processes, 1, 16, integer=True)
         check_town_seed(config.town_seed, "town_seed")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"Unknown render_mode {render_mode!r}; use 'rgb_array' or 'human'.")
@@ -181,7 +184,7 @@ class DriveEnv(gym.Env):
         if self.config.render_camera and (self.renderer is None or self._renderer_town != id(world.town)):
             if self.renderer is not None:
                 self.renderer.close()
-            self.renderer = SceneRenderer(world.town, seed=world.town.seed)
+            self.renderer = SceneRenderer(world.town, seed=world.town.seed, processes=self.config.render_processes)
             self._renderer_town = id(world.town)
             self._topdown = None
         self._last_progress = world.route_progress_m

@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from towndrive.sim import render_kernels as kernels
+from towndrive.sim.checks import check_number
 from towndrive.sim.objects import LIGHT_ID_BASE, MAX_SIGNS, SIGN_ID_BASE, LightState, ObjectSnapshot, SemanticClass
 from towndrive.sim.scene_meshes import (
     HOUSING_HALF,
@@ -182,6 +183,7 @@ class _FrameSetup:
 
 SIGN_NIGHT_GLOW = 0.45  # at night a plate's face shows this share of its colour (the headlights' retroreflection)
 SIGN_RANGE_M = 150.0  # signs farther than this are not drawn (a 0.75 m plate is about a pixel wide there at 320 px)
+COST_PER_TRIANGLE = 30.0  # TinyRenderer's work for one triangle's vertices, in pixels of a bounding box (balancing)
 TILE_M = 120.0  # static meshes are split into tiles of this size for view culling (few bodies: resets stay cheap)
 
 
@@ -197,10 +199,30 @@ class _Tile:
 
 # --------------------------------------------------------------------------- renderer
 class SceneRenderer:
-    """Renders a town and its moving objects with its own pybullet DIRECT client."""
+    """Renders a town and its moving objects with its own pybullet DIRECT client.
 
-    def __init__(self, town: Town, seed: int = 0) -> None:
+    ``processes`` > 1 shares each frame's TinyRenderer work with ``processes - 1`` helper processes
+    (``sim.render_share``), each holding the same scene: every process draws the bodies whose unique id modulo
+    ``processes`` is its rank, and the main one folds the others' buffers into its own (nearer fragment first, then
+    the later-drawn body), so the frame is the one a single call gives, bit for bit, but for one case: two bodies of
+    different shares whose fragments at a pixel are so close in depth that TinyRenderer's float32 depth buffer holds
+    the same value for both, where the earlier-drawn body was nearer (none in the runs of bench/README.md). It pays
+    only with a free core per helper: a helper inherits the caller's CPU affinity, and each helper costs a second
+    copy of the scene (one more process, its memory, about a second to start)."""
+
+    def __init__(self, town: Town, seed: int = 0, processes: int = 1, *,
+                 _share: tuple[int, int] | None = None) -> None:
+        processes = check_number("render processes", processes, 1, 16, integer=True)
         self.town = town
+        # This process draws the bodies whose unique id is rank modulo count (see render_share); (0, 1): all.
+        self._rank, self._count = _share if _share is not None else (0, processes)
+        self._partners: list = []  # render_share.SharePartner of each helper process (main renderer only)
+        if _share is None and processes > 1:
+            from towndrive.sim.render_share import SharePartner, stop_partners
+
+            # Started first: each helper builds its copy of the scene while this process builds its own.
+            self._partners = [SharePartner(town, seed, rank, processes) for rank in range(1, processes)]
+            self._stop_partners = weakref.finalize(self, stop_partners, self._partners)
         self.client = p.connect(p.DIRECT)
         self._cid = {"physicsClientId": self.client}
         # Disconnects when close() is called, when the renderer is collected, or at interpreter exit (atexit,
@@ -237,6 +259,23 @@ class SceneRenderer:
         self._shapes: dict[tuple, int] = {}
         self._new_bodies = False  # bodies were added since the broadphase was last settled
         self._settle_broadphase()
+        if self._count > 1:
+            self._hide_others_static()
+
+    # ----------------------------------------------------------------- shares (processes > 1)
+    def _mine(self, uid: int) -> bool:
+        """Whether this process draws body ``uid`` (always, with one process), for all bodies but the static tiles
+        (``_tile_owner``). The calibration patch is the main process's: only it learns the ground palette."""
+        return self._count == 1 or (self._rank == 0 if uid == self._calibration_uid else uid % self._count == self._rank)
+
+    def _hide_others_static(self) -> None:
+        """Alpha 0 on the static tiles, lights, signs and calibration patch another process draws."""
+        self._draw_tiles(self._tile_shown, self._tile_owner)
+        tiles = {t.uid for t in self._tiles}
+        for uid in range(p.getNumBodies(**self._cid)):
+            if uid not in tiles and not self._mine(uid):
+                for entry in p.getVisualShapeData(uid, **self._cid):
+                    p.changeVisualShape(uid, int(entry[1]), rgbaColor=[*entry[7][:3], 0.0], **self._cid)
 
     # ----------------------------------------------------------------- lookup tables
     def _key(self, uid: int, link: int) -> int:
@@ -274,6 +313,7 @@ class SceneRenderer:
     def _build_static(self, seed: int) -> None:
         """One body per (mesh group, spatial tile), so that tiles out of view can be skipped."""
         self._tiles: list[_Tile] = []
+        tris = []  # each tile's triangles, world frame (for the cost estimate that balances processes' shares)
         for g in build_static_groups(self.town, seed):
             v, _, nrm = g.mesh.arrays()
             verts = np.asarray(v, float).reshape(-1, 3, 3)
@@ -292,10 +332,15 @@ class SceneRenderer:
                 # Footprint in the map frame (world y flipped back).
                 lo, hi = tv[:, :2].min(axis=0), tv[:, :2].max(axis=0)
                 self._tiles.append(_Tile(uid, tuple(g.rgba), np.array([lo[0], -hi[1]]), np.array([hi[0], -lo[1]])))
+                tris.append(verts[sel])
             self.triangle_count += g.mesh.triangle_count
         self._tile_lo = np.array([t.lo for t in self._tiles])
         self._tile_hi = np.array([t.hi for t in self._tiles])
-        self._tile_shown = np.ones(len(self._tiles), bool)
+        self._tile_shown = np.ones(len(self._tiles), bool)  # in the view wedge
+        self._tile_drawn = np.ones(len(self._tiles), bool)  # alpha 1: in view and this process's
+        self._tile_owner = np.array([t.uid % self._count for t in self._tiles], np.int64)  # the process that draws it
+        self._tile_tris = np.concatenate(tris) if tris else np.zeros((0, 3, 3))
+        self._tile_first = np.cumsum([0] + [len(t) for t in tris]).astype(np.int64)
 
     def _mesh_shape(self, vertices: np.ndarray, normals: np.ndarray, rgba: Sequence[float],
                     specular: Sequence[float] | None = (0.0, 0.0, 0.0)) -> int:
@@ -346,10 +391,17 @@ class SceneRenderer:
         inside = np.all((eye_xy >= lo - 1.0) & (eye_xy <= hi + 1.0), axis=1)
         near = np.min(np.hypot(rel[..., 0], rel[..., 1]), axis=1) <= camera.far_m
         show = inside | (near & (overlap | wraps))
-        for k in np.nonzero(show != self._tile_shown)[0]:
-            t = self._tiles[k]
-            p.changeVisualShape(t.uid, -1, rgbaColor=[*t.rgba[:3], 1.0 if show[k] else 0.0], **self._cid)
+        self._draw_tiles(show, self._tile_owner)
         self._tile_shown = show
+
+    def _draw_tiles(self, shown: np.ndarray, owner: np.ndarray) -> None:
+        """Alpha 1 on the tiles in view that this process draws, 0 on the others (touching only those that change)."""
+        want = shown & (owner == self._rank)
+        for k in np.nonzero(want != self._tile_drawn)[0]:
+            t = self._tiles[k]
+            p.changeVisualShape(t.uid, -1, rgbaColor=[*t.rgba[:3], 1.0 if want[k] else 0.0], **self._cid)
+        self._tile_drawn = want
+        self._tile_owner = owner
 
     def _build_calibration_patch(self) -> None:
         """A grey quad out of every view: its lit colour tells how TinyRenderer shades flat ground."""
@@ -357,7 +409,9 @@ class SceneRenderer:
         mesh.polygon_top(np.array([[-5.0, -5.0], [5.0, -5.0], [5.0, 5.0], [-5.0, 5.0]]), CALIBRATION_Z)
         v, _, nrm = mesh.arrays()
         vs = self._mesh_shape(np.array(v), np.array(nrm), (0.5, 0.5, 0.5, 1.0))
-        self._no_collisions(p.createMultiBody(baseMass=0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=vs, **self._cid))
+        self._calibration_uid = p.createMultiBody(baseMass=0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=vs,
+                                                  **self._cid)
+        self._no_collisions(self._calibration_uid)
         self._ground_palette: dict[str, np.ndarray] = {}
         self._setups: dict[tuple[str, CameraConfig], _FrameSetup] = {}
         self._last_setup: tuple[str, CameraConfig, _FrameSetup] | None = None  # the pair asked for last
@@ -409,6 +463,13 @@ class SceneRenderer:
 
     def set_light_states(self, states: Sequence[LightState]) -> None:
         """Recolour lamps, touching pybullet only for lights whose state changed."""
+        if self._partners:
+            message = ("lights", tuple(int(s) for s in states))
+            for partner in self._partners:
+                partner.send(message)
+        self._set_light_states(states)
+
+    def _set_light_states(self, states: Sequence[LightState]) -> None:
         states = tuple(states[:len(self._light_bodies)])
         if states == self._light_input:
             return  # most steps: no light changed (one tuple compare instead of an enum per light)
@@ -427,6 +488,8 @@ class SceneRenderer:
     def _paint_light(self, k: int) -> None:
         """Apply light k's housing and lamp colours, or alpha 0 on all of it when it is out of view."""
         uid, state, alpha = self._light_bodies[k], self._light_states[k], 1.0 if self._light_shown[k] else 0.0
+        if not self._mine(uid):
+            return  # another process draws it; here it stays at alpha 0
         p.changeVisualShape(uid, -1, rgbaColor=[*HOUSING_RGB, alpha], **self._cid)
         for link, lamp in enumerate(LAMP_ORDER):
             rgb = LAMP_ON_RGB[lamp] if lamp == state else LAMP_OFF_RGB[lamp]
@@ -497,6 +560,8 @@ class SceneRenderer:
         show = (dist < 2.0) | ((dist < min(camera.far_m, SIGN_RANGE_M)) & (ang <= reach))
         for k in np.nonzero(show != self._sign_shown)[0]:
             alpha = 1.0 if show[k] else 0.0
+            if not self._mine(self._sign_bodies[k]):
+                continue
             for link, rgb in self._sign_paint[k]:
                 p.changeVisualShape(self._sign_bodies[k], link, rgbaColor=[*rgb, alpha], **self._cid)
         self._sign_shown = show
@@ -607,6 +672,9 @@ class SceneRenderer:
             body.link_rgb.setdefault(int(entry[1]), tuple(float(c) for c in entry[7][:3]))
         for link, rgb in body.lamp_links.items():
             self._set_emissive(uid, link, rgb, night_only=True)
+        if not self._mine(uid):
+            for link in body.link_rgb:
+                p.changeVisualShape(uid, link, rgbaColor=[0.5, 0.5, 0.5, 0.0], **self._cid)
         return body
 
     def sync(self, objects: Sequence[ObjectSnapshot], light_states: Sequence[LightState] = (),
@@ -617,8 +685,13 @@ class SceneRenderer:
         outside that horizontal wedge are parked out of sight instead of posed, since a pose reset
         of a multi-link body costs tens of microseconds and most of the town is behind the camera.
         """
+        if self._partners:  # the helpers replay the same sync, so their bodies get the same ids and poses
+            message = ("sync", [(o.object_id, int(o.kind), o.x, o.y, o.heading, o.length_m, o.width_m, o.height_m,
+                                 o.color) for o in objects], tuple(int(s) for s in light_states), view)
+            for partner in self._partners:
+                partner.send(message)
         if light_states:
-            self.set_light_states(light_states)
+            self._set_light_states(light_states)
         in_view = _in_view(objects, view)
         active, looks, last_pose, cid = self._active, self._look, self._last_pose, self._cid
         ped = SemanticClass.PEDESTRIAN
@@ -665,6 +738,8 @@ class SceneRenderer:
         color = tuple(round(float(c), 4) for c in obj.color)
         if color != body.color:
             body.color = color  # type: ignore[assignment]
+            if not self._mine(body.uid):
+                return body
             for link in body.body_links:
                 p.changeVisualShape(body.uid, link, rgbaColor=[*color, 1.0 if body.shown else 0.0], **self._cid)
         return body
@@ -674,6 +749,8 @@ class SceneRenderer:
         if body.shown == shown:
             return
         body.shown = shown
+        if not self._mine(body.uid):
+            return
         for link, rgb in body.link_rgb.items():
             paint = body.color if link in body.body_links else rgb
             p.changeVisualShape(body.uid, link, rgbaColor=[*paint, 1.0 if shown else 0.0], **self._cid)
@@ -712,6 +789,52 @@ class SceneRenderer:
 
     def _render(self, camera_pose: tuple[float, float, float], camera: CameraConfig, lighting: str,
                 lateral_m: float) -> CameraFrame:
+        if self._partners:
+            eye, forward, view, setup = self._prepare(camera_pose, camera, lighting, lateral_m)
+            owner = self._balance(eye, view, camera)
+            for partner in self._partners:
+                partner.ask(camera_pose, camera, lighting, lateral_m, owner)
+            _, _, rgba, buf, seg = p.getCameraImage(camera.width, camera.height, viewMatrix=view, **setup.camera_args)
+        else:
+            rgba, buf, seg, eye, forward, setup = self._draw(camera_pose, camera, lighting, lateral_m)
+        h, w = camera.height, camera.width
+        rgba, buf, seg = np.asarray(rgba, np.uint8).reshape(h, w, 4), np.asarray(buf, np.float32).reshape(h, w), \
+            np.asarray(seg, np.int32).reshape(h, w)
+        for partner in self._partners:
+            kernels.merge_share(rgba, buf, seg, *partner.collect(h, w))
+        return self._shade(rgba, buf, seg, eye, forward, setup, camera)
+
+    def draw(self, camera_pose: tuple[float, float, float], camera: CameraConfig, lighting: str,
+             lateral_m: float = 0.0, tile_owner: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """TinyRenderer's raw RGBA, depth buffer and segmentation mask (flat arrays) of this process's bodies, as
+        ``render`` would see them before shading (what a helper process of ``sim.render_share`` hands back);
+        ``tile_owner``: which process draws each static tile (the main renderer's ``_balance``)."""
+        if tile_owner is not None:
+            self._draw_tiles(self._tile_shown, tile_owner)
+        return self._draw(camera_pose, camera, lighting, lateral_m)[:3]
+
+    def _balance(self, eye: np.ndarray, view: Sequence[float], camera: CameraConfig) -> np.ndarray:
+        """Share the static tiles in view out between the processes by estimated TinyRenderer work
+        (``render_kernels.tile_costs``, costliest first to the least loaded), draw this process's, and return the
+        owners for the helpers. Only the speed depends on it: any share gives the same frame."""
+        pv = (np.asarray(_projection(camera)).reshape(4, 4).T @ np.asarray(view).reshape(4, 4).T)
+        cost = kernels.tile_costs(self._tile_tris, self._tile_first, self._tile_shown, pv, eye, camera.width,
+                                  camera.height, camera.near_m, COST_PER_TRIANGLE)
+        owner = self._tile_owner.copy()
+        kernels.share_out(cost, self._tile_shown, owner, self._count, np.zeros(self._count))
+        self._draw_tiles(self._tile_shown, owner)
+        return owner
+
+    def _draw(self, camera_pose: tuple[float, float, float], camera: CameraConfig, lighting: str,
+              lateral_m: float) -> tuple[Any, Any, Any, np.ndarray, np.ndarray, _FrameSetup]:
+        """Cull for the camera and call ``getCameraImage``: its buffers, the eye and forward vector, the setup."""
+        eye, forward, view, setup = self._prepare(camera_pose, camera, lighting, lateral_m)
+        _, _, rgba, buf, seg = p.getCameraImage(camera.width, camera.height, viewMatrix=view, **setup.camera_args)
+        return rgba, buf, seg, eye, forward, setup
+
+    def _prepare(self, camera_pose: tuple[float, float, float], camera: CameraConfig, lighting: str,
+                 lateral_m: float) -> tuple[np.ndarray, np.ndarray, Any, _FrameSetup]:
+        """Cull for the camera: the eye, forward vector, view matrix and the frame's setup."""
         eye, forward = self.camera_position(camera_pose, camera, lateral_m)
         eye_xy = np.array([eye[0], -eye[1]])
         cull_key = (camera.hfov_deg, camera.far_m)
@@ -726,8 +849,13 @@ class SceneRenderer:
         fx, fy, fz = forward.tolist()
         ex, ey, ez = eye.tolist()
         view = p.computeViewMatrix([ex, ey, ez], [ex + fx, ey + fy, ez + fz], [0.0, 0.0, 1.0], **self._cid)
-        setup = self._setup(lighting, camera)
-        _, _, rgba, buf, seg = p.getCameraImage(camera.width, camera.height, viewMatrix=view, **setup.camera_args)
+        return eye, forward, view, self._setup(lighting, camera)
+
+    def _shade(self, rgba: np.ndarray, buf: np.ndarray, seg: np.ndarray, eye: np.ndarray, forward: np.ndarray,
+               setup: _FrameSetup, camera: CameraConfig) -> CameraFrame:
+        """TinyRenderer's buffers (HxW) to the frame: ray-cast ground, sky, grade, fog, headlights, bloom, boxes."""
+        fx, fy, fz = forward.tolist()
+        ex, ey, ez = eye.tolist()
         h, w = camera.height, camera.width
         depth = np.empty((h, w), np.float32)
         semantic = np.empty((h, w, 2), np.int32)
@@ -743,8 +871,7 @@ class SceneRenderer:
                         *setup.geo_tail])
         seen, box = np.empty(BOX_CAPACITY, np.int64), np.empty((BOX_CAPACITY, 5), np.int64)
         any_emit, n_ids = kernels.shade_frame(
-            np.asarray(rgba, np.uint8).reshape(h, w, 4), np.asarray(buf, np.float32).reshape(h, w),
-            np.asarray(seg, np.int32).reshape(h, w), self._class_lut, self._id_lut, self._emit_mask, self._night_emit,
+            rgba, buf, seg, self._class_lut, self._id_lut, self._emit_mask, self._night_emit,
             self._emissive, setup.palette, SURFACE_CLASS, SURFACE_RAISED, self.ground_map.texels, geo, setup.grade,
             setup.flags, setup.cone, setup.sky, img, depth, semantic, sky, glow_src, rgb, seen, box)
         if bloom:
@@ -781,7 +908,9 @@ class SceneRenderer:
         return hit
 
     def close(self) -> None:
-        """Disconnect this renderer's pybullet client (once; later calls do nothing)."""
+        """Disconnect this renderer's pybullet client and stop its helper processes (once; later calls do nothing)."""
+        if self._partners:
+            self._stop_partners()
         self._finalizer()
         self.client = -1
 

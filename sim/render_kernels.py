@@ -294,3 +294,97 @@ def in_view_wedge(pos: np.ndarray, radius: np.ndarray, x: float, y: float, headi
         reach = half_fov + math.asin(min(max(r / max(dist, 1e-6), 0.0), 1.0)) + margin
         out[k] = (dist <= r + 3.0) or (dist <= range_m + r and ang <= reach)
     return out
+
+
+@nb.njit(cache=True, nogil=True)
+def merge_share(rgba: np.ndarray, buf: np.ndarray, seg: np.ndarray, rgba_b: np.ndarray, buf_b: np.ndarray,
+                seg_b: np.ndarray) -> int:
+    """Fold another process's TinyRenderer buffers (the same camera, a disjoint set of bodies) into these, in place,
+    as if one call had drawn both sets of bodies; returns how many pixels came from the other buffers.
+
+    TinyRenderer keeps a fragment when its depth is at least the z-buffer's, so a pixel shows the last fragment, in
+    draw order, of those nearest the camera; bodies are drawn in the order of their unique ids. So per pixel the
+    nearer of the two wins (smaller depth-buffer value), and at equal depth the body with the larger id (segmentation
+    mask: body id in the low 24 bits, link + 1 above; -1 where nothing was drawn). Exact unless two fragments of
+    bodies in different shares lie so close in depth that the depth buffer's float32 holds the same value for both
+    and the earlier body's was the nearer (the tests and bench/README.md count how often)."""
+    h, w = seg.shape
+    taken = 0
+    for i in range(h):
+        for j in range(w):
+            sb = seg_b[i, j]
+            if sb < 0:
+                continue
+            sa = seg[i, j]
+            if sa >= 0:
+                da, db = buf[i, j], buf_b[i, j]
+                if db > da or (db == da and (sb & 0xFFFFFF) < (sa & 0xFFFFFF)):
+                    continue
+            seg[i, j] = sb
+            buf[i, j] = buf_b[i, j]
+            for c in range(4):
+                rgba[i, j, c] = rgba_b[i, j, c]
+            taken += 1
+    return taken
+
+
+@nb.njit(cache=True, nogil=True)
+def tile_costs(tris: np.ndarray, first: np.ndarray, shown: np.ndarray, pv: np.ndarray, eye: np.ndarray, width: int,
+               height: int, near: float, per_triangle: float) -> np.ndarray:
+    """An estimate of TinyRenderer's work for each shown static tile: ``per_triangle`` for each triangle (vertex
+    shading) plus, for each triangle facing the eye, the pixels of its screen bounding box clamped to the image,
+    which TinyRenderer's rasteriser visits one by one (the whole image when the triangle crosses the near plane).
+    ``tris`` (n, 3, 3) world-frame triangles, tile k's are ``first[k]:first[k + 1]``; ``pv`` projection times view
+    (row-major). Only balances the processes' shares (``SceneRenderer._balance``): the frame does not depend on it."""
+    n_tiles = len(first) - 1
+    cost = np.zeros(n_tiles)
+    full = float(width * height)
+    for k in range(n_tiles):
+        if not shown[k]:
+            continue
+        c = per_triangle * (first[k + 1] - first[k])
+        for t in range(first[k], first[k + 1]):
+            ax, ay, az = tris[t, 1, 0] - tris[t, 0, 0], tris[t, 1, 1] - tris[t, 0, 1], tris[t, 1, 2] - tris[t, 0, 2]
+            bx, by, bz = tris[t, 2, 0] - tris[t, 0, 0], tris[t, 2, 1] - tris[t, 0, 1], tris[t, 2, 2] - tris[t, 0, 2]
+            nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+            if ((tris[t, 0, 0] - eye[0]) * nx + (tris[t, 0, 1] - eye[1]) * ny + (tris[t, 0, 2] - eye[2]) * nz) >= 0:
+                continue  # back face: culled after the vertex shader
+            x0, x1, y0, y1 = 1e30, -1e30, 1e30, -1e30
+            behind = 0
+            for v in range(3):
+                x, y, z = tris[t, v, 0], tris[t, v, 1], tris[t, v, 2]
+                cw = pv[3, 0] * x + pv[3, 1] * y + pv[3, 2] * z + pv[3, 3]
+                if cw < near:
+                    behind += 1
+                    continue
+                sx = (pv[0, 0] * x + pv[0, 1] * y + pv[0, 2] * z + pv[0, 3]) / cw
+                sy = (pv[1, 0] * x + pv[1, 1] * y + pv[1, 2] * z + pv[1, 3]) / cw
+                x0, x1, y0, y1 = min(x0, sx), max(x1, sx), min(y0, sy), max(y1, sy)
+            if behind == 3:
+                continue
+            if behind:
+                c += full
+                continue
+            px0, px1 = max((x0 + 1.0) * 0.5 * width, 0.0), min((x1 + 1.0) * 0.5 * width, width - 1.0)
+            py0, py1 = max((y0 + 1.0) * 0.5 * height, 0.0), min((y1 + 1.0) * 0.5 * height, height - 1.0)
+            if px1 >= px0 and py1 >= py0:
+                c += (px1 - px0 + 1.0) * (py1 - py0 + 1.0)
+        cost[k] = c
+    return cost
+
+
+@nb.njit(cache=True, nogil=True)
+def share_out(cost: np.ndarray, shown: np.ndarray, owner: np.ndarray, count: int, base: np.ndarray) -> None:
+    """Give each shown tile to a process, in place in ``owner``: the costliest first, each to the process with the
+    least work so far (``base``: each process's work before the tiles). Tiles out of view keep their owner."""
+    load = base.copy()
+    order = np.argsort(-cost, kind="mergesort")
+    for k in order:
+        if not shown[k]:
+            continue
+        best = 0
+        for r in range(1, count):
+            if load[r] < load[best]:
+                best = r
+        owner[k] = best
+        load[best] += cost[k]
