@@ -505,7 +505,8 @@ class AgentDriver:
         if st.stereo is not None and "stereo" in observation:
             pair = observation["stereo"]
             depth = st.stereo.depth(st.stereo.disparity(pair[0], pair[1]))
-        objects = st.memory.recall(st.objects.update(tracks, t, depth), speed, odo.turn, self.dt)
+        objects = st.memory.recall(st.objects.update(tracks, t, depth, speed), speed, odo.turn, self.dt,
+                                   st.objects.expired)
         light = st.light.choose(self._lights, self.controller.line, odo.turned)
         lap("distance")
         z_car = -self.camera.mount_forward_m

@@ -39,11 +39,17 @@ class ObjectMemory:
         self.in_path_seen: dict[int, PerceivedObject] = {}  # last frame's seen objects in our path
         self.at_side: dict[int, PerceivedObject] = {}  # last frame's near people at the image's side edge
 
-    def recall(self, objects: list[PerceivedObject], speed: float, turn_rad: float, dt: float) -> list[PerceivedObject]:
+    def recall(self, objects: list[PerceivedObject], speed: float, turn_rad: float, dt: float,
+               expired: set[int] | frozenset[int] = frozenset()) -> list[PerceivedObject]:
         """``objects`` plus those noted last frame that are no longer detected, moved by the car's travel and its
-        heading change ``turn_rad`` (positive to the right) since last frame."""
+        heading change ``turn_rad`` (positive to the right) since last frame. Tracks ``expired`` (perception
+        dropped them, unconfirmed while the car stood) are not remembered."""
         cfg = self.rules
         cos_t, sin_t = math.cos(turn_rad), math.sin(turn_rad)
+        for tid in expired:
+            self.lost.pop(tid, None)
+            self.in_path_seen.pop(tid, None)
+            self.at_side.pop(tid, None)
         seen = {o.track_id for o in objects}
         for tid, o in self.in_path_seen.items():
             if tid not in seen and o.distance_m < cfg.lost_memory_m:
