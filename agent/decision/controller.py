@@ -37,6 +37,15 @@ Why it is built this way:
   looks again every frame, and a person the detector confirms stops it as always (what went wrong without
   it: ``docs/agent_rules.md``).
 
+- **Signs** (``agent.decision.signs``): a stop sign asks a full stop within ``SignControlRules.full_stop_m`` of the
+  next line (speed under the world's ``STOP_SPEED_MPS``), then the car goes once no moving vehicle is within
+  ``priority_near_m`` (other than one driving away ahead in our lane) and nobody confirmed stands on the crossing
+  beyond the line; a yield line is approached at ``YIELD_APPROACH_MPS`` and stopped at only for such traffic. The
+  last limit sign seen (else the default for the street the lane lines tell) caps the cruise speed.
+- **Bends ahead**: the lane fit's curvature, where the fit reaches ``bend_min_range_m``, caps the speed at
+  sqrt(a_lat / curvature) (a_lat: ``sim.spec.CURVE_LATERAL_ACCEL_MPS2``, the autopilot's) before the car steers
+  into the bend; a curvature that grows is taken at what it grows to in ``bend_horizon_s``.
+
 Distances in ``Scene`` are measured from the camera along the ground; the controller converts them to
 the gap ahead of the front bumper with ``camera_to_front_m``.
 """
