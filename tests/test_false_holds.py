@@ -40,6 +40,10 @@ def test_a_person_only_at_the_side_edge_expires_while_the_car_stands() -> None:
         t += DT
     assert alive.index(False) == UNCONFIRMED_STANDING_FRAMES - 1 and not any(alive[UNCONFIRMED_STANDING_FRAMES:])
     assert est.expired == {1}
+    # The car moves on: the box is reported again, stale (passed at creeping pace), never confirmed.
+    objs = est.update([Track(1, edge, 10, 10, 0, PEDESTRIAN)], t, None, 1.0)
+    assert len(objs) == 1 and objs[0].stale and objs[0].unconfirmed
+    t += DT
     # Seen whole again: it is back, confirmed.
     objs = est.update([Track(1, whole, 10, 10, 0, PEDESTRIAN)], t, None, 0.0)
     assert len(objs) == 1 and objs[0].confirmed

@@ -466,7 +466,7 @@ class Controller:
             if obj.kind == "pedestrian":
                 what = ("in our path" if self.overlaps(scene, obj, steer) and obj.distance_m > 0
                         else "in the turn's sweep" if swept else "entering our path")
-                if obj.unconfirmed and creep:
+                if obj.unconfirmed and (creep or obj.stale):
                     c = Constraint(f"pedestrian #{obj.track_id} {what} not confirmed for "
                                    f"{self.unconfirmed_held_s:.0f} s: creeping at {cfg.creep_speed_mps:.1f} m/s",
                                    math.inf, cfg.creep_speed_mps, 0.0, 0.0,

@@ -83,7 +83,7 @@ class ObjectMemory:
         ``in_path``), and the people near the car at the image's side edge, but none of ``edge_only`` (seen only
         at the side edge). Returns the objects in our path (seen or remembered)."""
         in_path_objects = [o for o in objects if o.track_id in in_path]
-        seen = [o for o in objects if o.unseen_s == 0.0 and o.track_id not in edge_only]
+        seen = [o for o in objects if o.unseen_s == 0.0 and o.track_id not in edge_only and not o.stale]
         self.in_path_seen = {o.track_id: o for o in seen if o.track_id in in_path}
         width = self.geometry.camera.width
         self.at_side = {o.track_id: o for o in seen if o.kind == "pedestrian"

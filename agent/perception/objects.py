@@ -29,8 +29,9 @@ from towndrive.agent.perception.tracking import Track
 TRACKED = ("car", "truck", "pedestrian")
 # While the car stands, a track the detector does not confirm (coasting, or a person seen only at the image's side
 # edge) for this many frames in a row expires: standing, the camera sees the same picture frame after frame, so
-# nothing can refute a false box, and waiting longer only holds the car (docs/agent_rules.md). A whole detection
-# of the same track brings it back.
+# nothing can refute a false box, and waiting longer only holds the car (docs/agent_rules.md). Once the car moves
+# it is reported again, stale (the controller passes it at creeping pace, looking every frame); a whole detection
+# of the same track makes it an ordinary object again.
 UNCONFIRMED_STANDING_FRAMES = 40  # 2 s at the 20 Hz step
 STANDING_MPS = 0.5  # the car stands below this speed (as the controller's standstill_mps)
 
@@ -49,6 +50,7 @@ class PerceivedObject:
     box: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     unseen_s: float = 0.0  # > 0: no longer detected, remembered where it was last (see agent_driver)
     confirmed: bool = True  # False: detected, but only in a way that is easy to fake (see agent_driver)
+    stale: bool = False  # unconfirmed for UNCONFIRMED_STANDING_FRAMES while the car stood: passed at creeping pace
 
     @property
     def unconfirmed(self) -> bool:
@@ -142,13 +144,14 @@ class ObjectEstimator:
             count = self._standing_unconfirmed.get(tr.track_id, 0)
             count = 0 if whole_now else (count + 1 if standing else count)
             self._standing_unconfirmed[tr.track_id] = count
-            if count >= UNCONFIRMED_STANDING_FRAMES:
+            stale = count >= UNCONFIRMED_STANDING_FRAMES
+            if stale and standing:
                 self.expired.add(tr.track_id)
                 self.edge_only.discard(tr.track_id)
                 continue
             out.append(PerceivedObject(tr.track_id, kind, float(z), float(xl), float(xr), closing, lateral,
                                        (float(box[0]), float(box[1]), float(box[2]), float(box[3])),
-                                       confirmed=confirmed))
+                                       confirmed=confirmed and not stale, stale=stale))
         for tid in list(self._history):
             if tid not in alive:
                 del self._history[tid]
