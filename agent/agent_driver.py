@@ -58,6 +58,7 @@ from towndrive.agent.decision.controller import Controller, ControllerConfig, De
 from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
 from towndrive.agent.decision.odometry import Odometry
 from towndrive.agent.decision.our_light import LightRules, LightSeen, OurLight
+from towndrive.agent.decision.signs import lanes_each_way
 from towndrive.agent.perception.box_geometry import BoxGeometry
 from towndrive.agent.perception.classes import LIGHT_CLASSES
 from towndrive.agent.perception.detector import Detection, OnnxDetector
@@ -65,6 +66,7 @@ from towndrive.agent.perception.lanes import LaneDetector, LaneResult, lane_cent
 from towndrive.agent.perception.object_memory import MemoryRules, ObjectMemory
 from towndrive.agent.perception.objects import TRACKED, ObjectEstimator, ObjectRules, PerceivedObject
 from towndrive.agent.perception.pilotnet import DEFAULT_MODEL, PilotNetModel
+from towndrive.agent.perception.signs import SignReader, SignRules, SignSeen
 from towndrive.agent.perception.stop_line import StopLine, StopLineDetector
 from towndrive.agent.perception.tracking import Sort, SortConfig, Track
 from towndrive.agent.shipped import DETECTOR_ONNX, REFINER_ONNX
@@ -126,6 +128,7 @@ class AgentConfig:
     road: RoadDesign = ROAD  # road-design priors (sim.spec): a deployment profile may set a real road's
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     blind_spot: BlindSpotConfig = field(default_factory=BlindSpotConfig)
+    signs: SignRules = field(default_factory=SignRules)  # which detected signs address the car
     adas: AdasConfig = field(default_factory=AdasConfig)
     sort: SortConfig = field(default_factory=SortConfig)
 
@@ -194,6 +197,7 @@ class Stages:
     junction: JunctionGuidance
     blind_spot: BlindSpot
     stereo: Any = None  # agent.perception.stereo.StereoDepth with distance="stereo"
+    signs: SignReader | None = None  # the road signs addressing the car (agent.perception.signs)
 
 
 class AgentDriver:
@@ -276,7 +280,7 @@ class AgentDriver:
                                                 cfg.light_line_tolerance_m, cfg.light_box_pad_px), cfg.road),
             odometry=odometry, junction=junction,
             blind_spot=BlindSpot(mirror, MirrorMount(MIRRORS.ahead_m, MIRRORS.out_m, MIRRORS.yaw_deg), cfg.blind_spot),
-            stereo=stereo)
+            stereo=stereo, signs=SignReader(geometry, cfg.signs, cfg.road))
 
     def _setup(self, camera: CameraConfig, dt: float) -> None:
         self.camera = camera
@@ -317,6 +321,7 @@ class AgentDriver:
         for stage in (st.blind_spot, st.objects, st.memory, st.odometry, st.junction):
             stage.reset()
         self._lights: list[Detection] = []
+        self._signs: list[SignSeen] = []
 
     # Stage shortcuts kept for overlays, profiles and tests.
     lanes = property(lambda self: self.stages.lanes)
@@ -485,6 +490,7 @@ class AgentDriver:
         times.setdefault("detector", 0.0)
         if dets is not None:
             self._lights = [d for d in dets if d.name in LIGHT_CLASSES]
+            self._signs = st.signs.read(dets) if st.signs is not None else []
             movers = [d for d in dets if d.name in TRACKED]
             boxes = np.array([d.box for d in movers], float).reshape(-1, 4)
             labels = np.array([d.cls for d in movers], int)
@@ -499,7 +505,8 @@ class AgentDriver:
         if st.stereo is not None and "stereo" in observation:
             pair = observation["stereo"]
             depth = st.stereo.depth(st.stereo.disparity(pair[0], pair[1]))
-        objects = st.memory.recall(st.objects.update(tracks, t, depth), speed, odo.turn, self.dt)
+        objects = st.memory.recall(st.objects.update(tracks, t, depth, speed), speed, odo.turn, self.dt,
+                                   st.objects.expired)
         light = st.light.choose(self._lights, self.controller.line, odo.turned)
         lap("distance")
         z_car = -self.camera.mount_forward_m
@@ -540,7 +547,8 @@ class AgentDriver:
                 if held and self.stages.blind_spot.alongside(held) else [])  # let it pass; a follower is merged in front of
         scene = Scene(speed, objects, light.state if light else None, light.distance_m if light else None,
                       stop.distance_m if stop is not None else None, centre, max(lane_range, 8.0),
-                      turning=command in (1, 2), speed_caps=caps)
+                      turning=command in (1, 2), speed_caps=caps, signs=self._signs,
+                      lanes_each_way=lanes_each_way(lanes))
         decision = self.controller.step(scene, pilot, self.dt)
         if hold is not None:  # the steering was overridden too: say so, and keep what PilotNet proposed
             decision.pilot_steer = net_steer

@@ -29,10 +29,9 @@ from towndrive.agent.decision.pid import PID, STEER_RATE_PER_S  # noqa: F401 (re
 from towndrive.envs.driver_context import DriverContext
 from towndrive.sim.objects import LightState
 from towndrive.sim.rules import turn_after
+from towndrive.sim.spec import CURVE_BRAKE_MPS2, YIELD_APPROACH_MPS
 from towndrive.sim.town import Command, Control, lanes_for
 from towndrive.sim.traffic import (
-    CURVE_BRAKE_MPS2,
-    YIELD_APPROACH_MPS,
     Agents,
     crosswalk_gap,
     curve_speed_limit,

@@ -35,10 +35,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from towndrive.sim.geometry import right_of
+from towndrive.sim.spec import STOP_SPEED_MPS, STOP_ZONE_M  # noqa: F401 (re-exported: the world's full stop)
 from towndrive.sim.town import Command, Control, Edge, Entry, LaneIndex, Town
 
-STOP_SPEED_MPS = 0.1  # under this a vehicle stands (a full stop)
-STOP_ZONE_M = 3.0  # a stop counts with the front bumper this far before the line, at most
 YIELD_GAP_S = 5.0  # the gap a driver at a stop or give-way line accepts in priority traffic
 YIELD_CONFLICT_S = 3.0  # the failed-to-yield threshold: a priority vehicle this close in time had to brake
 CONFLICT_MIN_SPEED_MPS = 1.0  # ... and moving at least this fast

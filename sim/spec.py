@@ -111,6 +111,13 @@ class RoadDesign:
     signal_head_height_m: float = 5.2  # signal heads hang this high above the road on mast arms
     signal_housing_height_m: float = 2.1  # a three-lamp head's housing
     light_beyond_stop_line_m: float = 21.0  # our light stands across the junction (measured 21.4 m beyond the bar)
+    sign_before_stop_line_m: float = 2.5  # a stop or yield sign's post stands this far before the bar's near edge
+    sign_plate_size_m: float = 0.75  # a sign plate's width (stop, yield, speed limit)
+    sign_plate_height_m: float = 2.1  # the plate's centre above the road
+    # The limit a driver assumes where no limit sign was seen, by the kind of street (what a town style posts on
+    # its arterials, two lanes each way, and its residential streets, one lane each way).
+    multi_lane_limit_kmh: float = 50.0
+    single_lane_limit_kmh: float = 30.0
 
     def __post_init__(self) -> None:  # real roads lie well inside these ranges
         check_number("road lane_width_m", self.lane_width_m, 2.0, 6.0)
@@ -119,6 +126,21 @@ class RoadDesign:
         check_number("road signal_head_height_m", self.signal_head_height_m, 2.0, 12.0)
         check_number("road signal_housing_height_m", self.signal_housing_height_m, 0.3, 3.0)
         check_number("road light_beyond_stop_line_m", self.light_beyond_stop_line_m, 0.0, 80.0)
+        check_number("road sign_before_stop_line_m", self.sign_before_stop_line_m, 0.0, 20.0)
+        check_number("road sign_plate_size_m", self.sign_plate_size_m, 0.2, 2.0)
+        check_number("road sign_plate_height_m", self.sign_plate_height_m, 0.5, 6.0)
+        check_number("road multi_lane_limit_kmh", self.multi_lane_limit_kmh, 5.0, 200.0)
+        check_number("road single_lane_limit_kmh", self.single_lane_limit_kmh, 5.0, 200.0)
+
+
+# The rules of the road as the world judges them and every driver obeys them (``sim.rules``, ``sim.traffic``, the
+# autopilot and the camera-only agent read them here, so the numbers cannot drift apart).
+STOP_SPEED_MPS = 0.1  # under this a vehicle stands (a full stop)
+STOP_ZONE_M = 3.0  # a full stop counts with the front bumper this far before the line, at most
+YIELD_APPROACH_MPS = 4.0  # the speed at a give-way line a driver can still stop from (and look)
+CURVE_LATERAL_ACCEL_MPS2 = 2.0  # comfortable lateral acceleration in turns and bends
+CURVE_BRAKE_MPS2 = 2.5  # how hard one slows down ahead of a turn or a lower limit
+KMH = 1 / 3.6  # m/s per km/h
 
 
 WEATHERS = ("dusk", "night", "noon", "overcast")  # the lighting presets (sim.render.LIGHTING_PRESETS), sorted

@@ -183,8 +183,8 @@ class Sign:
     facing: float  # heading of the traffic that reads it (the plate's face looks the other way)
     edge: Edge  # the road it stands on (stop/yield: the entry's road; limits: the road they start)
     value_kmh: int = 0  # speed limits: the posted limit
-    plate_height_m: float = 2.1  # the plate's centre above the road
-    plate_size_m: float = 0.75  # the plate's width
+    plate_height_m: float = ROAD.sign_plate_height_m  # the plate's centre above the road
+    plate_size_m: float = ROAD.sign_plate_size_m  # the plate's width
 
 
 @dataclass(frozen=True)
@@ -524,7 +524,7 @@ STOP_BAR_GAP_M = 0.5  # zebra to the stop bar, at least
 PARKED_SLOT_M = 6.0  # one parked car's share of the kerb
 PARKING_CLEAR_M = 10.0  # no parking this near a road's ends (the junction's mouth)
 LIMIT_SIGN_AFTER_M = 8.0  # a limit sign stands this far into the road it governs
-STOP_SIGN_BEFORE_M = 2.5  # a stop or yield sign stands this far before the line (oblique junctions need room)
+STOP_SIGN_BEFORE_M = ROAD.sign_before_stop_line_m  # a stop or yield sign stands this far before the line
 LIMIT_REPEAT_CHANCE = 0.3  # chance of a limit sign on a road where the limit does not change
 
 

@@ -29,6 +29,11 @@ from towndrive.sim.objects import LightState, ObjectSnapshot, SemanticClass, sna
 from towndrive.sim.path_filter import BUMPER_SWING_M, clearly_nearest_lane, lanes_may_hold, path_candidates, path_rows, zone_holds
 from towndrive.sim.routes import random_next_edge
 from towndrive.sim.rules import PRIORITY_STANDING_M, STOP_CONTROLS, JunctionRules
+from towndrive.sim.spec import (  # noqa: F401 (re-exported: the rules' shared numbers)
+    CURVE_BRAKE_MPS2,
+    CURVE_LATERAL_ACCEL_MPS2,
+    YIELD_APPROACH_MPS,
+)
 from towndrive.sim.town import OPPOSITE, Approach, Command, Control, Entry, LaneIndex, Town, lanes_for
 
 
@@ -57,10 +62,7 @@ STANDING_VEHICLE_MPS = 1.0  # slower than this, a vehicle is an obstacle the car
 STANDING_PEDESTRIAN_LATERAL_M = 1.45  # on the sidewalk: car half width 0.95 + pedestrian radius 0.3 + 0.2 m
 
 
-CURVE_LATERAL_ACCEL_MPS2 = 2.0  # comfortable lateral acceleration in turns
-CURVE_BRAKE_MPS2 = 2.5  # how hard one slows down ahead of a turn
 LIMIT_BRAKE_MPS2 = 2.0  # how hard one slows down ahead of a lower posted limit
-YIELD_APPROACH_MPS = 4.0  # the speed at a give-way line a driver can still stop from (and look)
 ZEBRA_CLEAR_M = 10.0  # a stop-line driver does not leave the line for an occupied zebra this close beyond it
 STOP_HOLD_M = 1.5  # within this of a stop point at a stop sign, at walking pace, brake to a standstill
 

@@ -26,15 +26,13 @@ from towndrive.sim.routes import command_at, edge_length, random_route, route_le
 from towndrive.sim.rules import (
     GIVE_WAY_CONTROLS,
     STOP_CONTROLS,
-    STOP_SPEED_MPS,
-    STOP_ZONE_M,
     JunctionRules,
     VehicleAt,
     failed_to_yield_by,
     front_to_line,
     turn_after,
 )
-from towndrive.sim.spec import ROAD, STEP_S
+from towndrive.sim.spec import ROAD, STEP_S, STOP_SPEED_MPS, STOP_ZONE_M
 from towndrive.sim.town import (
     Approach,
     Command,

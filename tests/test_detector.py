@@ -147,13 +147,20 @@ def test_stride_4_head_targets_export_and_checkpoints_without_strides(tmp_path):
     assert load_detector(tmp_path / "s4.pt").config.strides == strides
     assert export_detector(tmp_path / "s4.pt", tmp_path / "s4.onnx") < 1e-4
     frame = np.random.default_rng(0).integers(0, 255, (160, 320, 3), dtype=np.uint8)
-    assert OnnxDetector(tmp_path / "s4.onnx", threads=1).raw(frame).shape == (40 * 80 + 20 * 40 + 10 * 20, 11)
+    assert OnnxDetector(tmp_path / "s4.onnx", threads=1).raw(frame).shape == (40 * 80 + 20 * 40 + 10 * 20,
+                                                                              5 + len(CLASSES))
     # A checkpoint written before strides were configurable (no "strides" key) is the (8, 16) model.
     old = torch.load(tmp_path / "s4.pt", weights_only=False)
     old["config"].pop("strides")
     old["state_dict"] = Detector(DetectorConfig()).state_dict()
     torch.save(old, tmp_path / "old.pt")
     assert load_detector(tmp_path / "old.pt").config.strides == (8, 16)
+    # A detector trained before the road signs were appended (six classes) still loads, with six class channels.
+    six = torch.load(tmp_path / "old.pt", weights_only=False)
+    six["classes"], six["config"]["num_classes"] = CLASSES[:6], 6
+    six["state_dict"] = Detector(DetectorConfig(num_classes=6)).state_dict()
+    torch.save(six, tmp_path / "six.pt")
+    assert load_detector(tmp_path / "six.pt").config.num_classes == 6
 
 
 def test_stride_4_refinement_blocks_start_as_the_identity_and_export(tmp_path):

@@ -37,6 +37,15 @@ Why it is built this way:
   looks again every frame, and a person the detector confirms stops it as always (what went wrong without
   it: ``docs/agent_rules.md``).
 
+- **Signs** (``agent.decision.signs``): a stop sign asks a full stop within ``SignControlRules.full_stop_m`` of the
+  next line (speed under the world's ``STOP_SPEED_MPS``), then the car goes once no moving vehicle is within
+  ``priority_near_m`` (other than one driving away ahead in our lane) and nobody confirmed stands on the crossing
+  beyond the line; a yield line is approached at ``YIELD_APPROACH_MPS`` and stopped at only for such traffic. The
+  last limit sign seen (else the default for the street the lane lines tell) caps the cruise speed.
+- **Bends ahead**: the lane fit's curvature, where the fit reaches ``bend_min_range_m``, caps the speed at
+  sqrt(a_lat / curvature) (a_lat: ``sim.spec.CURVE_LATERAL_ACCEL_MPS2``, the autopilot's) before the car steers
+  into the bend; a curvature that grows is taken at what it grows to in ``bend_horizon_s``.
+
 Distances in ``Scene`` are measured from the camera along the ground; the controller converts them to
 the gap ahead of the front bumper with ``camera_to_front_m``.
 """
@@ -48,10 +57,20 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from towndrive.agent.decision.signs import SignControl, SignControlRules
 from towndrive.agent.decision.stop_line_track import LIGHT_STATES, StopLineTrack
 from towndrive.agent.perception.objects import PerceivedObject
+from towndrive.agent.perception.signs import SignSeen
 from towndrive.sim.idm import idm_acceleration
-from towndrive.sim.spec import CAMERA_TO_FRONT_M, ROAD, VEHICLE, RoadDesign
+from towndrive.sim.spec import (
+    CAMERA_TO_FRONT_M,
+    CURVE_BRAKE_MPS2,
+    CURVE_LATERAL_ACCEL_MPS2,
+    ROAD,
+    VEHICLE,
+    YIELD_APPROACH_MPS,
+    RoadDesign,
+)
 
 VEHICLE_KINDS = ("car", "truck")
 
@@ -59,7 +78,15 @@ VEHICLE_KINDS = ("car", "truck")
 @dataclass(frozen=True)
 class ControllerConfig:
     speed_limit_mps: float = 8.0  # cruise speed: the town's limit
-    lateral_accel_mps2: float = 2.0  # in a bend, cruise at most sqrt(a / curvature) (the autopilot's comfort)
+    lateral_accel_mps2: float = CURVE_LATERAL_ACCEL_MPS2  # in a bend, at most sqrt(a / curvature) (the autopilot's)
+    bend_min_range_m: float = 12.0  # the lane fit tells a bend ahead only when it reaches this far
+    bend_smoothing: float = 0.3  # weight of this frame's curvature ahead in its running average
+    bend_horizon_s: float = 1.0  # a growing curvature ahead is taken at what it grows to in this time
+    signs: SignControlRules = SignControlRules()
+    priority_near_m: float = 30.0  # at a stop or give-way line, a moving vehicle this near (not driving away
+    priority_min_speed_mps: float = 1.0  # ahead of us) has priority; slower than this it is not moving
+    yield_settle_m: float = 3.0  # at a give-way line, down to YIELD_APPROACH_MPS this far before the stop point
+    crossing_depth_m: float = 8.0  # a person within this beyond the line, across the road, is on the crossing
     max_accel_mps2: float = 3.0  # acceleration limit: highway-env's IDM a, as the NPCs and the autopilot
     jerk_mps3: float = 4.0  # how fast the acceleration may rise
     comfortable_brake_mps2: float = 3.0  # normal braking limit
@@ -117,6 +144,8 @@ class Scene:
     lane_range_m: float = 30.0  # how far the lane fit is valid; beyond, it is continued straight
     turning: bool = False  # the route command asks for a left or right turn at the next junction
     speed_caps: list[tuple[str, float]] = field(default_factory=list)  # other limits: (reason, m/s)
+    signs: list[SignSeen] = field(default_factory=list)  # signs addressing us this frame (nearest first)
+    lanes_each_way: int | None = None  # the kind of street the lane lines tell (agent.decision.signs)
 
 
 @dataclass
@@ -165,6 +194,7 @@ class Controller:
         self.vehicle_accel = max_accel_mps2  # what throttle 1 gives
         self.vehicle_brake = max_brake_mps2  # what brake 1 (throttle_brake -1) gives
         self.line = StopLineTrack(self.config, self.road)  # the stop bar ahead (shared with the junction guidance)
+        self.signs = SignControl(self.config.signs, self.road, self.config.camera_to_front_m)
         self.reset()
 
     def reset(self) -> None:
@@ -179,6 +209,10 @@ class Controller:
         self.note = ""  # why a seen light does not stop the car (shown as the reason when nothing else acts)
         self.unconfirmed_held_s = 0.0  # standstill so far for unconfirmed objects in our path (module docstring)
         self._no_unconfirmed_s = 0.0  # since an unconfirmed object was last in our path
+        self.signs.reset()
+        self._cruise = self.config.speed_limit_mps  # the cruise speed under the limit that applies
+        self.bend_curvature = 0.0  # the curvature ahead (1/m), smoothed
+        self._bend_rate = 0.0  # its growth (1/m per s), smoothed
 
     # The stop-line track's figures, read and set as the controller's own (tests and overlays use them).
     stop_line = property(lambda self: self.line.stop_line, lambda self, v: setattr(self.line, "stop_line", v))
@@ -307,6 +341,78 @@ class Controller:
             return None
         return Constraint(f"red light: stop {self.stop_line:.1f} m ahead", gap, 0.0, cfg.stop_line_min_gap_m, 0.5)
 
+    # ------------------------------------------------------------------ signs and bends
+    def _sign_constraint(self, scene: Scene, speed: float, steer: float) -> Constraint | None:
+        """The stop or give-way a seen sign asks at the next line (``agent.decision.signs``): a full stop, then
+        go once nothing with priority is near and nobody is on the crossing; a give-way line is approached at
+        ``YIELD_APPROACH_MPS`` (a speed one can stop from) and stopped at only for such traffic."""
+        cfg, signs = self.config, self.signs
+        gap = signs.line_gap(self.stop_line)
+        if signs.control is None:
+            return None
+        what = "stop sign" if signs.control == "stop" else "yield"
+        if gap is None:
+            return Constraint(f"{what}, stop line not seen: slow approach", math.inf, cfg.red_no_line_speed_mps, 0.0, 0.0)
+        point = gap - cfg.stop_line_target_m
+        if signs.control == "stop" and not signs.note_speed(speed, gap):
+            return Constraint(f"stop sign: full stop {gap:.1f} m ahead", point, 0.0, cfg.stop_line_min_gap_m, 0.5)
+        wait = self._priority_traffic(scene, gap, steer)
+        if wait:
+            need = speed * speed / (2.0 * max(point, 0.05))
+            if signs.control == "yield" and need > 0.9 * cfg.max_brake_mps2:
+                self.note = f"yield: {wait}, too close to stop, going on"
+                return None
+            return Constraint(f"{what}: waiting, {wait}", point, 0.0, cfg.stop_line_min_gap_m, 0.5)
+        if signs.control == "yield":
+            # The speed is a cap (IDM runs a little above it while slowing): aim to be at the approach speed
+            # yield_settle_m before the point.
+            cap = math.sqrt(YIELD_APPROACH_MPS ** 2 + 2.0 * CURVE_BRAKE_MPS2 * max(point - cfg.yield_settle_m, 0.0))
+            return Constraint(f"yield: {min(cap, self._cruise):.1f} m/s to the line, looking", math.inf, cap, 0.0, 0.0)
+        self.note = "stop sign: full stop made, clear: going"
+        return None
+
+    def _priority_traffic(self, scene: Scene, gap: float, steer: float) -> str:
+        """What forbids going from a stop or give-way line now ("" when nothing): a vehicle near that moves and
+        is not driving away ahead of us (crossing, or coming towards us), or a person on the crossing beyond the
+        line (across the road: our lanes and the oncoming ones). Only what the detector confirms counts."""
+        cfg = self.config
+        line_cam = gap + cfg.camera_to_front_m
+        lanes = self.signs.lanes_each_way or 2
+        left = -(2 * lanes - 0.5) * self.road.lane_width_m  # the road's far kerb, from our lane's centre
+        right = 0.5 * self.road.lane_width_m + 0.5
+        for o in scene.objects:
+            if o.unconfirmed:
+                continue
+            if o.kind == "pedestrian":
+                if (o.distance_m <= line_cam + cfg.crossing_depth_m and o.lateral_right_m >= left
+                        and o.lateral_left_m <= right):
+                    return f"pedestrian #{o.track_id} on the crossing"
+                continue
+            along = scene.speed_mps - o.closing_speed_mps  # its speed along our heading (positive: away)
+            lateral = o.lateral_speed_mps
+            if math.hypot(along, lateral) < cfg.priority_min_speed_mps:
+                continue
+            if along > 0 and abs(lateral) < along and self.overlaps(scene, o, steer):
+                continue  # driving away ahead of us, in our lane
+            if math.hypot(o.distance_m, o.lateral_m) <= cfg.priority_near_m:
+                return f"{o.kind} #{o.track_id} with priority {o.distance_m:.0f} m ahead"
+        return ""
+
+    def _bend_cap(self, scene: Scene, dt: float) -> float:
+        """The speed a bend ahead allows, sqrt(a_lat / curvature): the lane fit's curvature (``2a`` of
+        x = a z^2 + b z + c, where it reaches ``bend_min_range_m`` or farther), smoothed, taken at what it grows
+        to in ``bend_horizon_s`` while it grows (the fit sees more of the bend as the car nears it)."""
+        cfg = self.config
+        kappa = 0.0
+        if scene.lane_centre is not None and scene.lane_range_m >= cfg.bend_min_range_m:
+            kappa = abs(2.0 * float(scene.lane_centre[0]))
+        before = self.bend_curvature
+        self.bend_curvature += cfg.bend_smoothing * (kappa - before)
+        rate = (self.bend_curvature - before) / dt if dt > 0 else 0.0
+        self._bend_rate += cfg.bend_smoothing * (rate - self._bend_rate)
+        ahead = self.bend_curvature + max(self._bend_rate, 0.0) * cfg.bend_horizon_s
+        return math.sqrt(cfg.lateral_accel_mps2 / ahead) if ahead > 1e-6 else math.inf
+
     # ------------------------------------------------------------------ the step
     def step(self, scene: Scene, pilot_steer: float, dt: float) -> Decision:
         cfg = self.config
@@ -317,25 +423,39 @@ class Controller:
             steer = min(self.last_steer + step, max(self.last_steer - step, steer))
         self.last_steer = steer
         self._update_light(scene, dt)
+        self.signs.update(scene.signs, scene.lanes_each_way, speed, dt)
         if self.line.update(scene.speed_mps, scene.stop_line_m, scene.light, scene.light_distance_m, dt):
             self.light_state, self._light_candidate, self._yellow_go = None, None, None  # in the junction
+            self.signs.entered()
+        elif self.signs.passed(self.stop_line):
+            self.signs.entered()
 
+        limit_why, limit = self.signs.limit()
+        self._cruise = min(cfg.speed_limit_mps, limit)  # the cruise speed under the limit that applies
         curvature = abs(math.tan(steer * cfg.max_steer_rad)) / cfg.wheelbase_m  # of the arc being steered
-        target = min(cfg.speed_limit_mps, math.sqrt(cfg.lateral_accel_mps2 / max(curvature, 1e-6)))
+        target = min(self._cruise, math.sqrt(cfg.lateral_accel_mps2 / max(curvature, 1e-6)))
         constraints: list[Constraint] = []
         in_path: list[int] = []
         ids: dict[int, int] = {}  # constraint index -> track id
         caps = list(scene.speed_caps)  # speed limits (reason, m/s): no point to stop at
+        bend = self._bend_cap(scene, dt)
+        if bend < self._cruise:
+            caps.append((f"bend ahead: {bend:.1f} m/s", bend))
         if scene.turning and (scene.lane_centre is None or abs(steer) > cfg.junction_turn_steer):
             caps.insert(0, (f"turning at a junction: {cfg.junction_turn_speed_mps:.1f} m/s", cfg.junction_turn_speed_mps))
         for why, cap in caps:
             constraints.append(Constraint(why, math.inf, cap, 0.0, 0.0, self._idm(speed, min(target, cap), None, 0.0,
                                                                                  0.0, 0.0)))
         light = self._light_constraint(speed, scene.turning)
-        if light is not None:
-            if math.isinf(light.gap_m):  # a speed cap, not a point to stop at
-                light.accel_mps2 = self._idm(speed, min(target, light.speed_mps), None, 0.0, 0.0, 0.0)
-            constraints.append(light)
+        note = self.note
+        sign = self._sign_constraint(scene, speed, steer)
+        self.note = note or self.note
+        for c in (light, sign):
+            if c is None:
+                continue
+            if math.isinf(c.gap_m):  # a speed cap, not a point to stop at
+                c.accel_mps2 = self._idm(speed, min(target, c.speed_mps), None, 0.0, 0.0, 0.0)
+            constraints.append(c)
         creep = self.unconfirmed_held_s >= cfg.unconfirmed_hold_s
         for obj in scene.objects:
             swept = self.in_sweep(scene, obj, steer)  # a person where the body will pass, corridor or not
@@ -346,7 +466,7 @@ class Controller:
             if obj.kind == "pedestrian":
                 what = ("in our path" if self.overlaps(scene, obj, steer) and obj.distance_m > 0
                         else "in the turn's sweep" if swept else "entering our path")
-                if obj.unconfirmed and creep:
+                if obj.unconfirmed and (creep or obj.stale):
                     c = Constraint(f"pedestrian #{obj.track_id} {what} not confirmed for "
                                    f"{self.unconfirmed_held_s:.0f} s: creeping at {cfg.creep_speed_mps:.1f} m/s",
                                    math.inf, cfg.creep_speed_mps, 0.0, 0.0,
@@ -404,8 +524,10 @@ class Controller:
             reason += " (hard brake)"
         if reason == "cruise" and self.note:
             reason = self.note
-        elif reason == "cruise" and target < 0.9 * cfg.speed_limit_mps:
+        elif reason == "cruise" and target < 0.9 * self._cruise:
             reason = f"cruise, {target:.1f} m/s in the turn"
+        elif reason == "cruise" and (self._cruise < cfg.speed_limit_mps or self.signs.limit_kmh is not None):
+            reason = f"cruise, {limit_why}"
         self.last_accel = accel
         throttle = accel / self.vehicle_accel if accel >= 0 else accel / self.vehicle_brake
         return Decision(steer, float(np.clip(throttle, -1.0, 1.0)), float(accel), float(target), float(pilot_steer),

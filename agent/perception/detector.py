@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from towndrive.agent.perception.classes import CLASSES
+from towndrive.agent.perception.classes import CLASSES, classes_of_model
 from towndrive.agent.perception.detections import Detection, box_iou, nms_numpy  # noqa: F401 (re-exported)
 
 if TYPE_CHECKING:
@@ -35,7 +35,8 @@ if TYPE_CHECKING:
 STRIDES = (8, 16)  # the default (and every checkpoint without "strides" in its config); (4, 8, 16) adds a stride-4 head
 INPUT_HW = (160, 320)
 # Class groups for NMS: the same object cannot be two classes of one group.
-NMS_GROUP = {"car": 0, "truck": 0, "pedestrian": 1, "light_red": 2, "light_yellow": 2, "light_green": 2}
+NMS_GROUP = {"car": 0, "truck": 0, "pedestrian": 1, "light_red": 2, "light_yellow": 2, "light_green": 2,
+             "stop_sign": 3, "yield_sign": 3, "speed_limit_30": 3, "speed_limit_50": 3}
 
 
 def conv(c_in: int, c_out: int, stride: int = 1, k: int = 3) -> nn.Sequential:
@@ -178,9 +179,11 @@ class DecodedDetector(nn.Module):
 def postprocess(pred: np.ndarray, score_threshold: float = 0.3, iou_threshold: float = 0.5,
                 max_detections: int = 100, classes: tuple[int, ...] | None = None) -> list[Detection]:
     """One image's decoded cells (cells x (4 + 1 + C)) -> detections after per-group NMS (OpenCV). ``classes``:
-    only these (NMS runs within class groups, so their boxes are those of the full call)."""
+    only these (NMS runs within class groups, so their boxes are those of the full call). C may be fewer than
+    ``CLASSES`` (a detector trained before the signs were appended has six): its classes are the first C."""
     import cv2
 
+    classes_of_model(pred.shape[1] - 5)
     obj = pred[:, 4:5]
     scores_all = obj * pred[:, 5:]
     cls = scores_all.argmax(1)
@@ -220,9 +223,11 @@ def load_detector(path: str | Path) -> Detector:
     if not path.is_file():
         raise FileNotFoundError(f"Detector checkpoint {path} not found; train one with `python train.py detector train`.")
     ckpt = load_checkpoint(path, "detector")
-    if tuple(ckpt.get("classes", ())) != CLASSES:
+    trained = tuple(ckpt.get("classes", ()))
+    if not trained or trained != CLASSES[:len(trained)]:  # the signs were appended: an older model is a prefix
         raise ValueError(f"{path} was trained for classes {ckpt.get('classes')}, not {CLASSES}; retrain it.")
-    model = Detector(DetectorConfig(**ckpt.get("config", {})))  # no "strides" in the config: (8, 16)
+    config = {"num_classes": len(trained), **ckpt.get("config", {})}
+    model = Detector(DetectorConfig(**config))  # no "strides" in the config: (8, 16)
     model.load_state_dict(ckpt["state_dict"])
     return model.eval()
 

@@ -39,11 +39,17 @@ class ObjectMemory:
         self.in_path_seen: dict[int, PerceivedObject] = {}  # last frame's seen objects in our path
         self.at_side: dict[int, PerceivedObject] = {}  # last frame's near people at the image's side edge
 
-    def recall(self, objects: list[PerceivedObject], speed: float, turn_rad: float, dt: float) -> list[PerceivedObject]:
+    def recall(self, objects: list[PerceivedObject], speed: float, turn_rad: float, dt: float,
+               expired: set[int] | frozenset[int] = frozenset()) -> list[PerceivedObject]:
         """``objects`` plus those noted last frame that are no longer detected, moved by the car's travel and its
-        heading change ``turn_rad`` (positive to the right) since last frame."""
+        heading change ``turn_rad`` (positive to the right) since last frame. Tracks ``expired`` (perception
+        dropped them, unconfirmed while the car stood) are not remembered."""
         cfg = self.rules
         cos_t, sin_t = math.cos(turn_rad), math.sin(turn_rad)
+        for tid in expired:
+            self.lost.pop(tid, None)
+            self.in_path_seen.pop(tid, None)
+            self.at_side.pop(tid, None)
         seen = {o.track_id for o in objects}
         for tid, o in self.in_path_seen.items():
             if tid not in seen and o.distance_m < cfg.lost_memory_m:
@@ -77,7 +83,7 @@ class ObjectMemory:
         ``in_path``), and the people near the car at the image's side edge, but none of ``edge_only`` (seen only
         at the side edge). Returns the objects in our path (seen or remembered)."""
         in_path_objects = [o for o in objects if o.track_id in in_path]
-        seen = [o for o in objects if o.unseen_s == 0.0 and o.track_id not in edge_only]
+        seen = [o for o in objects if o.unseen_s == 0.0 and o.track_id not in edge_only and not o.stale]
         self.in_path_seen = {o.track_id: o for o in seen if o.track_id in in_path}
         width = self.geometry.camera.width
         self.at_side = {o.track_id: o for o in seen if o.kind == "pedestrian"

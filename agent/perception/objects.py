@@ -27,6 +27,13 @@ from towndrive.agent.perception.classes import CLASSES
 from towndrive.agent.perception.tracking import Track
 
 TRACKED = ("car", "truck", "pedestrian")
+# While the car stands, a track the detector does not confirm (coasting, or a person seen only at the image's side
+# edge) for this many frames in a row expires: standing, the camera sees the same picture frame after frame, so
+# nothing can refute a false box, and waiting longer only holds the car (docs/agent_rules.md). Once the car moves
+# it is reported again, stale (the controller passes it at creeping pace, looking every frame); a whole detection
+# of the same track makes it an ordinary object again.
+UNCONFIRMED_STANDING_FRAMES = 40  # 2 s at the 20 Hz step
+STANDING_MPS = 0.5  # the car stands below this speed (as the controller's standstill_mps)
 
 
 @dataclass
@@ -43,6 +50,7 @@ class PerceivedObject:
     box: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     unseen_s: float = 0.0  # > 0: no longer detected, remembered where it was last (see agent_driver)
     confirmed: bool = True  # False: detected, but only in a way that is easy to fake (see agent_driver)
+    stale: bool = False  # unconfirmed for UNCONFIRMED_STANDING_FRAMES while the car stood: passed at creeping pace
 
     @property
     def unconfirmed(self) -> bool:
@@ -78,11 +86,18 @@ class ObjectEstimator:
     def reset(self) -> None:
         self._history: dict[int, deque[tuple[float, float, float]]] = {}
         self._whole_at: dict[int, float] = {}  # track id -> when a person's track was last seen whole
+        self._standing_unconfirmed: dict[int, int] = {}  # track id -> frames in a row unconfirmed, the car standing
+        self.expired: set[int] = set()  # this frame's tracks dropped for that (UNCONFIRMED_STANDING_FRAMES)
         self.edge_only: set[int] = set()  # this frame's people seen only at the image's side edge
 
-    def update(self, tracks: list[Track], t: float, depth: np.ndarray | None) -> list[PerceivedObject]:
+    def update(self, tracks: list[Track], t: float, depth: np.ndarray | None,
+               speed_mps: float = math.inf) -> list[PerceivedObject]:
+        """The tracks as objects; ``speed_mps``, the car's own speed, expires what stays unconfirmed while it
+        stands (``UNCONFIRMED_STANDING_FRAMES``)."""
         out = []
         self.edge_only = set()
+        self.expired = set()
+        standing = speed_mps < STANDING_MPS
         alive = set()
         geometry, rules = self.geometry, self.rules
         for tr in tracks:
@@ -121,12 +136,28 @@ class ObjectEstimator:
                     xl = geometry.lateral(box[0], z + DEPTH_PRIOR_M[kind])
                 elif box[2] < cx:
                     xr = geometry.lateral(box[2], z + DEPTH_PRIOR_M[kind])
+            confirmed = self._confirmed(tr, kind, t)
+            # Confirmed by a detection this frame: matched, and a person's box clear of the side edges (seen
+            # whole lately is not enough here: standing, the same cut box comes back frame after frame).
+            whole_now = tr.time_since_update == 0 and (
+                kind != "pedestrian" or not at_side_edge(box, geometry.camera.width, rules.whole_margin_px))
+            count = self._standing_unconfirmed.get(tr.track_id, 0)
+            count = 0 if whole_now else (count + 1 if standing else count)
+            self._standing_unconfirmed[tr.track_id] = count
+            stale = count >= UNCONFIRMED_STANDING_FRAMES
+            if stale and standing:
+                self.expired.add(tr.track_id)
+                self.edge_only.discard(tr.track_id)
+                continue
             out.append(PerceivedObject(tr.track_id, kind, float(z), float(xl), float(xr), closing, lateral,
                                        (float(box[0]), float(box[1]), float(box[2]), float(box[3])),
-                                       confirmed=self._confirmed(tr, kind, t)))
+                                       confirmed=confirmed and not stale, stale=stale))
         for tid in list(self._history):
             if tid not in alive:
                 del self._history[tid]
+        for tid in list(self._standing_unconfirmed):
+            if tid not in alive:
+                del self._standing_unconfirmed[tid]
         for tid in list(self._whole_at):
             if tid not in alive:
                 del self._whole_at[tid]

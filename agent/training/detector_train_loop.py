@@ -279,7 +279,8 @@ def save_checkpoint(path: Path, model: Detector, meta: dict) -> None:
         config["s4_blocks"] = model.config.s4_blocks
     if model.config.s4_pixels:
         config["s4_pixels"] = True
-    save(path, {"state_dict": state, "config": config, "classes": CLASSES, "input_hw": INPUT_HW, **meta})
+    classes = CLASSES[:model.config.num_classes]  # a model with fewer class channels has the first classes
+    save(path, {"state_dict": state, "config": config, "classes": classes, "input_hw": INPUT_HW, **meta})
 
 
 # --------------------------------------------------------------------------- training

@@ -1,0 +1,116 @@
+"""What the road signs the car has seen ask of it: a stop or a give-way at the next line, and the speed limit.
+
+- **Stop and yield** are debounced (``confirm_frames`` frames in a row) and then apply to the next stop line:
+  the one the stop-line track follows, or, with no bar seen, the line where the road design puts it
+  (``RoadDesign.sign_before_stop_line_m`` beyond the sign), dead-reckoned by the car's travel. A stop is *made*
+  once the car stands (under the world's full-stop speed, ``sim.spec.STOP_SPEED_MPS``) within ``full_stop_m`` of
+  the line; the control ends when the car crosses the line (``entered``).
+- **The speed limit** is the last limit sign seen (debounced alike), kept until another is seen. Before any, the
+  default for the kind of street, which the car measures from its lane lines: a dashed white line beside its
+  lane means another lane in its direction (a multi-lane street: ``RoadDesign.multi_lane_limit_kmh``); a yellow
+  centre line on its left and a solid edge line on its right mean one lane each way
+  (``RoadDesign.single_lane_limit_kmh``); the last kind measured holds while neither is seen, and the lower
+  default before any is measured.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from towndrive.agent.perception.lanes import LaneResult
+from towndrive.agent.perception.signs import SignSeen
+from towndrive.sim.spec import KMH, ROAD, STOP_SPEED_MPS, STOP_ZONE_M, RoadDesign
+
+
+@dataclass(frozen=True)
+class SignControlRules:
+    confirm_frames: int = 2  # a sign counts once seen this many frames in a row
+    full_stop_m: float = 2.0  # a full stop is made standing at most this far before the line (the world: STOP_ZONE_M)
+    line_lost_m: float = 1.0  # a sign-inferred line this far behind the bumper is passed
+
+    def __post_init__(self) -> None:
+        if self.full_stop_m > STOP_ZONE_M:
+            raise ValueError(f"full_stop_m {self.full_stop_m} is beyond the world's full-stop zone ({STOP_ZONE_M} m).")
+
+
+def lanes_each_way(lanes: LaneResult | None) -> int | None:
+    """The kind of street from the car's lane lines: 2 (or more) lanes each way, 1, or None (not told)."""
+    if lanes is None or not lanes.detected:
+        return None
+    lines = [ln for ln in (lanes.left, lanes.right) if ln is not None]
+    if any(ln.color == "white" and ln.style == "dashed" for ln in lines):
+        return 2
+    left, right = lanes.left, lanes.right
+    if (left is not None and right is not None and left.color == "yellow" and right.color == "white"
+            and right.style == "solid"):
+        return 1
+    return None
+
+
+class SignControl:
+    """The signs' state across frames (module docstring)."""
+
+    def __init__(self, rules: SignControlRules | None = None, road: RoadDesign = ROAD,
+                 camera_to_front_m: float = 1.3) -> None:
+        self.rules = rules or SignControlRules()
+        self.road = road
+        self.camera_to_front_m = camera_to_front_m
+        self.reset()
+
+    def reset(self) -> None:
+        self.control: str | None = None  # "stop" or "yield": what the next stop line asks
+        self.sign_line_m: float | None = None  # bumper to the line the sign puts, dead-reckoned
+        self.stopped = False  # the full stop at this line is made
+        self.limit_kmh: float | None = None  # the last limit sign seen
+        self.lanes_each_way: int | None = None  # the last kind of street measured
+        self._seen: tuple[str, int] | None = None
+        self._count = 0
+
+    def update(self, signs: list[SignSeen], lanes_each_way: int | None, speed_mps: float, dt: float) -> None:
+        """One frame: the car travelled ``speed x dt``; ``signs`` addressing it were seen (nearest first)."""
+        if self.sign_line_m is not None:
+            self.sign_line_m -= speed_mps * dt
+        if lanes_each_way is not None:
+            self.lanes_each_way = lanes_each_way
+        sign = signs[0] if signs else None
+        key = (sign.kind, sign.limit_kmh) if sign is not None else None
+        self._count = self._count + 1 if key is not None and key == self._seen else (1 if key else 0)
+        self._seen = key
+        if sign is None or self._count < self.rules.confirm_frames:
+            return
+        if sign.kind == "limit":
+            self.limit_kmh = float(sign.limit_kmh)
+            return
+        if self.control != sign.kind:
+            self.control, self.stopped = sign.kind, False
+        self.sign_line_m = sign.distance_m + self.road.sign_before_stop_line_m - self.camera_to_front_m
+
+    def line_gap(self, tracked_m: float | None) -> float | None:
+        """Bumper to the line the sign's control applies at: the tracked stop line, else the sign's."""
+        if self.control is None:
+            return None
+        return tracked_m if tracked_m is not None else self.sign_line_m
+
+    def note_speed(self, speed_mps: float, gap_m: float | None) -> bool:
+        """Whether the full stop is made (now or before): the car stands within ``full_stop_m`` of the line."""
+        if (not self.stopped and gap_m is not None and speed_mps < STOP_SPEED_MPS
+                and gap_m <= self.rules.full_stop_m):
+            self.stopped = True
+        return self.stopped
+
+    def passed(self, tracked_m: float | None) -> bool:
+        """Whether the line the sign put is behind the bumper (no tracked bar to say so)."""
+        return (self.control is not None and tracked_m is None and self.sign_line_m is not None
+                and self.sign_line_m < -self.rules.line_lost_m)
+
+    def entered(self) -> None:
+        """The car crossed the line: the stop or give-way is done."""
+        self.control, self.sign_line_m, self.stopped = None, None, False
+
+    def limit(self) -> tuple[str, float]:
+        """The speed limit that applies (reason, m/s)."""
+        if self.limit_kmh is not None:
+            return f"limit {self.limit_kmh:.0f}", self.limit_kmh * KMH
+        kmh = self.road.multi_lane_limit_kmh if self.lanes_each_way == 2 else self.road.single_lane_limit_kmh
+        street = {2: "multi-lane street", 1: "single-lane street"}.get(self.lanes_each_way or 0, "street not known")
+        return f"limit {kmh:.0f} ({street}, no sign seen)", kmh * KMH
