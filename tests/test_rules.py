@@ -182,18 +182,24 @@ def test_pedestrian_has_the_right_of_way_on_an_unsignalled_zebra():
     assert not PedestrianCrowd._cannot_stop(cw, near, np.array([0.0]), head, cw.start, None)
 
 
-def test_a_vehicle_that_has_waited_at_an_unsignalled_zebra_gets_its_turn():
-    """Pedestrians who keep arriving would otherwise hold a waiting car for ever (two walking back and forth
-    round a T-junction's corners did, for 150 s): after ZEBRA_TURN_S, new arrivals let it go first, until it
-    has gone over."""
-    from towndrive.sim.pedestrians import ZEBRA_TURN_S
-
+def _car_facing_a_zebra() -> tuple[Town, PedestrianCrowd, object, np.ndarray, float]:
+    """An empty crowd, an unsignalled zebra, and a car 6 m before it facing it: (town, crowd, zebra, car, heading)."""
     town = _town()
     crowd = PedestrianCrowd(town, 0, np.random.default_rng(0), 1000)
     cw = next(c for c in town.crosswalks if c.approach < 0)
     centre = cw.polygon.mean(axis=0)
     heading = math.atan2(*(centre - cw.start)[::-1]) + math.pi / 2
     car = (centre - 6.0 * np.array([math.cos(heading), math.sin(heading)]))[None, :]
+    return town, crowd, cw, car, heading
+
+
+def test_a_vehicle_that_has_waited_at_an_unsignalled_zebra_gets_its_turn():
+    """Pedestrians who keep arriving would otherwise hold a waiting car for ever (two walking back and forth
+    round a T-junction's corners did, for 150 s): after ZEBRA_TURN_S, new arrivals let it go first, until it
+    has gone over."""
+    from towndrive.sim.pedestrians import ZEBRA_TURN_S
+
+    town, crowd, cw, car, heading = _car_facing_a_zebra()
     standing, moving, head = np.array([0.0]), np.array([2.0]), np.array([heading])
     assert not crowd._vehicles_turn(cw, car, standing, head, 10.0)  # it has only just stopped
     assert crowd._vehicles_turn(cw, car, standing, head, 10.0 + ZEBRA_TURN_S)  # it has waited: its turn
@@ -211,12 +217,7 @@ def test_a_vehicles_wait_counts_from_when_it_stood_not_from_the_next_walkers_arr
     from towndrive.sim.lights import LightTiming, TrafficLights
     from towndrive.sim.pedestrians import ZEBRA_TURN_S, Pedestrian
 
-    town = _town()
-    crowd = PedestrianCrowd(town, 0, np.random.default_rng(0), 1000)
-    cw = next(c for c in town.crosswalks if c.approach < 0)
-    centre = cw.polygon.mean(axis=0)
-    heading = math.atan2(*(centre - cw.start)[::-1]) + math.pi / 2
-    car = (centre - 6.0 * np.array([math.cos(heading), math.sin(heading)]))[None, :]
+    town, crowd, cw, car, heading = _car_facing_a_zebra()
     first = Pedestrian(1000, cw.start.copy(), 0.0, 0.3, (0.5, 0.5, 0.5), cw.index, True, state="crossing",
                        target=cw.end.copy())
     crowd.peds = [first]
