@@ -10,7 +10,8 @@ The anchor-free grid heads predict per cell:
 objectness, one score per class and a box (centre offset in cells as in YOLOv5, ``2 sigmoid - 0.5``, and
 width and height as ``exp`` times the stride). Scores are ``objectness x class probability``. NMS is
 OpenCV's ``NMSBoxesBatched`` within class groups (car and truck share one, the three light states
-another), so one object is never reported both as a red and a green light.
+another, the road signs a third), so one object is never reported both as a red and a green light, or as a
+30 and a 50 limit.
 
 The ONNX model contains the decoding: its one output is ``N x cells x (4 + 1 + classes)`` with boxes in
 pixels (x0, y0, x1, y1), so ONNX Runtime's caller only has to threshold and run NMS.
@@ -35,7 +36,8 @@ if TYPE_CHECKING:
 STRIDES = (8, 16)  # the default (and every checkpoint without "strides" in its config); (4, 8, 16) adds a stride-4 head
 INPUT_HW = (160, 320)
 # Class groups for NMS: the same object cannot be two classes of one group.
-NMS_GROUP = {"car": 0, "truck": 0, "pedestrian": 1, "light_red": 2, "light_yellow": 2, "light_green": 2}
+NMS_GROUP = {"car": 0, "truck": 0, "pedestrian": 1, "light_red": 2, "light_yellow": 2, "light_green": 2,
+             "stop_sign": 3, "yield_sign": 3, "speed_limit_30": 3, "speed_limit_50": 3}
 
 
 def conv(c_in: int, c_out: int, stride: int = 1, k: int = 3) -> nn.Sequential:
@@ -220,9 +222,13 @@ def load_detector(path: str | Path) -> Detector:
     if not path.is_file():
         raise FileNotFoundError(f"Detector checkpoint {path} not found; train one with `python train.py detector train`.")
     ckpt = load_checkpoint(path, "detector")
-    if tuple(ckpt.get("classes", ())) != CLASSES:
+    classes = tuple(ckpt.get("classes", ()))
+    # A model of fewer classes than today's is one of before the road signs (the list only ever grows at its end):
+    # it loads, with its own channels, and simply reports none of the later classes.
+    if not classes or classes != CLASSES[:len(classes)]:
         raise ValueError(f"{path} was trained for classes {ckpt.get('classes')}, not {CLASSES}; retrain it.")
-    model = Detector(DetectorConfig(**ckpt.get("config", {})))  # no "strides" in the config: (8, 16)
+    config = {**ckpt.get("config", {}), "num_classes": len(classes)}
+    model = Detector(DetectorConfig(**config))  # no "strides" in the config: (8, 16)
     model.load_state_dict(ckpt["state_dict"])
     return model.eval()
 

@@ -279,7 +279,35 @@ def save_checkpoint(path: Path, model: Detector, meta: dict) -> None:
         config["s4_blocks"] = model.config.s4_blocks
     if model.config.s4_pixels:
         config["s4_pixels"] = True
-    save(path, {"state_dict": state, "config": config, "classes": CLASSES, "input_hw": INPUT_HW, **meta})
+    save(path, {"state_dict": state, "config": config, "classes": CLASSES[:model.config.num_classes], "input_hw": INPUT_HW,
+                **meta})
+
+
+def init_from(model: Detector, source: dict[str, torch.Tensor], name: str = "--init") -> str:
+    """Warm start (``--init``): every tensor of ``source`` whose name and shape match ``model``'s. New layers keep
+    their initialisation (the stride-4 refinement blocks start as the identity, so the model starts as the one it
+    comes from). A head of more classes than the source's (the road signs appended to the six classes of before)
+    takes the source's rows (box, objectness, the old classes' channels) exactly and keeps its own fresh rows for
+    the new classes (RetinaNet's prior, so they start near 0.05 and do not flood the old classes' NMS groups).
+    Returns a sentence saying what was taken."""
+    own = model.state_dict()
+    taken = {k: v for k, v in source.items() if k in own and own[k].shape == v.shape}
+    grown = []
+    for k, v in source.items():
+        if k in taken or k not in own or not k.startswith("head"):
+            continue
+        mine = own[k]
+        if v.ndim == mine.ndim and v.shape[0] < mine.shape[0] and v.shape[1:] == mine.shape[1:]:
+            merged = mine.clone()
+            merged[:v.shape[0]] = v
+            taken[k] = merged
+            grown.append(f"{k} {v.shape[0]}->{mine.shape[0]}")
+    model.load_state_dict(taken, strict=False)
+    new = sorted({k.split(".")[0] for k in own if k not in taken})
+    msg = f"{name}: {len(taken)} of {len(own)} tensors taken; new: {new}"
+    if grown:
+        msg += (f"; grown heads (the source's rows copied, the new classes' rows fresh): {', '.join(grown)}")
+    return msg
 
 
 # --------------------------------------------------------------------------- training
@@ -301,7 +329,7 @@ def _train(args: argparse.Namespace, device: torch.device, dist: Distributed, wo
     torch.set_num_threads(max(1, args.threads))
     rng = np.random.default_rng(args.seed)
     train_s = [x for name in str(getattr(args, "train_splits", "train")).split(",") for x in load_split(args.data, name)]
-    val_s = load_split(args.data, "val")
+    val_s = [x for name in str(getattr(args, "val_splits", "val")).split(",") for x in load_split(args.data, name)]
     train_x = load_images(train_s, "train")
     val_x = load_images(val_s, "val") if dist.is_main else None  # rank 0 alone validates
     strides = tuple(int(v) for v in str(getattr(args, "strides", "8,16")).split(","))
@@ -313,14 +341,8 @@ def _train(args: argparse.Namespace, device: torch.device, dist: Distributed, wo
     if getattr(args, "init", ""):
         if args.resume:
             raise ValueError("Pass --resume or --init, not both.")
-        # Warm start: every tensor whose name and shape match; new layers keep their initialisation (the
-        # stride-4 refinement blocks start as the identity, so the model starts as the one it comes from).
-        src = load_checkpoint(args.init, "detector (--init)")["state_dict"]
-        own = model.state_dict()
-        taken = {k: v for k, v in src.items() if k in own and own[k].shape == v.shape}
-        model.load_state_dict(taken, strict=False)
-        print(f"--init {args.init}: {len(taken)} of {len(own)} tensors taken; new: "
-              f"{sorted({k.split('.')[0] for k in own if k not in taken})}")
+        src = load_checkpoint(args.init, "detector (--init)")
+        print(init_from(model, src["state_dict"], args.init))
     if args.resume:
         ckpt = load_checkpoint(args.resume, "detector (--resume)")
         cfg = ckpt.get("config", {})

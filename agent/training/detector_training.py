@@ -42,13 +42,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="pedestrians per town in train_peds and train_peds2 (default world: 24)")
     p.add_argument("--peds2-frames", type=int, default=6000, help="frames of the extra train_peds2 split")
     p.add_argument("--splits", default="train,val,test",
-                   help="which splits to (re)generate, comma-separated; train_peds, train_peds2: extra training "
-                   "towns 30-59 and 60-99 with more pedestrians")
+                   help="which splits to (re)generate, comma-separated. train, val, test: classic towns 0-29, "
+                   "100-109, 200-209; train_peds, train_peds2: extra training towns 30-59 and 60-99 with more "
+                   "pedestrians; train_STYLE, val_STYLE, test_STYLE (STYLE: classic, downtown, suburb): towns of that "
+                   "town style from sim/splits.py's train (0-3999), validation (4000-4999) and test (5000-5999) "
+                   "seeds, the first 30, 10 and 10 of each, sampled more often near road signs")
+    p.add_argument("--town-style", default="",
+                   help="STYLE: read the plain names train, val and test in --splits as train_STYLE, val_STYLE and "
+                   "test_STYLE (e.g. --town-style suburb --splits train,val)")
     p.add_argument("--seed", type=int, default=0, help="seed of the towns, routes and traffic the frames come from")
 
     p = sub.add_parser("train", help="train the detector on a generated dataset")
     p.add_argument("--data", default=DEFAULT_DATA, help="dataset root")
     p.add_argument("--train-splits", default="train", help="training splits, comma-separated (e.g. train,train_peds)")
+    p.add_argument("--val-splits", default="val",
+                   help="validation splits for the checkpoint choice, comma-separated (e.g. val_classic,val_downtown)")
     p.add_argument("--out", default=RUN_CKPT, help="best checkpoint (by val mAP@0.5)")
     p.add_argument("--epochs", type=int, default=30, help="training epochs")
     p.add_argument("--batch", type=int, default=32, help="images per batch")
@@ -63,7 +71,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--s4-pixels", action="store_true",
                    help="add each 4x4 cell's raw pixels (space-to-depth, 1x1 conv) to the stride-4 path")
     p.add_argument("--init", default="", help="warm start: this checkpoint's weights where names and shapes match "
-                   "(unlike --resume, the model may have more layers, e.g. --s4-blocks)")
+                   "(unlike --resume, the model may have more layers, e.g. --s4-blocks). A checkpoint of fewer classes "
+                   "(the six of before the road signs) grows: its head rows (box, objectness, its classes) are copied "
+                   "exactly and the new classes' rows start fresh")
     p.add_argument("--obj-iou", type=float, default=0.0,
                    help="objectness target of a positive: 1 - g + g * IoU of its box (YOLOv5's gr); 0: always 1")
     p.add_argument("--box-l1", type=float, default=0.0,
@@ -99,7 +109,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--model", default=DEFAULT_CKPT, help=".pt checkpoint or .onnx model")
     p.add_argument("--refiner", default="auto", help="pedestrian refiner: auto (data/models/ped_refiner.pt or .onnx, "
                    "as the model), a path, or none (the one-stage detector alone)")
-    p.add_argument("--split", default="test", help="test: towns 200-209, never used for training or model choice")
+    p.add_argument("--split", default="test", help="test: towns 200-209, never used for training or model choice; "
+                   "several, comma-separated (test,test_classic,test_downtown,test_suburb), add a table per class and split")
     p.add_argument("--report", default="out/detector/eval.json", help="where the JSON report goes")
 
     p = sub.add_parser("export", help="export the checkpoint (and the refiner) to ONNX with a parity check")
@@ -125,24 +136,52 @@ def run(args: argparse.Namespace) -> int:
     return actions[args.action](args)
 
 
-def _dataset(args: argparse.Namespace) -> int:
-    from towndrive.agent.training.autolabel import default_splits, generate_split, write_dataset_yaml
+def dataset_specs(args: argparse.Namespace) -> list:
+    """The ``SplitSpec``s that ``--splits`` (and ``--town-style``) name, in the order given; one sentence for
+    an unknown name or style."""
+    from towndrive.agent.training.autolabel import default_splits, styled_splits
+    from towndrive.sim.town_style import STYLES
 
+    specs = default_splits(args.train_frames, args.val_frames, args.test_frames, args.peds_frames, args.peds_count,
+                           args.peds2_frames)
+    for style in STYLES:
+        specs += styled_splits(style, args.train_frames, args.val_frames, args.test_frames)
+    by_name = {spec.name: spec for spec in specs}
+    style = getattr(args, "town_style", "")
+    if style and style not in STYLES:
+        raise ValueError(f"unknown town style {style!r}; the styles are {', '.join(STYLES)}.")
+    names = [n.strip() for n in args.splits.split(",") if n.strip()]
+    if style:
+        names = [f"{n}_{style}" if n in ("train", "val", "test") else n for n in names]
+    unknown = [n for n in names if n not in by_name]
+    if unknown:
+        raise ValueError(f"unknown split {', '.join(unknown)}; the splits are {', '.join(by_name)}.")
+    return [by_name[n] for n in dict.fromkeys(names)]
+
+
+def _dataset(args: argparse.Namespace) -> int:
+    import sys
+
+    from towndrive.agent.training.autolabel import generate_split, write_dataset_yaml
+
+    try:
+        specs = dataset_specs(args)
+    except ValueError as exc:
+        print(f"train.py detector dataset: {exc}", file=sys.stderr)
+        return 2
     root = Path(args.out)
     t0 = time.perf_counter()
     summary_path = root / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
-    wanted = set(args.splits.split(","))
-    for spec in default_splits(args.train_frames, args.val_frames, args.test_frames, args.peds_frames, args.peds_count,
-                               args.peds2_frames):
-        if spec.name not in wanted:
-            continue
+    for spec in specs:
         t_split = time.perf_counter()
         summary[spec.name] = generate_split(root, spec, args.seed)
         summary[spec.name]["towns"] = list(spec.town_seeds)
         summary[spec.name]["weathers"] = list(spec.weathers)
         if spec.pedestrian_count is not None:
             summary[spec.name]["pedestrian_count"] = spec.pedestrian_count
+        if spec.town_style is not None:
+            summary[spec.name]["town_style"] = spec.town_style
         summary[spec.name]["seconds"] = round(time.perf_counter() - t_split, 1)
     write_dataset_yaml(root)
     summary["seed"] = args.seed
