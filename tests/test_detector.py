@@ -379,3 +379,25 @@ def test_dataset_splits_of_town_styles_follow_the_town_seed_splits():
         dataset_specs(parser.parse_args(["dataset", "--splits", "train_uptown"]))
     with pytest.raises(ValueError, match="unknown town style"):
         dataset_specs(parser.parse_args(["dataset", "--town-style", "uptown"]))
+
+
+def test_frames_with_a_labelled_limit_or_stop_sign_are_never_mirrored():
+    """A mirrored 30 reads as "0Ɛ" and a mirrored 50 nearly as "02": such frames keep their orientation; others flip."""
+    from towndrive.agent.training.detector_train_loop import make_batch
+
+    img = np.zeros((1, 160, 320, 3), np.uint8)
+    img[0, 20:140, 60:72] = 255  # a (tall) plate in the left half, wherever the shifts (at most 32 x 16 px) take it
+
+    def sample(name: str, ignore: bool) -> Sample:
+        return Sample("-", "noon", np.array([[60.0, 20.0, 72.0, 140.0]], np.float32), np.array([CLASSES.index(name)]),
+                      np.array([ignore]), np.array([10.0], np.float32))
+
+    def flips(s: Sample) -> int:
+        count = 0
+        for seed in range(24):
+            x, _ = make_batch(img, [s], np.array([0]), np.random.default_rng(seed), (4, 8, 16), scale_prob=0.0)
+            count += int(int(x[0, :, 80].sum(0).argmax()) > 160)  # the plate (brighter than the grey border) is right
+        return count
+
+    assert flips(sample("speed_limit_30", False)) == flips(sample("stop_sign", False)) == 0
+    assert flips(sample("yield_sign", False)) > 5 and flips(sample("speed_limit_50", True)) > 5  # symmetric; ignored

@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 from towndrive.agent.perception.checkpoints import load_checkpoint
 from towndrive.agent.perception.checkpoints import save_checkpoint as save
-from towndrive.agent.perception.classes import CLASSES
+from towndrive.agent.perception.classes import CLASSES, SIGN_CLASSES
 from towndrive.agent.perception.detector import INPUT_HW, STRIDES, DecodedDetector, Detector, DetectorConfig, postprocess
 from towndrive.agent.training.detector_eval import Sample, detection_report, load_split, read_rgb
 from towndrive.agent.training.devices import (
@@ -63,9 +63,15 @@ def size_range(stride: int, strides: tuple[int, ...]) -> tuple[float, float]:
 
 
 # --------------------------------------------------------------------------- augmentation
+# Signs whose legend a mirror image would garble (a 30 reads as "0Ɛ", a 50 nearly as "02"): frames with one labelled
+# are never flipped, so the detector learns each value the way the camera sees it.
+LEGEND_CLASSES = np.array([CLASSES.index(n) for n in ("stop_sign", "speed_limit_30", "speed_limit_50")])
+
+
 def augment(img: np.ndarray, boxes: np.ndarray, rng: np.random.Generator,
-            scale_prob: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Flip, scale, translate and HSV-jitter one frame and its boxes (all objects, labels and ignores).
+            scale_prob: float = 1.0, flip: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Flip (unless ``flip`` is False), scale, translate and HSV-jitter one frame and its boxes (all objects, labels
+    and ignores).
 
     Returns the image, the boxes clipped to it, and which boxes survive (at least 40% of their area stays
     in the frame and they stay 2 px wide and tall; the others become ignore regions). The hue jitter is kept
@@ -76,7 +82,7 @@ def augment(img: np.ndarray, boxes: np.ndarray, rng: np.random.Generator,
     """
     h, w = img.shape[:2]
     boxes = boxes.copy()
-    if rng.random() < 0.5:
+    if rng.random() < 0.5 and flip:  # drawn either way, so the random stream does not depend on ``flip``
         img = img[:, ::-1]
         boxes[:, [0, 2]] = w - boxes[:, [2, 0]]
     scale = float(rng.uniform(0.75, 1.3))  # drawn every time, so scale_prob 1 keeps the old random stream
@@ -213,7 +219,13 @@ def yolo_loss(maps: list[torch.Tensor], targets: list[list[dict[str, np.ndarray]
 
 # --------------------------------------------------------------------------- data
 def load_images(samples: list[Sample], desc: str) -> np.ndarray:
-    return np.stack([read_rgb(s.image) for s in tqdm(samples, desc=f"load {desc}", unit="frame", leave=False)])
+    paths = [s.image for s in samples]
+    unique = list(dict.fromkeys(paths))  # a frame listed twice (--repeat-sign-frames) is read once
+    images = np.stack([read_rgb(p) for p in tqdm(unique, desc=f"load {desc}", unit="frame", leave=False)])
+    if len(unique) == len(paths):
+        return images
+    where = {p: k for k, p in enumerate(unique)}
+    return images[[where[p] for p in paths]]
 
 
 def make_batch(images: np.ndarray, samples: list[Sample], idx: np.ndarray, rng: np.random.Generator | None,
@@ -224,7 +236,8 @@ def make_batch(images: np.ndarray, samples: list[Sample], idx: np.ndarray, rng: 
         s = samples[k]
         img, boxes, ignore = images[k], s.boxes, s.ignore.copy()
         if rng is not None:
-            img, boxes, ok = augment(img, boxes, rng, scale_prob)
+            legend = bool(np.isin(s.cls[~s.ignore], LEGEND_CLASSES).any())
+            img, boxes, ok = augment(img, boxes, rng, scale_prob, flip=not legend)
             ignore = ignore | ~ok
         xs.append(img.transpose(2, 0, 1))
         tgs.append(build_targets(boxes, s.cls, ignore, strides))
@@ -329,6 +342,12 @@ def _train(args: argparse.Namespace, device: torch.device, dist: Distributed, wo
     torch.set_num_threads(max(1, args.threads))
     rng = np.random.default_rng(args.seed)
     train_s = [x for name in str(getattr(args, "train_splits", "train")).split(",") for x in load_split(args.data, name)]
+    repeat = int(getattr(args, "repeat_sign_frames", 1))
+    if repeat > 1:  # frames with a labelled road sign (a rarer sight than cars or people) several times per epoch
+        sign_ids = [CLASSES.index(n) for n in SIGN_CLASSES]
+        with_signs = [x for x in train_s if np.isin(x.cls[~x.ignore], sign_ids).any()]
+        print(f"{len(with_signs)} training frames with a labelled sign, {repeat} times each per epoch")
+        train_s = train_s + with_signs * (repeat - 1)
     val_s = [x for name in str(getattr(args, "val_splits", "val")).split(",") for x in load_split(args.data, name)]
     train_x = load_images(train_s, "train")
     val_x = load_images(val_s, "val") if dist.is_main else None  # rank 0 alone validates

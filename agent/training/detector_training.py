@@ -81,6 +81,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    "GIoU alone lets a 2-3 px wide pedestrian's box grow wide when its centre is uncertain")
     p.add_argument("--save-epochs", action="store_true",
                    help="also save every epoch's EMA weights next to --out (NAME.eN.pt), to choose by another val figure")
+    p.add_argument("--repeat-sign-frames", type=int, default=1,
+                   help="training frames with a labelled road sign count this many times per epoch (signs are rare)")
     p.add_argument("--scale-prob", type=float, default=1.0,
                    help="share of training frames rescaled (0.75-1.3x); the rest are shifted by whole pixels")
     add_loader_argument(p)
