@@ -248,6 +248,17 @@ def resolve_refiner(choice: str, model: str) -> str | None:
     return choice
 
 
+def resolve_signs(choice: str, model: str) -> str | None:
+    """``auto``: the shipped sign reader in the model's format, if it is there and the model has sign classes;
+    ``none``: no reader (the detector's own sign classes)."""
+    if choice == "none":
+        return None
+    if choice == "auto":
+        path = MODELS_DIR / ("sign_reader.onnx" if model.endswith(".onnx") else "sign_reader.pt")
+        return str(path) if path.is_file() else None
+    return choice
+
+
 def model_classes(detector) -> int:
     """How many classes a ``TorchDetector`` or ``OnnxDetector`` reports (its output has 4 + 1 + that many columns)."""
     if hasattr(detector, "session"):
@@ -268,15 +279,20 @@ def evaluate_command(args: argparse.Namespace) -> int:
     # operating threshold the driving stack uses.
     make = OnnxDetector if model.endswith(".onnx") else TorchDetector
     refiner = resolve_refiner(getattr(args, "refiner", "none"), model)
+    signs = resolve_signs(getattr(args, "signs", "none"), model)
     det_ap = make(model, score_threshold=0.01, refiner=refiner)
     nc = model_classes(det_ap)
+    if signs and nc > len(CLASSES) - len(SIGN_CLASSES):
+        det_ap = make(model, score_threshold=0.01, refiner=refiner, signs=signs)
+    else:
+        signs = None  # a model of before the signs has no sign boxes to read
     splits = [x.strip() for x in str(args.split).split(",") if x.strip()]
     reports = {}
     for split in splits:
-        samples = load_split(args.data, split)
+        samples = [x for part in split.split("+") for x in load_split(args.data, part)]  # a+b: pooled
         images = [read_rgb(s.image) for s in tqdm(samples, desc="load", unit="frame", leave=False)]
         dets = predict(samples, det_ap, images=images)
-        report = {"model": model, "refiner": refiner, "split": split, "frames": len(samples),
+        report = {"model": model, "refiner": refiner, "signs": signs, "split": split, "frames": len(samples),
                   "classes": list(CLASSES[:nc]), "detection": detection_report(samples, dets, nc)}
         op = 0.3
         dets_op = [[d for d in ds if d.score >= op] for ds in dets]
@@ -326,7 +342,8 @@ def print_table(reports: dict[str, dict]) -> None:
 def print_report(report: dict) -> None:
     det = report["detection"]
     refiner = f" + {report['refiner']}" if report.get("refiner") else " (no pedestrian refiner)"
-    print(f"{report['model']}{refiner} on {report['split']} ({report['frames']} frames)")
+    signs = f" + {report['signs']}" if report.get("signs") else ""
+    print(f"{report['model']}{refiner}{signs} on {report['split']} ({report['frames']} frames)")
     print(f"{'class':<14}{'GT':>6}{'AP@0.5':>9}{'AP@.5:.95':>11}")
     for name, v in det["per_class"].items():
         print(f"{name:<14}{v['gt']:>6}{v['ap50']:>9.3f}{v['ap50_95']:>11.3f}")

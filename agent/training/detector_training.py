@@ -5,6 +5,7 @@ Actions, in the order a new user runs them:
   dataset   drive the autopilot through many towns and weathers and write YOLO-layout labelled frames
   train     train the YOLO-style detector (agent/perception/detector.py), keep the best checkpoint by val mAP@0.5
   refiner   train the pedestrian refiner (agent/perception/ped_refiner.py) on the trained detector's candidates
+  signs     train the sign reader (agent/perception/sign_reader.py), which reads which sign a sign box holds
   evaluate  per-class AP@0.5 and AP@0.5:0.95 on the held-out towns, cars/pedestrians within 40 m,
             traffic-light state against the HSV baseline, accuracy against distance
   export    write the ONNX model, check it against torch, run it through ONNX Runtime
@@ -28,10 +29,12 @@ DEFAULT_REFINER = "data/models/ped_refiner.pt"
 DEFAULT_REFINER_ONNX = "data/models/ped_refiner.onnx"
 RUN_CKPT = "out/detector/detector.pt"  # what training writes by default
 RUN_REFINER = "out/detector/ped_refiner.pt"
+RUN_SIGNS = "out/detector/sign_reader.pt"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    sub = parser.add_subparsers(dest="action", required=True, metavar="{dataset,train,refiner,evaluate,export,sheet}")
+    sub = parser.add_subparsers(dest="action", required=True,
+                                metavar="{dataset,train,refiner,signs,evaluate,export,sheet}")
     p = sub.add_parser("dataset", help="generate the auto-labelled YOLO dataset")
     p.add_argument("--out", default=DEFAULT_DATA, help="dataset root (images/, labels/, dataset.yaml)")
     p.add_argument("--train-frames", type=int, default=6000, help="frames in the train split")
@@ -106,13 +109,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--tune-only", action="store_true", help="no training: choose the score blend, the second NMS "
                    "and the candidate depth on val for the refiner at --out again, and write them into it")
 
+    p = sub.add_parser("signs", help="train the second-stage sign reader on the detector's sign boxes")
+    p.add_argument("--data", default=DEFAULT_DATA, help="dataset root")
+    p.add_argument("--detector", default=DEFAULT_CKPT, help="the trained detector whose sign boxes it reads")
+    p.add_argument("--train-splits", default="train,train_downtown,train_suburb",
+                   help="comma-separated splits to train on (the classic towns' give false signs to reject)")
+    p.add_argument("--val-splits", default="val_classic,val_downtown,val_suburb",
+                   help="comma-separated splits for the epoch and score-blend choice")
+    p.add_argument("--out", default=RUN_SIGNS, help="checkpoint (best epoch by val sign mAP@0.5 of detector + reader)")
+    p.add_argument("--epochs", type=int, default=12, help="training epochs")
+    p.add_argument("--batch", type=int, default=128, help="crops per batch")
+    p.add_argument("--lr", type=float, default=2e-3, help="learning rate (AdamW, one-cycle)")
+    p.add_argument("--jitter", type=int, default=4, help="jittered copies of each labelled sign per frame")
+    p.add_argument("--seed", type=int, default=0, help="seed of initialisation and sampling")
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    add_device_argument(p)
+
     p = sub.add_parser("evaluate", help="AP per class, light state vs HSV baseline, on the held-out split")
     p.add_argument("--data", default=DEFAULT_DATA, help="dataset root")
     p.add_argument("--model", default=DEFAULT_CKPT, help=".pt checkpoint or .onnx model")
     p.add_argument("--refiner", default="auto", help="pedestrian refiner: auto (data/models/ped_refiner.pt or .onnx, "
                    "as the model), a path, or none (the one-stage detector alone)")
+    p.add_argument("--signs", default="auto", help="sign reader: auto (data/models/sign_reader.pt or .onnx, as the "
+                   "model, if there), a path, or none (the detector's own sign classes)")
     p.add_argument("--split", default="test", help="test: towns 200-209, never used for training or model choice; "
-                   "several, comma-separated (test,test_classic,test_downtown,test_suburb), add a table per class and split")
+                   "several, comma-separated (test,test_classic,test_downtown,test_suburb), add a table per class and "
+                   "split; a+b pools splits (test_downtown+test_suburb)")
     p.add_argument("--report", default="out/detector/eval.json", help="where the JSON report goes")
 
     p = sub.add_parser("export", help="export the checkpoint (and the refiner) to ONNX with a parity check")
@@ -121,7 +143,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--refiner", default="auto",
                    help=f"refiner checkpoint to export too (auto: {RUN_REFINER} if it exists; 'none': skip)")
     p.add_argument("--refiner-out", default=None, help="the refiner's ONNX file (default: beside its checkpoint)")
-    add_replace_shipped(p, "detector and refiner (.pt and .onnx)")
+    p.add_argument("--signs", default="auto",
+                   help=f"sign reader checkpoint to export too (auto: {RUN_SIGNS} if it exists; 'none': skip)")
+    p.add_argument("--signs-out", default=None, help="the sign reader's ONNX file (default: beside its checkpoint)")
+    add_replace_shipped(p, "detector, refiner and sign reader (.pt and .onnx)")
 
     p = sub.add_parser("sheet", help="a sheet of detections on held-out dusk and night frames")
     p.add_argument("--data", default=DEFAULT_DATA, help="dataset root")
@@ -129,12 +154,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--split", default="test", help="split the frames come from")
     p.add_argument("--out", default="docs/detections_sheet.png", help="the sheet (PNG)")
     p.add_argument("--refiner", default="auto", help="pedestrian refiner: auto, an .onnx path or none")
+    p.add_argument("--signs", default="auto", help="sign reader: auto, an .onnx path or none")
     p.add_argument("--frames", type=int, default=12, help="frames on the sheet")
 
 
 def run(args: argparse.Namespace) -> int:
-    actions = {"dataset": _dataset, "train": _train, "refiner": _refiner, "evaluate": _evaluate, "export": _export,
-               "sheet": _sheet}
+    actions = {"dataset": _dataset, "train": _train, "refiner": _refiner, "signs": _signs, "evaluate": _evaluate,
+               "export": _export, "sheet": _sheet}
     return actions[args.action](args)
 
 
@@ -205,6 +231,12 @@ def _refiner(args: argparse.Namespace) -> int:
     return train_refiner(args)
 
 
+def _signs(args: argparse.Namespace) -> int:
+    from towndrive.agent.training.sign_reader_training import train_sign_reader
+
+    return train_sign_reader(args)
+
+
 def _evaluate(args: argparse.Namespace) -> int:
     from towndrive.agent.training.detector_eval import evaluate_command
 
@@ -217,7 +249,7 @@ def _export(args: argparse.Namespace) -> int:
     out = args.out or str(Path(args.model).with_suffix(".onnx"))
     diff = export_detector(args.model, out)
     print(f"Wrote {out}; largest |ONNX Runtime - torch| difference on the check inputs: {diff:.2e}")
-    written = [Path(args.model), Path(out)]
+    written = {"detector.pt": Path(args.model), "detector.onnx": Path(out)}
     refiner = args.refiner
     if refiner == "auto":
         refiner = RUN_REFINER if Path(RUN_REFINER).is_file() else "none"
@@ -227,12 +259,21 @@ def _export(args: argparse.Namespace) -> int:
         refiner_out = args.refiner_out or str(Path(refiner).with_suffix(".onnx"))
         diff = export_refiner(refiner, refiner_out)
         print(f"Wrote {refiner_out}; largest |ONNX Runtime - torch| difference: {diff:.2e}")
-        written += [Path(refiner), Path(refiner_out)]
+        written |= {"ped_refiner.pt": Path(refiner), "ped_refiner.onnx": Path(refiner_out)}
+    signs = getattr(args, "signs", "none")
+    if signs == "auto":
+        signs = RUN_SIGNS if Path(RUN_SIGNS).is_file() else "none"
+    if signs != "none":
+        from towndrive.agent.deploy.onnx_export import export_sign_reader
+
+        signs_out = getattr(args, "signs_out", None) or str(Path(signs).with_suffix(".onnx"))
+        diff = export_sign_reader(signs, signs_out)
+        print(f"Wrote {signs_out}; largest |ONNX Runtime - torch| difference: {diff:.2e}")
+        written |= {"sign_reader.pt": Path(signs), "sign_reader.onnx": Path(signs_out)}
     if args.replace_shipped:
         from towndrive.agent.training.outputs import replace_shipped
 
-        names = ["detector.pt", "detector.onnx", "ped_refiner.pt", "ped_refiner.onnx"]
-        replace_shipped(written, names[:len(written)])
+        replace_shipped(list(written.values()), list(written))
     return 0
 
 
@@ -246,9 +287,10 @@ def _sheet(args: argparse.Namespace) -> int:
     from towndrive.agent.training.detector_eval import load_split, read_rgb
 
     samples = load_split(args.data, args.split)
-    from towndrive.agent.training.detector_eval import resolve_refiner
+    from towndrive.agent.training.detector_eval import resolve_refiner, resolve_signs
 
-    detector = OnnxDetector(args.model, score_threshold=0.3, refiner=resolve_refiner(args.refiner, args.model))
+    detector = OnnxDetector(args.model, score_threshold=0.3, refiner=resolve_refiner(args.refiner, args.model),
+                            signs=resolve_signs(getattr(args, "signs", "auto"), args.model))
     tiles = []
     for weather in ("dusk", "night"):
         cand = [(k, s) for k, s in enumerate(samples) if s.weather == weather]
