@@ -96,6 +96,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--data", default=DEFAULT_DATA, help="dataset root")
     p.add_argument("--detector", default=DEFAULT_CKPT, help="the trained detector whose candidates it refines")
     p.add_argument("--train-splits", default="train,train_peds,train_peds2", help="comma-separated splits to train on")
+    p.add_argument("--val-splits", default="val",
+                   help="comma-separated splits for the epoch choice and the tuning (e.g. val_classic,val_downtown)")
     p.add_argument("--out", default=RUN_REFINER, help="best checkpoint (by val pedestrian AP@0.5 within 40 m)")
     p.add_argument("--epochs", type=int, default=6, help="training epochs")
     p.add_argument("--batch", type=int, default=256, help="crops per batch")

@@ -150,7 +150,7 @@ def train_sign_reader(args: argparse.Namespace) -> int:
             loss.backward()
             opt.step()
             sched.step()
-            total += float(loss)
+            total += float(loss.detach())
         rep = sign_map(val_samples, val_images, val_dets, model, config)
         entry = {"epoch": epoch + 1, "loss": round(total / max(1, len(order) // args.batch), 4),
                  "val_sign_map50": round(rep["map50"], 4), "val_ap50": rep["ap50"],
