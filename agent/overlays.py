@@ -14,12 +14,13 @@ import numpy as np
 
 from towndrive.agent.perception.detector import Detection
 
-# RGB per class: vehicles blue-ish, people orange, lights in their own colour.
+# RGB per class: vehicles blue-ish, people orange, lights in their own colour, signs magenta to white (not red:
+# a red box would read as a red light).
 CLASS_COLORS: dict[str, tuple[int, int, int]] = {
     "car": (60, 170, 255), "truck": (150, 110, 255), "pedestrian": (255, 150, 30),
     "light_red": (255, 40, 40), "light_yellow": (255, 220, 0), "light_green": (40, 255, 90),
-    "stop_sign": (200, 0, 120), "yield_sign": (255, 255, 255), "speed_limit_30": (255, 255, 160),
-    "speed_limit_50": (255, 255, 160),
+    "stop_sign": (255, 60, 200), "yield_sign": (255, 170, 230), "speed_limit_30": (230, 230, 255),
+    "speed_limit_50": (200, 255, 255),
 }
 SHORT_NAMES = {"car": "car", "truck": "truck", "pedestrian": "ped", "light_red": "red", "light_yellow": "yellow",
                "light_green": "green", "stop_sign": "STOP", "yield_sign": "yield", "speed_limit_30": "30",

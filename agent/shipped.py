@@ -12,4 +12,5 @@ MODELS_DIR = ROOT / "data" / "models"
 PILOTNET = MODELS_DIR / "pilotnet.pt"  # and pilotnet.onnx beside it
 DETECTOR_ONNX = MODELS_DIR / "detector.onnx"
 REFINER_ONNX = MODELS_DIR / "ped_refiner.onnx"
+SIGN_READER_ONNX = MODELS_DIR / "sign_reader.onnx"  # reads which road sign a detector sign box holds
 RL_POLICY = MODELS_DIR / "rl_ppo.zip"

@@ -86,3 +86,101 @@ def test_in_view_fraction_measures_truncation_by_angle(renderer):
     assert 0.3 < in_view_fraction(pose, edge) < 0.7
     behind = box_corners(-10.0, 0.0, 0.0, 4.0, 2.0, 0.0, 1.5)
     assert in_view_fraction(pose, behind) == 0.0
+
+
+# --------------------------------------------------------------------------- road signs (styled towns)
+@pytest.fixture(scope="module")
+def sign_town():
+    from towndrive.sim.town import TownConfig
+    from towndrive.sim.world import cached_town
+
+    return cached_town(TownConfig.of_style("suburb"), 0)  # stop and yield signs and both limits
+
+
+@pytest.fixture(scope="module")
+def sign_renderer(sign_town):
+    r = SceneRenderer(sign_town, seed=sign_town.seed)
+    yield r
+    r.close()
+
+
+def camera_at(town, sign, distance_m: float, bearing_deg: float):
+    """A stand-in for a world whose ego camera looks at ``sign`` from ``distance_m`` away: from in front of its
+    face (bearing 0), from its side (90) or from behind (180). Nothing moves; lights red."""
+    from types import SimpleNamespace
+
+    from towndrive.sim.objects import LightState
+
+    face = sign.facing + math.pi  # the way the face looks
+    at = face + math.radians(bearing_deg)
+    cam_xy = np.asarray(sign.position, float) + distance_m * np.array([math.cos(at), math.sin(at)])
+    heading = at + math.pi  # looking at the sign
+    ego_xy = cam_xy - 1.0 * np.array([math.cos(heading), math.sin(heading)])  # the camera is 1 m ahead of the centre
+    return SimpleNamespace(ego=SimpleNamespace(position=ego_xy, heading=heading), object_snapshots=lambda: [],
+                           town=town, lights=SimpleNamespace(states=[LightState.RED] * len(town.approaches)))
+
+
+def test_signs_are_labelled_by_kind_and_value_and_not_from_behind(sign_town, sign_renderer):
+    from towndrive.agent.perception.classes import sign_class
+    from towndrive.sim.objects import SIGN_ID_BASE
+    from towndrive.sim.sign_meshes import SIGN_CLASS
+
+    seen: dict[str, int] = {}
+    for sign in sign_town.signs:
+        want = sign_class(sign.kind.name, sign.value_kmh)
+        if want in seen:
+            continue
+        oid = SIGN_ID_BASE + sign.index
+        frame, labels = render_and_label(sign_renderer, camera_at(sign_town, sign, 10.0, 0.0), CameraConfig(), "noon")
+        mine = [lab for lab in labels if lab.object_id == oid]
+        assert len(mine) == 1, (sign, mine)
+        if mine[0].ignore:  # a tree or another post in front of this one: try the next sign of the kind
+            assert mine[0].reason == "occluded"
+            continue
+        assert mine[0].name == want
+        ys, xs = np.nonzero(frame.segmentation[..., 1] == oid)
+        assert mine[0].box == (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1)  # the plate's pixels (the post is POLE)
+        assert min(mine[0].box[2] - mine[0].box[0], mine[0].box[3] - mine[0].box[1]) >= 10
+        assert frame.segmentation[ys[0], xs[0], 0] == SIGN_CLASS[int(sign.kind)]
+        seen[want] = sign.index
+    assert set(seen) == {"stop_sign", "yield_sign", "speed_limit_30", "speed_limit_50"}
+
+    for name, index in seen.items():
+        sign = sign_town.signs[index]
+        oid = SIGN_ID_BASE + index
+        # From behind the renderer still paints the plate's back with the sign's class and id...
+        frame, labels = render_and_label(sign_renderer, camera_at(sign_town, sign, 10.0, 180.0), CameraConfig(),
+                                         "noon")
+        back = frame.segmentation[..., 1] == oid
+        assert back.sum() >= 20, name
+        assert set(frame.segmentation[..., 0][back].tolist()) == {SIGN_CLASS[int(sign.kind)]}
+        # ...but a plate's back is no sign for the traffic that sees it: neither a label nor an ignore region.
+        assert not [lab for lab in labels if lab.object_id == oid], name
+        # Seen from the side (75 degrees off its face) it is a "don't care" region.
+        _, labels = render_and_label(sign_renderer, camera_at(sign_town, sign, 8.0, 75.0), CameraConfig(), "noon")
+        side = [lab for lab in labels if lab.object_id == oid]
+        assert all(lab.ignore for lab in side), name
+
+
+def test_far_speed_limits_are_ignored_since_their_value_is_unreadable(sign_town, sign_renderer):
+    from towndrive.sim.objects import SIGN_ID_BASE
+    from towndrive.sim.town import SignKind
+
+    reasons = set()
+    for sign in [s for s in sign_town.signs if s.kind == SignKind.SPEED_LIMIT][:6]:
+        _, labels = render_and_label(sign_renderer, camera_at(sign_town, sign, 20.0, 0.0), CameraConfig(), "noon")
+        mine = [lab for lab in labels if lab.object_id == SIGN_ID_BASE + sign.index]
+        assert all(lab.ignore for lab in mine)
+        reasons |= {lab.reason for lab in mine}
+    assert "value unreadable" in reasons
+
+
+def test_sign_classes_are_appended_and_named_in_one_place():
+    from towndrive.agent.perception.classes import LIMIT_OF_CLASS, SIGN_CLASSES, sign_class
+    from towndrive.sim.town import SignKind
+
+    assert CLASSES[:6] == ("car", "truck", "pedestrian", "light_red", "light_yellow", "light_green")
+    assert SIGN_CLASSES == CLASSES[6:] == ("stop_sign", "yield_sign", "speed_limit_30", "speed_limit_50")
+    assert sign_class(SignKind.STOP.name) == "stop_sign" and sign_class(SignKind.YIELD.name, 0) == "yield_sign"
+    assert [sign_class(SignKind.SPEED_LIMIT.name, v) for v in (30, 50, 70)] == ["speed_limit_30", "speed_limit_50", None]
+    assert LIMIT_OF_CLASS == {"speed_limit_30": 30, "speed_limit_50": 50}

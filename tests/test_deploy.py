@@ -55,8 +55,8 @@ def tiny_models(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     torch.manual_seed(0)
     pilot = folder / "pilotnet.pt"
     save_checkpoint(pilot, build(True), {"conditional": True, "crop": {"top": 0.4, "bottom": 1.0}})
-    # Six class channels, as the shipped detector (trained before the signs were appended): the export and the
-    # backends must take it as it is (and its seeded weights stay those the int8 checks were written for).
+    # The six classes of before the road signs: the same seeded weights as the tests were written for (a random
+    # network's int8 copy tracks its objectness well or badly by luck of the draw, and ten classes draw anew).
     det = Detector(DetectorConfig(width=8, num_classes=6)).eval()
     for m in det.modules():  # non-trivial BN statistics, so the folded constants are exercised
         if isinstance(m, torch.nn.BatchNorm2d):

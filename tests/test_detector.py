@@ -318,3 +318,93 @@ def test_training_splits_share_no_town_with_val_or_test():
     assert not set(specs["train_peds"].town_seeds) & set(specs["train_peds2"].town_seeds)
     assert specs["train_peds2"].town_seeds == tuple(range(60, 100))
     assert specs["train_peds"].pedestrian_count == specs["train_peds2"].pedestrian_count == 60
+
+
+def test_init_grows_a_six_class_head_copying_its_channels_exactly(tmp_path):
+    """``train.py detector train --init`` from a model of before the road signs: every tensor is taken, the heads'
+    box, objectness and six class rows exactly; the four sign rows keep their fresh prior; the old classes' outputs
+    are unchanged; the six-class checkpoint still loads (as a six-class model)."""
+    from towndrive.agent.perception.detector import load_detector
+    from towndrive.agent.training.detector_train_loop import init_from, save_checkpoint
+
+    torch.manual_seed(0)
+    old = Detector(DetectorConfig(strides=(4, 8, 16), num_classes=6))
+    for m in old.modules():  # trained-looking statistics, so that BN is not the identity
+        if isinstance(m, nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.2, 0.2)
+            m.running_var.uniform_(0.5, 1.5)
+    for head in old.heads():
+        nn.init.normal_(head.weight, std=0.05)
+        nn.init.normal_(head.bias, std=0.5)
+    save_checkpoint(tmp_path / "six.pt", old.eval(), {})
+    assert load_detector(tmp_path / "six.pt").config.num_classes == 6
+
+    new = Detector(DetectorConfig(strides=(4, 8, 16)))
+    fresh = {k: v.clone() for k, v in new.state_dict().items()}
+    msg = init_from(new, torch.load(tmp_path / "six.pt", weights_only=True)["state_dict"])
+    assert "grown heads" in msg and "head4.weight 11->15" in msg
+    src, got = old.state_dict(), new.state_dict()
+    for k, v in got.items():
+        if k.startswith("head"):
+            assert torch.equal(v[:11], src[k]), k
+            assert torch.equal(v[11:], fresh[k][11:]), k  # the new classes' rows as initialised
+        else:
+            assert torch.equal(v, src[k]), k
+    x = torch.rand(2, 3, 160, 320)
+    with torch.no_grad():
+        a, b = DecodedDetector(old.eval())(x), DecodedDetector(new.eval())(x)
+    assert b.shape[-1] == 5 + len(CLASSES) == 15
+    assert torch.allclose(a, b[..., :11], rtol=0, atol=1e-4)  # a wider 1x1 conv may sum in another order
+    assert float(b[..., 11:].mean()) < 0.1  # the signs' prior, sigmoid(-3) = 0.05, not yet trained
+
+
+def test_sign_classes_share_one_nms_group():
+    stop, limit30, limit50, car = (CLASSES.index(n) for n in ("stop_sign", "speed_limit_30", "speed_limit_50", "car"))
+    pred = cells([((100, 40, 110, 50), limit50, 0.8), ((100, 41, 110, 51), limit30, 0.6),  # one plate, two values
+                  ((100, 40, 110, 50), car, 0.5), ((200, 40, 210, 50), stop, 0.7)])
+    dets = postprocess(pred, score_threshold=0.3)
+    assert sorted(d.name for d in dets) == ["car", "speed_limit_50", "stop_sign"]
+
+
+def test_dataset_splits_of_town_styles_follow_the_town_seed_splits():
+    import argparse
+
+    from towndrive.agent.training.detector_training import add_arguments, dataset_specs
+    from towndrive.sim.splits import split_of
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args(["dataset", "--town-style", "suburb", "--splits", "train,val,test,test_downtown,train_peds",
+                              "--val-frames", "300"])
+    specs = dataset_specs(args)
+    assert [s.name for s in specs] == ["train_suburb", "val_suburb", "test_suburb", "test_downtown", "train_peds"]
+    for spec, split in zip(specs[:4], ("train", "validation", "test", "test"), strict=True):
+        assert {split_of(t) for t in spec.town_seeds} == {split} and spec.sign_boost
+    assert specs[0].town_style == "suburb" and specs[3].town_style == "downtown" and specs[4].town_style is None
+    assert specs[1].frames == 300 and len(specs[0].town_seeds) == 30 and specs[2].town_seeds[0] == 5000
+    with pytest.raises(ValueError, match="unknown split"):
+        dataset_specs(parser.parse_args(["dataset", "--splits", "train_uptown"]))
+    with pytest.raises(ValueError, match="unknown town style"):
+        dataset_specs(parser.parse_args(["dataset", "--town-style", "uptown"]))
+
+
+def test_frames_with_a_labelled_limit_or_stop_sign_are_never_mirrored():
+    """A mirrored 30 reads as "0Ɛ" and a mirrored 50 nearly as "02": such frames keep their orientation; others flip."""
+    from towndrive.agent.training.detector_train_loop import make_batch
+
+    img = np.zeros((1, 160, 320, 3), np.uint8)
+    img[0, 20:140, 60:72] = 255  # a (tall) plate in the left half, wherever the shifts (at most 32 x 16 px) take it
+
+    def sample(name: str, ignore: bool) -> Sample:
+        return Sample("-", "noon", np.array([[60.0, 20.0, 72.0, 140.0]], np.float32), np.array([CLASSES.index(name)]),
+                      np.array([ignore]), np.array([10.0], np.float32))
+
+    def flips(s: Sample) -> int:
+        count = 0
+        for seed in range(24):
+            x, _ = make_batch(img, [s], np.array([0]), np.random.default_rng(seed), (4, 8, 16), scale_prob=0.0)
+            count += int(int(x[0, :, 80].sum(0).argmax()) > 160)  # the plate (brighter than the grey border) is right
+        return count
+
+    assert flips(sample("speed_limit_30", False)) == flips(sample("stop_sign", False)) == 0
+    assert flips(sample("yield_sign", False)) > 5 and flips(sample("speed_limit_50", True)) > 5  # symmetric; ignored

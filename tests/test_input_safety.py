@@ -62,11 +62,12 @@ def test_1_a_crafted_checkpoint_runs_no_code(tmp_path: Path) -> None:
     from towndrive.agent.perception.detector import load_detector
     from towndrive.agent.perception.ped_refiner import load_refiner
     from towndrive.agent.perception.pilotnet import PilotNetModel, load_model
+    from towndrive.agent.perception.sign_reader import load_sign_reader
 
     marker = tmp_path / "code_ran"
     evil = tmp_path / "x.pt"
     torch.save({"state_dict": {}, "conditional": True, "payload": _Marker(marker)}, evil)
-    for load in (load_checkpoint, load_model, load_detector, load_refiner):
+    for load in (load_checkpoint, load_model, load_detector, load_refiner, load_sign_reader):
         with pytest.raises(ValueError, match=r"x\.pt is not a .*checkpoint"):
             load(evil)
     # --model x.onnx with a crafted x.pt beside it: only the file named is opened
@@ -74,7 +75,7 @@ def test_1_a_crafted_checkpoint_runs_no_code(tmp_path: Path) -> None:
     net = PilotNetModel(tmp_path / "x.onnx", backend="onnx")
     assert net.conditional and -1.5 < net.steer(np.zeros((160, 320, 3), np.uint8), 0) < 1.5
     assert not marker.exists()
-    for name in ("pilotnet", "detector", "ped_refiner"):  # the shipped checkpoints load safely
+    for name in ("pilotnet", "detector", "ped_refiner", "sign_reader"):  # the shipped checkpoints load safely
         assert "state_dict" in load_checkpoint(MODELS / f"{name}.pt", name)
 
 

@@ -29,7 +29,7 @@ def test_the_wheel_holds_one_package_with_its_models_and_profiles(wheel: Path) -
     names = zipfile.ZipFile(wheel).namelist()
     tops = {n.split("/")[0] for n in names}
     assert {t for t in tops if not t.endswith(".dist-info")} == {"towndrive"}, tops  # nothing generic at the top
-    for shipped in ("pilotnet.pt", "pilotnet.onnx", "detector.onnx", "ped_refiner.onnx", "rl_ppo.zip"):
+    for shipped in ("pilotnet.pt", "pilotnet.onnx", "detector.onnx", "ped_refiner.onnx", "sign_reader.onnx", "rl_ppo.zip"):
         assert f"towndrive/data/models/{shipped}" in names
     assert "towndrive/agent/deploy/profiles/cpu.yaml" in names
     assert "towndrive/sim/spec.py" in names and "towndrive/agent/perception/detector.py" in names

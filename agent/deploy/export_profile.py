@@ -121,9 +121,11 @@ def prepare(name: str, checkpoint: Path, input_size: tuple[int, int]) -> ModelEx
         from towndrive.agent.perception.classes import CLASSES
         from towndrive.agent.perception.detector import DecodedDetector, load_detector
 
-        module = DecodedDetector(load_detector(checkpoint)).eval()
+        net = load_detector(checkpoint)
+        module = DecodedDetector(net).eval()
+        classes = list(CLASSES[:net.config.num_classes])  # a model of before the road signs has the first six
         return ModelExport(name, module, [torch.rand(2, 3, h, w, generator=gen)], ["image"], ["detections"],
-                           {"classes": list(CLASSES), "input_size": [w, h]}, {"image": (1, 3, h, w)})
+                           {"classes": classes, "input_size": [w, h]}, {"image": (1, 3, h, w)})
     raise ValueError(f"Unknown model {name!r}; a profile has pilotnet and detector.")
 
 

@@ -80,3 +80,14 @@ def export_refiner(checkpoint: str | Path, out: str | Path, tolerance: float = 1
     entry.key, entry.value = "refiner_config", json.dumps(asdict(model.config))
     onnx.save(proto, str(out))
     return diff
+
+
+def export_sign_reader(checkpoint: str | Path, out: str | Path, tolerance: float = 1e-4) -> float:
+    """Write the sign reader to ONNX (config in the metadata); returns ONNX Runtime's largest difference from torch."""
+    from towndrive.agent.perception.sign_reader import CROP, load_sign_reader
+
+    model = load_sign_reader(checkpoint)
+    gen = torch.Generator().manual_seed(0)
+    example = torch.rand(3, 3, CROP, CROP, generator=gen) - 0.5
+    return export_onnx(model, [example], out, ["crops"], ["signs"], tolerance=tolerance,
+                       metadata={"sign_reader_config": json.dumps(asdict(model.config))})

@@ -10,7 +10,8 @@ The anchor-free grid heads predict per cell:
 objectness, one score per class and a box (centre offset in cells as in YOLOv5, ``2 sigmoid - 0.5``, and
 width and height as ``exp`` times the stride). Scores are ``objectness x class probability``. NMS is
 OpenCV's ``NMSBoxesBatched`` within class groups (car and truck share one, the three light states
-another), so one object is never reported both as a red and a green light.
+another, the road signs a third), so one object is never reported both as a red and a green light, or as a
+30 and a 50 limit.
 
 The ONNX model contains the decoding: its one output is ``N x cells x (4 + 1 + classes)`` with boxes in
 pixels (x0, y0, x1, y1), so ONNX Runtime's caller only has to threshold and run NMS.
@@ -31,6 +32,7 @@ from towndrive.agent.perception.detections import Detection, box_iou, nms_numpy 
 
 if TYPE_CHECKING:
     from towndrive.agent.perception.ped_refiner import Refine
+    from towndrive.agent.perception.sign_reader import Read
 
 STRIDES = (8, 16)  # the default (and every checkpoint without "strides" in its config); (4, 8, 16) adds a stride-4 head
 INPUT_HW = (160, 320)
@@ -223,56 +225,72 @@ def load_detector(path: str | Path) -> Detector:
     if not path.is_file():
         raise FileNotFoundError(f"Detector checkpoint {path} not found; train one with `python train.py detector train`.")
     ckpt = load_checkpoint(path, "detector")
-    trained = tuple(ckpt.get("classes", ()))
-    if not trained or trained != CLASSES[:len(trained)]:  # the signs were appended: an older model is a prefix
+    classes = tuple(ckpt.get("classes", ()))
+    # A model of fewer classes than today's is one of before the road signs (the list only ever grows at its end):
+    # it loads, with its own channels, and simply reports none of the later classes.
+    if not classes or classes != CLASSES[:len(classes)]:
         raise ValueError(f"{path} was trained for classes {ckpt.get('classes')}, not {CLASSES}; retrain it.")
-    config = {"num_classes": len(trained), **ckpt.get("config", {})}
+    config = {**ckpt.get("config", {}), "num_classes": len(classes)}
     model = Detector(DetectorConfig(**config))  # no "strides" in the config: (8, 16)
     model.load_state_dict(ckpt["state_dict"])
     return model.eval()
 
 
 def detect_only_classes(raw: np.ndarray, rgb: np.ndarray, score_threshold: float, refine: Refine | None,
-                        names: tuple[str, ...]) -> list[Detection]:
+                        names: tuple[str, ...], read: Read | None = None) -> list[Detection]:
     """The detections of the classes ``names`` alone, as ``detect_and_refine`` gives them: without pedestrians
-    the refiner (which only re-places and re-scores pedestrian boxes) has nothing to do and is not run. The
-    mirror look reads only vehicles."""
-    if "pedestrian" in names:
-        return [d for d in detect_and_refine(raw, rgb, score_threshold, refine) if d.name in names]
+    the refiner (which only re-places and re-scores pedestrian boxes) has nothing to do and is not run, and without
+    signs neither is the sign reader. The mirror look reads only vehicles."""
+    from towndrive.agent.perception.classes import SIGN_CLASSES
+
+    if "pedestrian" in names or (read is not None and any(n in SIGN_CLASSES for n in names)):
+        wanted = refine if "pedestrian" in names else None
+        return [d for d in detect_and_refine(raw, rgb, score_threshold, wanted, read) if d.name in names]
     return postprocess(raw, score_threshold, classes=tuple(CLASSES.index(n) for n in names))
 
 
 def detect_and_refine(raw: np.ndarray, rgb: np.ndarray, score_threshold: float,
-                      refine: Refine | None) -> list[Detection]:
-    """Post-processing, then the pedestrian refiner if there is one (it sees candidates down to its own
-    threshold, since its re-scoring can lift a pedestrian the detector alone scored too low)."""
-    if refine is None:
+                      refine: Refine | None, read: Read | None = None) -> list[Detection]:
+    """Post-processing, then the sign reader and the pedestrian refiner if there are any (each sees candidates
+    down to its own threshold, since its re-scoring can lift a sign or a pedestrian the detector alone scored too
+    low)."""
+    if refine is None and read is None:
         return postprocess(raw, score_threshold)
-    low = min(score_threshold, refine.config.lowest_candidate(score_threshold))
-    return refine(rgb, postprocess(raw, low), score_threshold)
+    low = score_threshold
+    for stage in (refine, read):
+        if stage is not None:
+            low = min(low, stage.config.lowest_candidate(score_threshold))
+    dets = postprocess(raw, low)
+    if read is not None:
+        dets = read(rgb, dets, score_threshold)  # signs read and thresholded; the rest passed on as they were
+    if refine is not None:
+        return refine(rgb, dets, score_threshold)
+    return [d for d in dets if d.score >= score_threshold]
 
 
 class TorchDetector:
     """Frames in, detections out, with torch; ``refiner``: a pedestrian refiner checkpoint (agent/perception/ped_refiner.py)."""
 
     def __init__(self, path: str | Path = "data/models/detector.pt", score_threshold: float = 0.3,
-                 refiner: str | Path | None = None) -> None:
+                 refiner: str | Path | None = None, signs: str | Path | None = None) -> None:
         from towndrive.agent.perception.ped_refiner import torch_refine
+        from towndrive.agent.perception.sign_reader import torch_read
 
         self.model = DecodedDetector(load_detector(path)).eval()
         self.score_threshold = score_threshold
         self.refine = torch_refine(refiner) if refiner else None
+        self.read = torch_read(signs) if signs else None
 
     def raw(self, rgb: np.ndarray) -> np.ndarray:
         with torch.no_grad():
             return self.model(torch.from_numpy(to_input(rgb)))[0].numpy()
 
     def __call__(self, rgb: np.ndarray) -> list[Detection]:
-        return detect_and_refine(self.raw(rgb), rgb, self.score_threshold, self.refine)
+        return detect_and_refine(self.raw(rgb), rgb, self.score_threshold, self.refine, self.read)
 
     def detect_only(self, rgb: np.ndarray, names: tuple[str, ...]) -> list[Detection]:
         """``detect_only_classes`` with this detector."""
-        return detect_only_classes(self.raw(rgb), rgb, self.score_threshold, self.refine, names)
+        return detect_only_classes(self.raw(rgb), rgb, self.score_threshold, self.refine, names, self.read)
 
 
 class OnnxDetector:
@@ -283,21 +301,23 @@ class OnnxDetector:
     thread_safe = True
 
     def __init__(self, path: str | Path = "data/models/detector.onnx", score_threshold: float = 0.3,
-                 threads: int = 0, refiner: str | Path | None = None) -> None:
+                 threads: int = 0, refiner: str | Path | None = None, signs: str | Path | None = None) -> None:
         from towndrive.agent.perception.onnx_runtime import onnx_session
         from towndrive.agent.perception.ped_refiner import onnx_refine
+        from towndrive.agent.perception.sign_reader import onnx_read
 
         self.session = onnx_session(path, threads, role="detector")
         self.input_name = self.session.get_inputs()[0].name
         self.score_threshold = score_threshold
         self.refine = onnx_refine(refiner, threads) if refiner else None
+        self.read = onnx_read(signs, threads) if signs else None
 
     def raw(self, rgb: np.ndarray) -> np.ndarray:
         return self.session.run(None, {self.input_name: to_input(rgb)})[0][0]
 
     def __call__(self, rgb: np.ndarray) -> list[Detection]:
-        return detect_and_refine(self.raw(rgb), rgb, self.score_threshold, self.refine)
+        return detect_and_refine(self.raw(rgb), rgb, self.score_threshold, self.refine, self.read)
 
     def detect_only(self, rgb: np.ndarray, names: tuple[str, ...]) -> list[Detection]:
         """``detect_only_classes`` with this detector."""
-        return detect_only_classes(self.raw(rgb), rgb, self.score_threshold, self.refine, names)
+        return detect_only_classes(self.raw(rgb), rgb, self.score_threshold, self.refine, names, self.read)

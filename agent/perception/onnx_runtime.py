@@ -1,6 +1,6 @@
 """Open an ONNX model for inference on ONNX Runtime, checked for the role it plays in the car.
 
-Why here: every network the car runs (PilotNet, the detector, the pedestrian refiner) is opened through one
+Why here: every network the car runs (PilotNet, the detector, the pedestrian refiner, the sign reader) is opened through one
 function, so a wrong, damaged or mismatched file is one sentence naming the file when it is opened, never an
 ONNX Runtime traceback at the first frame. Writing ONNX files is ``agent.deploy.onnx_export``.
 """
@@ -17,6 +17,7 @@ ROLES: dict[str, tuple[dict[str, tuple[str, int, tuple[int, ...] | None]], tuple
     "PilotNet": ({"image": ("tensor(float)", 4, (3, 66, 200))}, ("steer",), frozenset({"command"})),
     "detector": ({"image": ("tensor(float)", 4, None)}, ("detections",), frozenset()),
     "pedestrian refiner": ({"crops": ("tensor(float)", 4, None)}, ("refined",), frozenset()),
+    "sign reader": ({"crops": ("tensor(float)", 4, (3, 32, 32))}, ("signs",), frozenset()),
 }
 
 

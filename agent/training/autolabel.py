@@ -16,6 +16,16 @@ counted as false positives in evaluation (KITTI's "don't care"). Traffic lights 
 side are ignored; lights seen from behind show no lamps and stay background, so that the detector learns not
 to report a state it cannot see.
 
+Road signs (styled towns) are labelled the same way from their plate's pixels (segmentation classes
+``STOP_SIGN`` / ``YIELD_SIGN`` / ``SPEED_LIMIT_SIGN`` with id ``SIGN_ID_BASE + k``; the post is ``POLE``); the class
+comes from the town's sign ``k``, its kind and posted value (``classes.sign_class``). The renderer labels the
+plate's grey back with the sign's class and id too, so facing is decided by geometry, as for lights: a face
+within ``sign_facing_deg`` of the camera is a label, a face turned further is a side view (ignored), and beyond
+90 degrees only the back shows: background, since a plate's back says nothing to the traffic that sees it.
+Signs need ``min_sign_px`` pixels of width and height, and a limit's value needs ``min_limit_px`` (its digits
+are 0.42 of the plate's height): smaller limits are ignore regions, so the detector is neither taught nor
+marked on guessing a value it cannot read.
+
 The box of a label is the bounding box of the object's *visible* pixels, clipped to the image.
 """
 
@@ -27,14 +37,22 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from towndrive.agent.perception.classes import CLASSES, LIGHT_CLASSES, STATE_OF_CLASS  # noqa: F401 (re-exported)
-from towndrive.sim.objects import LIGHT_ID_BASE, LightState, ObjectSnapshot, SemanticClass
+from towndrive.agent.perception.classes import (  # noqa: F401 (re-exported)
+    CLASSES,
+    LIGHT_CLASSES,
+    LIMIT_OF_CLASS,
+    SIGN_CLASSES,
+    STATE_OF_CLASS,
+    sign_class,
+)
+from towndrive.sim.objects import LIGHT_ID_BASE, SIGN_ID_BASE, LightState, ObjectSnapshot, SemanticClass
 from towndrive.sim.render import CameraConfig, SceneRenderer
 from towndrive.sim.scene_meshes import HOUSING_HALF, SURFACE_RAISED, Z_SLAB, to_world
-from towndrive.sim.town import Town
+from towndrive.sim.town import Sign, Town
 
 _KIND_CLASS = {SemanticClass.CAR: 0, SemanticClass.TRUCK: 1, SemanticClass.PEDESTRIAN: 2}
 _STATE_CLASS = {LightState.RED: 3, LightState.YELLOW: 4, LightState.GREEN: 5}
+LIMIT_CLASSES = frozenset(LIMIT_OF_CLASS)
 
 
 @dataclass(frozen=True)
@@ -49,6 +67,11 @@ class LabelRules:
     occluder_margin_m: float = 0.3  # something nearer than the nearest face by this much occludes
     light_facing_deg: float = 60.0  # lamps within this angle of the camera: labelled with state
     light_side_deg: float = 110.0  # between facing and this: ignored; beyond it (seen from behind): background
+    sign_facing_deg: float = 60.0  # a sign's face within this angle of the camera: labelled
+    sign_side_deg: float = 90.0  # between facing and this: ignored; beyond it only the plate's back shows: background
+    min_sign_px: int = 5  # a plate's width and height (0.75 m: 5 px at about 24 m)
+    min_limit_px: int = 10  # a speed limit's, for its value (its digits 4 px tall; about 18 m away)
+    min_sign_pixels: int = 15
 
 
 @dataclass(frozen=True)
@@ -193,10 +216,29 @@ def _pedestrian_base(renderer: SceneRenderer, x: float, y: float) -> float:
     return Z_SLAB if bool(SURFACE_RAISED[surface][0]) else 0.0
 
 
+SIGN_THICKNESS_M = 0.12  # the plate's box for occlusion and truncation: a little deeper than the plate and post
+
+
+def sign_class_index(sign: Sign) -> int | None:
+    """The detector class of a town's sign (None: no class for its kind and value)."""
+    name = sign_class(sign.kind.name, sign.value_kmh)
+    return None if name is None else CLASSES.index(name)
+
+
+def sign_view_angle(sign: Sign, pose: CameraPose) -> float:
+    """Degrees between the way the sign's face looks (at the traffic that reads it) and the way to the camera:
+    0 head-on, 90 edge-on, 180 from straight behind."""
+    cx, cy = float(sign.position[0]), float(sign.position[1])
+    face = sign.facing + math.pi
+    to_cam = math.atan2(-pose.eye[1] - cy, pose.eye[0] - cx)  # map frame: world y flipped back
+    return abs(math.degrees(math.remainder(to_cam - face, 2 * math.pi)))
+
+
 def label_frame(segmentation: np.ndarray, depth_m: np.ndarray, pose: CameraPose, renderer: SceneRenderer,
                 snapshots: list[ObjectSnapshot], town: Town, light_states: list[LightState],
                 rules: LabelRules | None = None) -> list[ObjectLabel]:
-    """Labels (and ignore regions) for every car, truck, pedestrian and traffic light with visible pixels."""
+    """Labels (and ignore regions) for every car, truck, pedestrian, traffic light and road sign with visible
+    pixels."""
     rules = rules or LabelRules()
     h, w = segmentation.shape[:2]
     ids = segmentation[..., 1]
@@ -205,6 +247,7 @@ def label_frame(segmentation: np.ndarray, depth_m: np.ndarray, pose: CameraPose,
     out: list[ObjectLabel] = []
     for oid, (x0, y0, x1, y1, count) in boxes.items():
         reason = ""
+        min_h, min_w, min_n = rules.min_height_px, rules.min_width_px, rules.min_pixels
         if oid >= LIGHT_ID_BASE:
             ap = town.approaches[oid - LIGHT_ID_BASE]
             hx, hy, hz = HOUSING_HALF
@@ -223,6 +266,23 @@ def label_frame(segmentation: np.ndarray, depth_m: np.ndarray, pose: CameraPose,
             elif not np.any((ids[y0:y1, x0:x1] == oid)
                             & (segmentation[y0:y1, x0:x1, 0] == int(SemanticClass.TRAFFIC_LAMP))):
                 reason = "lamps hidden"
+        elif SIGN_ID_BASE <= oid < SIGN_ID_BASE + len(town.signs):
+            sign = town.signs[oid - SIGN_ID_BASE]
+            angle = sign_view_angle(sign, pose)
+            if angle > rules.sign_side_deg:
+                continue  # only the plate's back: background
+            known = sign_class_index(sign)
+            cls = known if known is not None else CLASSES.index(SIGN_CLASSES[0])
+            half = sign.plate_size_m / 2
+            cx, cy = float(sign.position[0]), float(sign.position[1])
+            corners = box_corners(cx, cy, sign.facing, SIGN_THICKNESS_M, sign.plate_size_m,
+                                  sign.plate_height_m - half, sign.plate_height_m + half)
+            min_h = min_w = rules.min_sign_px
+            min_n = rules.min_sign_pixels
+            if known is None:
+                reason = "unknown sign"
+            elif angle > rules.sign_facing_deg:
+                reason = "side view"
         elif oid in snaps:
             s = snaps[oid]
             cls = _KIND_CLASS.get(SemanticClass(s.kind))
@@ -248,8 +308,10 @@ def label_frame(segmentation: np.ndarray, depth_m: np.ndarray, pose: CameraPose,
                 reason = "occluded"
             elif in_image < rules.min_in_image_fraction:
                 reason = "truncated"
-            elif bh < rules.min_height_px or bw < rules.min_width_px or count < rules.min_pixels:
+            elif bh < min_h or bw < min_w or count < min_n:
                 reason = "small"
+            elif CLASSES[cls] in LIMIT_CLASSES and min(bw, bh) < rules.min_limit_px:
+                reason = "value unreadable"
         out.append(ObjectLabel(cls, (x0, y0, x1, y1), oid, pose.ground_distance(cx, cy), visible, in_image,
                                bool(reason), reason))
     return out
@@ -281,6 +343,8 @@ class SplitSpec:
     frames: int
     frames_per_episode: int = 40
     pedestrian_count: int | None = None  # the world's pedestrians before the traffic density (None: its default)
+    town_style: str | None = None  # sim.town_style's name (None: the env's default town, classic)
+    sign_boost: bool = False  # sample more often while a sign faces the ego close ahead (see generate_split)
 
 
 def default_splits(train_frames: int = 6000, val_frames: int = 1200, test_frames: int = 1200,
@@ -289,12 +353,56 @@ def default_splits(train_frames: int = 6000, val_frames: int = 1200, test_frames
     200-209. Neither held-out set shares a town with training; all four weathers are in each.
     ``train_peds`` and ``train_peds2`` are extra training data: towns 30-59 and 60-99 with ``peds_count``
     pedestrians per town (the world's default is 24), for the detector's weakest class; only generated when
-    asked for by name."""
+    asked for by name. These are classic towns and predate ``sim/splits.py``; ``styled_splits`` follows it."""
     return [SplitSpec("train", tuple(range(30)), WEATHERS, train_frames),
             SplitSpec("val", tuple(range(100, 110)), WEATHERS, val_frames),
             SplitSpec("test", tuple(range(200, 210)), WEATHERS, test_frames),
             SplitSpec("train_peds", tuple(range(30, 60)), WEATHERS, peds_frames, pedestrian_count=peds_count),
             SplitSpec("train_peds2", tuple(range(60, 100)), WEATHERS, peds2_frames, pedestrian_count=peds_count)]
+
+
+# The dataset's split names -> sim/splits.py's town-seed ranges.
+TOWN_SPLIT_OF = {"train": "train", "val": "validation", "test": "test"}
+STYLED_TOWNS = {"train": 30, "val": 10, "test": 10}  # towns per split (the first of its range), as the classic ones
+
+
+def styled_splits(style: str, train_frames: int, val_frames: int, test_frames: int,
+                  towns: dict[str, int] | None = None) -> list[SplitSpec]:
+    """``train_STYLE``, ``val_STYLE`` and ``test_STYLE``: towns of a town style from the town-seed splits of
+    ``sim/splits.py`` (train 0-3999, validation 4000-4999, test 5000-5999; the first 30, 10 and 10 seeds unless
+    ``towns`` says otherwise), all four weathers, and frames sampled more often near signs (``sign_boost``)."""
+    from towndrive.sim.splits import split_towns
+    from towndrive.sim.town_style import style_named
+
+    style_named(style)  # one sentence if unknown
+    towns = {**STYLED_TOWNS, **(towns or {})}
+    frames = {"train": train_frames, "val": val_frames, "test": test_frames}
+    return [SplitSpec(f"{part}_{style}", tuple(split_towns(TOWN_SPLIT_OF[part], towns[part])), WEATHERS, frames[part],
+                      town_style=style, sign_boost=True) for part in ("train", "val", "test")]
+
+
+SIGN_BOOST_M = (4.0, 30.0)  # a sign this far ahead of the camera...
+SIGN_BOOST_DEG = 40.0  # ...within this angle of the heading, whose face looks at the ego within sign_facing_deg
+
+
+def sign_ahead(world, rules: LabelRules | None = None) -> bool:
+    """Whether a sign faces the ego within ``SIGN_BOOST_M`` ahead: where the sampling of a styled split speeds up."""
+    signs = world.town.signs
+    if not signs or world.ego.speed < 1.0:  # standing still, more frames would be copies
+        return False
+    rules = rules or LabelRules()
+    ex, ey, heading = float(world.ego.position[0]), float(world.ego.position[1]), float(world.ego.heading)
+    for sign in signs:
+        dx, dy = float(sign.position[0]) - ex, float(sign.position[1]) - ey
+        dist = math.hypot(dx, dy)
+        if not SIGN_BOOST_M[0] <= dist <= SIGN_BOOST_M[1]:
+            continue
+        if abs(math.degrees(math.remainder(math.atan2(dy, dx) - heading, 2 * math.pi))) > SIGN_BOOST_DEG:
+            continue
+        face = sign.facing + math.pi  # the face looks back along the traffic that reads it
+        if abs(math.degrees(math.remainder(math.atan2(-dy, -dx) - face, 2 * math.pi))) <= rules.sign_facing_deg:
+            return True
+    return False
 
 
 def generate_split(root, spec: SplitSpec, seed: int, progress: bool = True) -> dict:
@@ -303,7 +411,9 @@ def generate_split(root, spec: SplitSpec, seed: int, progress: bool = True) -> d
     The env steps without pictures (fast); only sampled frames are rendered, by this function's own
     renderer, with segmentation and depth for the labels. Frames are sampled every 0.4-1.25 s of driving;
     while the car stands still most samples are skipped, so a long red light does not fill the set with
-    copies. Returns counts per class (labels and ignore regions).
+    copies. With ``spec.sign_boost``, while a sign faces the ego 4-30 m ahead the next sample comes after
+    0.2-0.5 s instead, unless it stands still (signs are few, and a car passes one in a couple of seconds).
+    Returns counts per class (labels and ignore regions).
     """
     import json
     from pathlib import Path
@@ -325,7 +435,7 @@ def generate_split(root, spec: SplitSpec, seed: int, progress: bool = True) -> d
     camera = env.config.camera
     renderer: SceneRenderer | None = None
     renderer_town: int | None = None
-    counts = {"frames": 0, "labels": dict.fromkeys(CLASSES, 0), "ignored": dict.fromkeys(CLASSES, 0)}
+    counts: dict = {"frames": 0, "labels": dict.fromkeys(CLASSES, 0), "ignored": dict.fromkeys(CLASSES, 0)}
     index = 0
     episode = 0
     bar = tqdm(total=spec.frames, desc=f"dataset {spec.name}", unit="frame", disable=not progress)
@@ -334,8 +444,10 @@ def generate_split(root, spec: SplitSpec, seed: int, progress: bool = True) -> d
             town_seed = spec.town_seeds[episode % len(spec.town_seeds)]
             weather = spec.weathers[(episode // len(spec.town_seeds) + episode) % len(spec.weathers)]
             density = float(rng.uniform(1.0, 2.2))
-            obs, _ = env.reset(seed=int(rng.integers(2**31 - 1)),
-                               options={"town_seed": town_seed, "weather": weather, "traffic_density": density})
+            options = {"town_seed": town_seed, "weather": weather, "traffic_density": density}
+            if spec.town_style is not None:
+                options["town_style"] = spec.town_style
+            obs, _ = env.reset(seed=int(rng.integers(2**31 - 1)), options=options)
             world = env.world
             assert world is not None
             if renderer is None or renderer_town != id(world.town):
@@ -351,9 +463,13 @@ def generate_split(root, spec: SplitSpec, seed: int, progress: bool = True) -> d
                 step += 1
                 if terminated or truncated:
                     break
+                if spec.sign_boost and step % 4 == 0 and next_sample - step > 10 and sign_ahead(world):
+                    next_sample = step + int(rng.integers(4, 11))
                 if step < next_sample:
                     continue
                 next_sample = step + int(rng.integers(8, 26))
+                if spec.sign_boost and sign_ahead(world):
+                    next_sample = step + int(rng.integers(4, 11))
                 stopped = world.ego.speed < 0.3
                 if stopped and stopped_before and rng.random() < 0.75:
                     continue
@@ -365,7 +481,8 @@ def generate_split(root, spec: SplitSpec, seed: int, progress: bool = True) -> d
                 (lab_dir / f"{name}.txt").write_text("".join(lab.yolo_line(camera.width, camera.height) + "\n"
                                                              for lab in kept))
                 meta.write(json.dumps({"image": f"images/{spec.name}/{name}.png", "town_seed": town_seed,
-                                       "weather": weather, "time_s": round(world.time_s, 2),
+                                       "town_style": world.town.config.style, "weather": weather,
+                                       "time_s": round(world.time_s, 2),
                                        "objects": [lab.as_dict() for lab in labels]}) + "\n")
                 for lab in labels:
                     counts["ignored" if lab.ignore else "labels"][lab.name] += 1

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from towndrive.agent.perception.classes import CLASSES, LIGHT_CLASSES, STATE_OF_CLASS
+from towndrive.agent.perception.classes import CLASSES, LIGHT_CLASSES, SIGN_CLASSES, STATE_OF_CLASS
 from towndrive.agent.perception.detector import NMS_GROUP, Detection, box_iou
 from towndrive.agent.shipped import MODELS_DIR
 
@@ -135,14 +135,22 @@ def class_ap(samples: list[Sample], detections: list[list[Detection]], cls: int,
     return {"ap50": aps[0], "ap50_95": float(np.mean(aps)), "gt": n_gt}
 
 
-def detection_report(samples: list[Sample], detections: list[list[Detection]]) -> dict:
-    """AP@0.5 and AP@0.5:0.95 per class (all distances), cars/pedestrians within 40 m, and the means."""
-    per = {CLASSES[c]: class_ap(samples, detections, c) for c in range(len(CLASSES))}
+OLD_CLASSES = CLASSES[:6]  # the classes of before the road signs (issue 31): compared across models of both kinds
+
+
+def detection_report(samples: list[Sample], detections: list[list[Detection]], num_classes: int = len(CLASSES)) -> dict:
+    """AP@0.5 and AP@0.5:0.95 per class (all distances), cars/pedestrians within 40 m, and the means: over every
+    class with ground truth (``map50``), over the six classes of before the signs (``map50_old``) and over the
+    signs (``map50_signs``). A model of fewer classes (``num_classes``) is scored on its own classes only."""
+    per = {CLASSES[c]: class_ap(samples, detections, c) for c in range(num_classes)}
     within = {CLASSES[c]: class_ap(samples, detections, c, max_distance_m=40.0) for c in (0, 2)}
-    valid = [v for v in per.values() if v["gt"] > 0]
-    return {"per_class": per, "within_40m": within,
-            "map50": float(np.mean([v["ap50"] for v in valid])) if valid else float("nan"),
-            "map50_95": float(np.mean([v["ap50_95"] for v in valid])) if valid else float("nan")}
+
+    def mean(names: tuple[str, ...] | None, key: str) -> float:
+        vals = [v[key] for k, v in per.items() if v["gt"] > 0 and (names is None or k in names)]
+        return float(np.mean(vals)) if vals else float("nan")
+
+    return {"per_class": per, "within_40m": within, "map50": mean(None, "ap50"), "map50_95": mean(None, "ap50_95"),
+            "map50_old": mean(OLD_CLASSES, "ap50"), "map50_signs": mean(SIGN_CLASSES, "ap50")}
 
 
 def predict(samples: list[Sample], detect: Callable[[np.ndarray], list[Detection]], progress: bool = True,
@@ -240,36 +248,102 @@ def resolve_refiner(choice: str, model: str) -> str | None:
     return choice
 
 
+def resolve_signs(choice: str, model: str) -> str | None:
+    """``auto``: the shipped sign reader in the model's format, if it is there and the model has sign classes;
+    ``none``: no reader (the detector's own sign classes)."""
+    if choice == "none":
+        return None
+    if choice == "auto":
+        path = MODELS_DIR / ("sign_reader.onnx" if model.endswith(".onnx") else "sign_reader.pt")
+        return str(path) if path.is_file() else None
+    return choice
+
+
+def model_classes(detector) -> int:
+    """How many classes a ``TorchDetector`` or ``OnnxDetector`` reports (its output has 4 + 1 + that many columns)."""
+    if hasattr(detector, "session"):
+        width = detector.session.get_outputs()[0].shape[-1]
+        if isinstance(width, int):
+            return width - 5
+        return int(detector.raw(np.zeros((160, 320, 3), np.uint8)).shape[-1]) - 5
+    return int(detector.model.net.config.num_classes)
+
+
 def evaluate_command(args: argparse.Namespace) -> int:
-    """``train.py detector evaluate``: print and save the full report for a .pt or .onnx model."""
+    """``train.py detector evaluate``: print and save the full report for a .pt or .onnx model, per split; with
+    several splits (``--split test,test_downtown``) also a table of AP@0.5 per class and split."""
     from towndrive.agent.perception.detector import OnnxDetector, TorchDetector
 
-    samples = load_split(args.data, args.split)
     model = str(args.model)
     # Low score threshold for AP (the whole precision-recall curve); the light-state report uses the
     # operating threshold the driving stack uses.
     make = OnnxDetector if model.endswith(".onnx") else TorchDetector
     refiner = resolve_refiner(getattr(args, "refiner", "none"), model)
+    signs = resolve_signs(getattr(args, "signs", "none"), model)
     det_ap = make(model, score_threshold=0.01, refiner=refiner)
-    images = [read_rgb(s.image) for s in tqdm(samples, desc="load", unit="frame", leave=False)]
-    dets = predict(samples, det_ap, images=images)
-    report = {"model": model, "refiner": refiner, "split": args.split, "frames": len(samples),
-              "detection": detection_report(samples, dets)}
-    op = 0.3
-    dets_op = [[d for d in ds if d.score >= op] for ds in dets]
-    report["light_state"] = light_state_report(samples, dets_op, images)
-    report["light_state"]["score_threshold"] = op
-    print_report(report)
+    nc = model_classes(det_ap)
+    if signs and nc > len(CLASSES) - len(SIGN_CLASSES):
+        det_ap = make(model, score_threshold=0.01, refiner=refiner, signs=signs)
+    else:
+        signs = None  # a model of before the signs has no sign boxes to read
+    splits = [x.strip() for x in str(args.split).split(",") if x.strip()]
+    reports = {}
+    for split in splits:
+        samples = [x for part in split.split("+") for x in load_split(args.data, part)]  # a+b: pooled
+        images = [read_rgb(s.image) for s in tqdm(samples, desc="load", unit="frame", leave=False)]
+        dets = predict(samples, det_ap, images=images)
+        report = {"model": model, "refiner": refiner, "signs": signs, "split": split, "frames": len(samples),
+                  "classes": list(CLASSES[:nc]), "detection": detection_report(samples, dets, nc)}
+        op = 0.3
+        dets_op = [[d for d in ds if d.score >= op] for ds in dets]
+        report["light_state"] = light_state_report(samples, dets_op, images)
+        report["light_state"]["score_threshold"] = op
+        print_report(report)
+        reports[split] = report
+    if len(splits) > 1:
+        print_table(reports)
     Path(args.report).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.report).write_text(json.dumps(report, indent=1))
+    Path(args.report).write_text(json.dumps(reports[splits[0]] if len(splits) == 1 else reports, indent=1))
     print(f"Report written to {args.report}")
     return 0
+
+
+def ap_table(reports: dict[str, dict]) -> list[str]:
+    """Lines of a Markdown table: AP@0.5 (and the labelled count) per class and split, then the means."""
+    splits = list(reports)
+    lines = ["| class | " + " | ".join(splits) + " |", "|---|" + "---:|" * len(splits)]
+    for name in CLASSES:
+        cells = []
+        for sp in splits:
+            v = reports[sp]["detection"]["per_class"].get(name)
+            if v is None:
+                cells.append("-")
+            elif v["gt"] == 0:
+                cells.append("(0)")
+            else:
+                cells.append(f"{v['ap50']:.3f} ({v['gt']})")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    for key, label in (("map50_old", "mAP, six old classes"), ("map50_signs", "mAP, signs"), ("map50", "mAP, all")):
+        cells = [f"{reports[sp]['detection'][key]:.3f}" if reports[sp]["detection"][key] == reports[sp]["detection"][key]
+                 else "-" for sp in splits]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    for name in ("car", "pedestrian"):
+        cells = [f"{reports[sp]['detection']['within_40m'][name]['ap50']:.3f}" for sp in splits]
+        lines.append(f"| {name} within 40 m | " + " | ".join(cells) + " |")
+    return lines
+
+
+def print_table(reports: dict[str, dict]) -> None:
+    first = next(iter(reports.values()))
+    print(f"\nAP@0.5 (labelled objects) of {first['model']}, per split:")
+    print("\n".join(ap_table(reports)))
 
 
 def print_report(report: dict) -> None:
     det = report["detection"]
     refiner = f" + {report['refiner']}" if report.get("refiner") else " (no pedestrian refiner)"
-    print(f"{report['model']}{refiner} on {report['split']} ({report['frames']} frames)")
+    signs = f" + {report['signs']}" if report.get("signs") else ""
+    print(f"{report['model']}{refiner}{signs} on {report['split']} ({report['frames']} frames)")
     print(f"{'class':<14}{'GT':>6}{'AP@0.5':>9}{'AP@.5:.95':>11}")
     for name, v in det["per_class"].items():
         print(f"{name:<14}{v['gt']:>6}{v['ap50']:>9.3f}{v['ap50_95']:>11.3f}")

@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 from towndrive.agent.perception.checkpoints import load_checkpoint
 from towndrive.agent.perception.checkpoints import save_checkpoint as save
-from towndrive.agent.perception.classes import CLASSES
+from towndrive.agent.perception.classes import CLASSES, SIGN_CLASSES
 from towndrive.agent.perception.detector import INPUT_HW, STRIDES, DecodedDetector, Detector, DetectorConfig, postprocess
 from towndrive.agent.training.detector_eval import Sample, detection_report, load_split, read_rgb
 from towndrive.agent.training.devices import (
@@ -63,9 +63,15 @@ def size_range(stride: int, strides: tuple[int, ...]) -> tuple[float, float]:
 
 
 # --------------------------------------------------------------------------- augmentation
+# Signs whose legend a mirror image would garble (a 30 reads as "0Ɛ", a 50 nearly as "02"): frames with one labelled
+# are never flipped, so the detector learns each value the way the camera sees it.
+LEGEND_CLASSES = np.array([CLASSES.index(n) for n in ("stop_sign", "speed_limit_30", "speed_limit_50")])
+
+
 def augment(img: np.ndarray, boxes: np.ndarray, rng: np.random.Generator,
-            scale_prob: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Flip, scale, translate and HSV-jitter one frame and its boxes (all objects, labels and ignores).
+            scale_prob: float = 1.0, flip: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Flip (unless ``flip`` is False), scale, translate and HSV-jitter one frame and its boxes (all objects, labels
+    and ignores).
 
     Returns the image, the boxes clipped to it, and which boxes survive (at least 40% of their area stays
     in the frame and they stay 2 px wide and tall; the others become ignore regions). The hue jitter is kept
@@ -76,7 +82,7 @@ def augment(img: np.ndarray, boxes: np.ndarray, rng: np.random.Generator,
     """
     h, w = img.shape[:2]
     boxes = boxes.copy()
-    if rng.random() < 0.5:
+    if rng.random() < 0.5 and flip:  # drawn either way, so the random stream does not depend on ``flip``
         img = img[:, ::-1]
         boxes[:, [0, 2]] = w - boxes[:, [2, 0]]
     scale = float(rng.uniform(0.75, 1.3))  # drawn every time, so scale_prob 1 keeps the old random stream
@@ -213,7 +219,13 @@ def yolo_loss(maps: list[torch.Tensor], targets: list[list[dict[str, np.ndarray]
 
 # --------------------------------------------------------------------------- data
 def load_images(samples: list[Sample], desc: str) -> np.ndarray:
-    return np.stack([read_rgb(s.image) for s in tqdm(samples, desc=f"load {desc}", unit="frame", leave=False)])
+    paths = [s.image for s in samples]
+    unique = list(dict.fromkeys(paths))  # a frame listed twice (--repeat-sign-frames) is read once
+    images = np.stack([read_rgb(p) for p in tqdm(unique, desc=f"load {desc}", unit="frame", leave=False)])
+    if len(unique) == len(paths):
+        return images
+    where = {p: k for k, p in enumerate(unique)}
+    return images[[where[p] for p in paths]]
 
 
 def make_batch(images: np.ndarray, samples: list[Sample], idx: np.ndarray, rng: np.random.Generator | None,
@@ -224,7 +236,8 @@ def make_batch(images: np.ndarray, samples: list[Sample], idx: np.ndarray, rng: 
         s = samples[k]
         img, boxes, ignore = images[k], s.boxes, s.ignore.copy()
         if rng is not None:
-            img, boxes, ok = augment(img, boxes, rng, scale_prob)
+            legend = bool(np.isin(s.cls[~s.ignore], LEGEND_CLASSES).any())
+            img, boxes, ok = augment(img, boxes, rng, scale_prob, flip=not legend)
             ignore = ignore | ~ok
         xs.append(img.transpose(2, 0, 1))
         tgs.append(build_targets(boxes, s.cls, ignore, strides))
@@ -279,8 +292,35 @@ def save_checkpoint(path: Path, model: Detector, meta: dict) -> None:
         config["s4_blocks"] = model.config.s4_blocks
     if model.config.s4_pixels:
         config["s4_pixels"] = True
-    classes = CLASSES[:model.config.num_classes]  # a model with fewer class channels has the first classes
-    save(path, {"state_dict": state, "config": config, "classes": classes, "input_hw": INPUT_HW, **meta})
+    save(path, {"state_dict": state, "config": config, "classes": CLASSES[:model.config.num_classes], "input_hw": INPUT_HW,
+                **meta})
+
+
+def init_from(model: Detector, source: dict[str, torch.Tensor], name: str = "--init") -> str:
+    """Warm start (``--init``): every tensor of ``source`` whose name and shape match ``model``'s. New layers keep
+    their initialisation (the stride-4 refinement blocks start as the identity, so the model starts as the one it
+    comes from). A head of more classes than the source's (the road signs appended to the six classes of before)
+    takes the source's rows (box, objectness, the old classes' channels) exactly and keeps its own fresh rows for
+    the new classes (RetinaNet's prior, so they start near 0.05 and do not flood the old classes' NMS groups).
+    Returns a sentence saying what was taken."""
+    own = model.state_dict()
+    taken = {k: v for k, v in source.items() if k in own and own[k].shape == v.shape}
+    grown = []
+    for k, v in source.items():
+        if k in taken or k not in own or not k.startswith("head"):
+            continue
+        mine = own[k]
+        if v.ndim == mine.ndim and v.shape[0] < mine.shape[0] and v.shape[1:] == mine.shape[1:]:
+            merged = mine.clone()
+            merged[:v.shape[0]] = v
+            taken[k] = merged
+            grown.append(f"{k} {v.shape[0]}->{mine.shape[0]}")
+    model.load_state_dict(taken, strict=False)
+    new = sorted({k.split(".")[0] for k in own if k not in taken})
+    msg = f"{name}: {len(taken)} of {len(own)} tensors taken; new: {new}"
+    if grown:
+        msg += (f"; grown heads (the source's rows copied, the new classes' rows fresh): {', '.join(grown)}")
+    return msg
 
 
 # --------------------------------------------------------------------------- training
@@ -302,7 +342,13 @@ def _train(args: argparse.Namespace, device: torch.device, dist: Distributed, wo
     torch.set_num_threads(max(1, args.threads))
     rng = np.random.default_rng(args.seed)
     train_s = [x for name in str(getattr(args, "train_splits", "train")).split(",") for x in load_split(args.data, name)]
-    val_s = load_split(args.data, "val")
+    repeat = int(getattr(args, "repeat_sign_frames", 1))
+    if repeat > 1:  # frames with a labelled road sign (a rarer sight than cars or people) several times per epoch
+        sign_ids = [CLASSES.index(n) for n in SIGN_CLASSES]
+        with_signs = [x for x in train_s if np.isin(x.cls[~x.ignore], sign_ids).any()]
+        print(f"{len(with_signs)} training frames with a labelled sign, {repeat} times each per epoch")
+        train_s = train_s + with_signs * (repeat - 1)
+    val_s = [x for name in str(getattr(args, "val_splits", "val")).split(",") for x in load_split(args.data, name)]
     train_x = load_images(train_s, "train")
     val_x = load_images(val_s, "val") if dist.is_main else None  # rank 0 alone validates
     strides = tuple(int(v) for v in str(getattr(args, "strides", "8,16")).split(","))
@@ -314,14 +360,8 @@ def _train(args: argparse.Namespace, device: torch.device, dist: Distributed, wo
     if getattr(args, "init", ""):
         if args.resume:
             raise ValueError("Pass --resume or --init, not both.")
-        # Warm start: every tensor whose name and shape match; new layers keep their initialisation (the
-        # stride-4 refinement blocks start as the identity, so the model starts as the one it comes from).
-        src = load_checkpoint(args.init, "detector (--init)")["state_dict"]
-        own = model.state_dict()
-        taken = {k: v for k, v in src.items() if k in own and own[k].shape == v.shape}
-        model.load_state_dict(taken, strict=False)
-        print(f"--init {args.init}: {len(taken)} of {len(own)} tensors taken; new: "
-              f"{sorted({k.split('.')[0] for k in own if k not in taken})}")
+        src = load_checkpoint(args.init, "detector (--init)")
+        print(init_from(model, src["state_dict"], args.init))
     if args.resume:
         ckpt = load_checkpoint(args.resume, "detector (--resume)")
         cfg = ckpt.get("config", {})

@@ -163,7 +163,7 @@ def train_refiner(args: argparse.Namespace) -> int:
     if args.tune_only:
         return tune_checkpoint(args)
     train_samples = [s for split in args.train_splits.split(",") for s in load_split(args.data, split)]
-    val_samples = load_split(args.data, "val")
+    val_samples = [x for split in str(getattr(args, "val_splits", "val")).split(",") for x in load_split(args.data, split)]
     if not train_samples or not val_samples:
         raise ValueError(f"No training or val frames under {args.data}; run `python train.py detector dataset` first.")
     data: dict[str, list[np.ndarray]] = {}
@@ -257,7 +257,7 @@ def tune_checkpoint(args: argparse.Namespace) -> int:
     """``--tune-only``: the choices of ``tune`` for the trained refiner at ``--out``, written back into it."""
     out = Path(args.out)
     model = load_refiner(out)
-    val_samples = load_split(args.data, "val")
+    val_samples = [x for split in str(getattr(args, "val_splits", "val")).split(",") for x in load_split(args.data, split)]
     val_images = [read_rgb(s.image) for s in val_samples]
     val_dets = detector_candidates(args.detector, val_samples, val_images, TRAIN_CANDIDATE_SCORE)
     ckpt = load_checkpoint(out, "pedestrian refiner")
