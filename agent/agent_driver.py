@@ -66,15 +66,16 @@ from towndrive.agent.perception.lanes import LaneDetector, LaneResult, lane_cent
 from towndrive.agent.perception.object_memory import MemoryRules, ObjectMemory
 from towndrive.agent.perception.objects import TRACKED, ObjectEstimator, ObjectRules, PerceivedObject
 from towndrive.agent.perception.pilotnet import DEFAULT_MODEL, PilotNetModel
-from towndrive.agent.perception.signs import SignReader, SignRules, SignSeen
+from towndrive.agent.perception.signs import SignLocator, SignRules, SignSeen
 from towndrive.agent.perception.stop_line import StopLine, StopLineDetector
 from towndrive.agent.perception.tracking import Sort, SortConfig, Track
-from towndrive.agent.shipped import DETECTOR_ONNX, REFINER_ONNX
+from towndrive.agent.shipped import DETECTOR_ONNX, REFINER_ONNX, SIGN_READER_ONNX
 from towndrive.envs.driver_context import DriverContext
 from towndrive.sim.spec import CAMERA, MIRRORS, ROAD, VEHICLE, CameraConfig, RoadDesign
 
 DEFAULT_DETECTOR = DETECTOR_ONNX
 DEFAULT_REFINER = REFINER_ONNX
+DEFAULT_SIGN_READER = SIGN_READER_ONNX
 STAGES = ("blind_spot", "pilotnet", "detector", "tracking", "lanes", "stop_line", "distance", "control", "adas",
           "wait")  # wait: the calling thread waiting for the worker's stages (stage_threads > 1)
 
@@ -197,7 +198,7 @@ class Stages:
     junction: JunctionGuidance
     blind_spot: BlindSpot
     stereo: Any = None  # agent.perception.stereo.StereoDepth with distance="stereo"
-    signs: SignReader | None = None  # the road signs addressing the car (agent.perception.signs)
+    signs: SignLocator | None = None  # the road signs addressing the car (agent.perception.signs)
 
 
 class AgentDriver:
@@ -205,7 +206,8 @@ class AgentDriver:
 
     ``net`` (``steer(rgb, command)``) and ``detect`` (``detect(rgb) -> detections``) are the networks; a
     deployment profile passes its own (other backends) instead of the shipped ones, and its module rates as a
-    ``stage_hook`` that wraps the stages once they are built."""
+    ``stage_hook`` that wraps the stages once they are built. ``refiner`` and ``sign_reader`` are the second stages
+    run on the shipped detector's pedestrian and sign boxes (None: without)."""
 
     name = "agent"
     privileged = False
@@ -213,6 +215,7 @@ class AgentDriver:
     def __init__(self, model: str | Path = DEFAULT_MODEL, detector: str | Path = DEFAULT_DETECTOR,
                  backend: str = "onnx", config: AgentConfig | None = None, threads: int = 1,
                  refiner: str | Path | None = DEFAULT_REFINER, net: Any = None,
+                 sign_reader: str | Path | None = DEFAULT_SIGN_READER,
                  detect: Callable[[np.ndarray], list[Detection]] | None = None,
                  stage_hook: Callable[[Stages], Stages] | None = None, **overrides: Any) -> None:
         self.config = replace(config or AgentConfig(), **overrides) if overrides else (config or AgentConfig())
@@ -231,7 +234,8 @@ class AgentDriver:
             if not Path(detector).is_file():
                 raise FileNotFoundError(f"Detector model {detector} not found; train and export one with "
                                         "`python train.py detector train` and `python train.py detector export`.")
-            detect = OnnxDetector(detector, self.config.score_threshold, threads=threads, refiner=refiner)
+            detect = OnnxDetector(detector, self.config.score_threshold, threads=threads, refiner=refiner,
+                                  signs=sign_reader)
         self.detector = detect
         # The main frame's detection (on the worker) and the mirror's (on the calling thread) may overlap: ONNX
         # Runtime sessions may be run from two threads at once; any other backend (a profile's TensorRT context)
@@ -280,7 +284,7 @@ class AgentDriver:
                                                 cfg.light_line_tolerance_m, cfg.light_box_pad_px), cfg.road),
             odometry=odometry, junction=junction,
             blind_spot=BlindSpot(mirror, MirrorMount(MIRRORS.ahead_m, MIRRORS.out_m, MIRRORS.yaw_deg), cfg.blind_spot),
-            stereo=stereo, signs=SignReader(geometry, cfg.signs, cfg.road))
+            stereo=stereo, signs=SignLocator(geometry, cfg.signs, cfg.road))
 
     def _setup(self, camera: CameraConfig, dt: float) -> None:
         self.camera = camera

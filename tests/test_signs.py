@@ -15,7 +15,7 @@ from towndrive.agent.perception.classes import CLASSES, LIGHT_CLASSES, SIGN_CLAS
 from towndrive.agent.perception.detections import Detection
 from towndrive.agent.perception.detector import postprocess
 from towndrive.agent.perception.lanes import LaneLine, LaneResult
-from towndrive.agent.perception.signs import SignReader, SignSeen
+from towndrive.agent.perception.signs import SignLocator, SignSeen
 from towndrive.sim.spec import CAMERA, CURVE_LATERAL_ACCEL_MPS2, KMH, ROAD, STOP_SPEED_MPS
 
 DT = 0.05
@@ -169,7 +169,7 @@ def test_slows_for_a_bend_seen_ahead_before_steering_into_it() -> None:
 
 def test_sign_reader_measures_a_stop_sign_on_our_side() -> None:
     geometry = BoxGeometry(CAMERA)
-    reader = SignReader(geometry)
+    reader = SignLocator(geometry)
     f, cx = geometry.f, float(geometry.k[0, 2])
     z, x, size_px = 15.0, 4.0, geometry.f * ROAD.sign_plate_size_m / 15.0
     u = cx + x * f / z

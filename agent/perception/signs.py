@@ -38,7 +38,7 @@ class SignRules:
     min_aspect: float = 0.5  # width over height below this: the plate is seen edge-on (it faces a cross street)
 
 
-class SignReader:
+class SignLocator:
     """Detections in, the signs that address the car out (module docstring)."""
 
     def __init__(self, geometry: BoxGeometry, rules: SignRules | None = None, road: RoadDesign = ROAD) -> None:
