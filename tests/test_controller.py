@@ -122,6 +122,24 @@ def test_yellow_before_a_commanded_turn_stops_with_the_brake_it_needs() -> None:
     assert close.travelled > 2.0 + 3.0
 
 
+def test_a_car_standing_at_the_line_before_a_turn_stays_for_a_yellow() -> None:
+    """It stopped just before the line for a person stepping into the turn's path; the person goes as the light
+    turns yellow: the car stays (before, "the line a second away at the turn speed" sent it on from a standstill,
+    and it crossed on red)."""
+    line_m = 10.0
+
+    def scene(s: float, v: float, t: float) -> Scene:
+        bumper_to_line = line_m - s
+        state = "green" if t < 6.0 else "yellow" if t < 9.0 else "red"
+        person = [PerceivedObject(7, "pedestrian", bumper_to_line + CAM + 3.5, -0.25, 0.25, 0.0, 0.0)] if t < 6.5 else []
+        return Scene(v, light=state, light_distance_m=bumper_to_line + CAM + 21.0,
+                     stop_line_m=bar_seen(bumper_to_line + CAM), objects=person, turning=True)
+
+    run = drive(scene, 12.0, v0=4.0)
+    assert run.speed[int(6.0 / DT)] == 0.0  # stood for the person
+    assert run.travelled < line_m and run.speed[-1] == 0.0  # and stays before the line
+
+
 def test_a_farther_stop_bar_seen_once_is_the_zebra_beyond_it() -> None:
     ctrl = Controller(CFG)
     for k in range(4):  # a bar 13 m ahead, at 6 m/s

@@ -67,6 +67,7 @@ from towndrive.sim.spec import (
     CURVE_BRAKE_MPS2,
     CURVE_LATERAL_ACCEL_MPS2,
     ROAD,
+    STOP_SPEED_MPS,
     VEHICLE,
     YIELD_APPROACH_MPS,
     RoadDesign,
@@ -113,6 +114,7 @@ class ControllerConfig:
     red_memory_s: float = 4.0  # a red is kept longer: not seeing the light is no reason to go
     light_fallback_margin_m: float = 2.0  # stop this much earlier when the bar was never seen
     red_no_line_speed_mps: float = 4.0  # approach speed under a red light whose stop line is unknown
+    yellow_commit_s: float = 1.0  # turning: a yellow this near in time at the car's speed is driven through
     junction_turn_speed_mps: float = 3.0  # turning at a junction: the 90-degree camera sees the crosswalk of the
     #                                       arm we turn into only when the car already points at it
     junction_turn_steer: float = 0.25  # |steer| above which a commanded turn counts as under way
@@ -329,8 +331,10 @@ class Controller:
         if state == "yellow":
             if self._yellow_go is None:
                 # Turning, the car slows to the turn speed before the line anyway, and would cross it on red:
-                # it stops unless even the full brake cannot, or the line is a second away at turn speed.
-                self._yellow_go = (need > 0.9 * cfg.max_brake_mps2 or gap < cfg.junction_turn_speed_mps
+                # it stops unless even the full brake cannot, or the line is less than ``yellow_commit_s`` away at
+                # the turn speed, or at its own speed when slower (a car standing at the line stays there).
+                commit_m = min(speed, cfg.junction_turn_speed_mps) * cfg.yellow_commit_s
+                self._yellow_go = (need > 0.9 * cfg.max_brake_mps2 or (speed > STOP_SPEED_MPS and gap < commit_m)
                                    if turning else need > cfg.comfortable_brake_mps2)
             if self._yellow_go:
                 self.note = "yellow light: too close to stop comfortably, going on"
