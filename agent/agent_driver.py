@@ -69,13 +69,13 @@ from towndrive.agent.perception.pilotnet import DEFAULT_MODEL, PilotNetModel
 from towndrive.agent.perception.signs import SignLocator, SignRules, SignSeen
 from towndrive.agent.perception.stop_line import StopLine, StopLineDetector
 from towndrive.agent.perception.tracking import Sort, SortConfig, Track
-from towndrive.agent.shipped import DETECTOR_ONNX, REFINER_ONNX, SIGN_READER_ONNX
+from towndrive.agent.shipped import DETECTOR_ONNX, REFINER_ONNX
 from towndrive.envs.driver_context import DriverContext
 from towndrive.sim.spec import CAMERA, MIRRORS, ROAD, VEHICLE, CameraConfig, RoadDesign
 
 DEFAULT_DETECTOR = DETECTOR_ONNX
 DEFAULT_REFINER = REFINER_ONNX
-DEFAULT_SIGN_READER = SIGN_READER_ONNX
+DEFAULT_SIGN_READER = None  # SIGN_READER_ONNX goes with the sign-class detector (shipped.DETECTOR_SIGNS_ONNX)
 STAGES = ("blind_spot", "pilotnet", "detector", "tracking", "lanes", "stop_line", "distance", "control", "adas",
           "wait")  # wait: the calling thread waiting for the worker's stages (stage_threads > 1)
 
