@@ -11,6 +11,7 @@ nearby agents only.
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
 
@@ -72,13 +73,22 @@ def _clip(x: float, low: float, high: float) -> float:
     return min(max(x, low), high)
 
 
+_TIGHTEST: weakref.WeakKeyDictionary[AbstractLane, tuple[float, float]] = weakref.WeakKeyDictionary()
+
+
 def tightest_turn(lane: AbstractLane) -> tuple[float, float]:
     """A lane's smallest radius and where along it that part starts (inf for a straight lane): a circle's
-    radius from its start; a fillet's arc after its lead-in; a sampled curve's tightest segment."""
-    if isinstance(lane, CircularLane):
-        return lane.radius, 0.0
-    tightest = getattr(lane, "tightest_turn", None)
-    return tightest() if tightest is not None else (math.inf, 0.0)
+    radius from its start; a fillet's arc after its lead-in; a sampled curve's tightest segment. Worked out once
+    per lane (lanes never change; the path searches of every vehicle ask each step)."""
+    hit = _TIGHTEST.get(lane)
+    if hit is None:
+        if isinstance(lane, CircularLane):
+            hit = (lane.radius, 0.0)
+        else:
+            tightest = getattr(lane, "tightest_turn", None)
+            hit = tightest() if tightest is not None else (math.inf, 0.0)
+        _TIGHTEST[lane] = hit
+    return hit
 
 
 def front_sweep_m(lane: AbstractLane, my_half: float) -> float:

@@ -80,3 +80,12 @@ def _blocked_global(message: str) -> str:
         if word.lower() == "global":
             return words[i + 1].rstrip(".,:")
     return ""
+
+
+def numpy_forward(model: torch.nn.Module):  # -> Callable[[np.ndarray], np.ndarray]
+    """A loaded model as a NumPy function (no gradients): what the ONNX session of its export is, for torch."""
+    def run(x: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return model(torch.from_numpy(x)).numpy()
+
+    return run

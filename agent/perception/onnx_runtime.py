@@ -73,3 +73,17 @@ def check_role(session, path: str | Path, role: str) -> None:
             problems.append(name)
     if problems:
         raise ValueError(f"{path} is not a {role} model (it has {describe()}).")
+
+
+def second_stage_session(path: str | Path, threads: int, role: str, config_key: str):
+    """A second stage's exported model (the pedestrian refiner, the sign reader): its run function, x -> the first
+    output, and the config it was exported with (the JSON under ``config_key`` in the file's metadata)."""
+    import json
+
+    session = onnx_session(path, threads, role=role)
+    meta = session.get_modelmeta().custom_metadata_map
+    if config_key not in meta:
+        raise ValueError(f"{path} is not an exported {role} (no {config_key} metadata); "
+                         "export it with `python train.py detector export`.")
+    name = session.get_inputs()[0].name
+    return (lambda x: session.run(None, {name: x})[0]), json.loads(meta[config_key])

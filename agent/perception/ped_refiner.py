@@ -174,26 +174,15 @@ def load_refiner(path: str | Path) -> PedRefiner:
 
 
 def torch_refine(path: str | Path) -> Refine:
+    from towndrive.agent.perception.checkpoints import numpy_forward
+
     model = load_refiner(path)
-
-    def run(x: np.ndarray) -> np.ndarray:
-        with torch.no_grad():
-            return model(torch.from_numpy(x)).numpy()
-
-    return Refine(run, model.config)
+    return Refine(numpy_forward(model), model.config)
 
 
 def onnx_refine(path: str | Path, threads: int = 0) -> Refine:
     """The exported refiner through ONNX Runtime; its config travels in the ONNX file's metadata."""
-    import json
+    from towndrive.agent.perception.onnx_runtime import second_stage_session
 
-    from towndrive.agent.perception.onnx_runtime import onnx_session
-
-    session = onnx_session(path, threads, role="pedestrian refiner")
-    meta = session.get_modelmeta().custom_metadata_map
-    if "refiner_config" not in meta:
-        raise ValueError(f"{path} is not an exported pedestrian refiner (no refiner_config metadata); "
-                         "export it with `python train.py detector export`.")
-    config = RefinerConfig(**json.loads(meta["refiner_config"]))
-    name = session.get_inputs()[0].name
-    return Refine(lambda x: session.run(None, {name: x})[0], config)
+    run, config = second_stage_session(path, threads, "pedestrian refiner", "refiner_config")
+    return Refine(run, RefinerConfig(**config))

@@ -159,26 +159,15 @@ def load_sign_reader(path: str | Path) -> SignReader:
 
 
 def torch_read(path: str | Path) -> Read:
+    from towndrive.agent.perception.checkpoints import numpy_forward
+
     model = load_sign_reader(path)
-
-    def run(x: np.ndarray) -> np.ndarray:
-        with torch.no_grad():
-            return model(torch.from_numpy(x)).numpy()
-
-    return Read(run, model.config)
+    return Read(numpy_forward(model), model.config)
 
 
 def onnx_read(path: str | Path, threads: int = 0) -> Read:
     """The exported sign reader through ONNX Runtime; its config travels in the ONNX file's metadata."""
-    import json
+    from towndrive.agent.perception.onnx_runtime import second_stage_session
 
-    from towndrive.agent.perception.onnx_runtime import onnx_session
-
-    session = onnx_session(path, threads, role="sign reader")
-    meta = session.get_modelmeta().custom_metadata_map
-    if "sign_reader_config" not in meta:
-        raise ValueError(f"{path} is not an exported sign reader (no sign_reader_config metadata); "
-                         "export it with `python train.py detector export`.")
-    config = SignReaderConfig(**json.loads(meta["sign_reader_config"]))
-    name = session.get_inputs()[0].name
-    return Read(lambda x: session.run(None, {name: x})[0], config)
+    run, config = second_stage_session(path, threads, "sign reader", "sign_reader_config")
+    return Read(run, SignReaderConfig(**config))
