@@ -99,6 +99,19 @@ def front_sweep_m(lane: AbstractLane, my_half: float) -> float:
     return 0.0 if radius == math.inf else (2.0 * my_half) ** 2 / (2.0 * radius)
 
 
+def outside_of_turn(lane: AbstractLane, s: float, point: np.ndarray) -> bool:
+    """Whether a point beside a lane lies where a turning car's front swings: beside the lane itself (the front
+    leaves the centre line only once the rear is in the turn, never before the lane starts) and on the outside
+    of the turn (the body lies along the tangent from the rear, so it never cuts inside the arc)."""
+    if s < 0.0:
+        return False
+    turn = wrap_to_pi(float(lane.heading_at(lane.length) - lane.heading_at(0.0)))
+    h = float(lane.heading_at(min(s, lane.length)))
+    base = lane.position(min(s, lane.length), 0.0)
+    left = math.cos(h) * (point[1] - base[1]) - math.sin(h) * (point[0] - base[0])
+    return left * turn < 0.0
+
+
 def curve_speed_limit(path: list[tuple[AbstractLane, float]], my_s: float) -> float:
     """The highest speed from which every turn ahead on the path can be taken comfortably:
     v_turn = sqrt(a_lat * radius) in the turn, and at most sqrt(v_turn^2 + 2 b d) at distance d before it."""
@@ -201,7 +214,8 @@ def _gap_on_path(path: list[tuple[AbstractLane, float]], rows: np.ndarray, point
                  tol: float, sweeps: list[float]) -> tuple[float | None, float]:
     """Bumper gap to agent ``k`` (at any of ``points``, each with its distance to the agent's bumper)
     along the path, and its speed along the path. ``rows``: the path's ``path_rows``; ``sweeps``: each path
-    lane's ``front_sweep_m``, added to the tolerance for a standing vehicle."""
+    lane's ``front_sweep_m``, added to the tolerance for a standing vehicle where the front swings
+    (``outside_of_turn``)."""
     best: float | None = None
     best_speed = 0.0
     pad = float(agents.half_lengths[k])
@@ -215,7 +229,9 @@ def _gap_on_path(path: list[tuple[AbstractLane, float]], rows: np.ndarray, point
             if not ok:
                 continue
             s, lat = lane.local_coordinates(pos)
-            if abs(lat) > tol + sweep or s < -agents.half_lengths[k] or s > lane.length + agents.half_lengths[k]:
+            if s < -agents.half_lengths[k] or s > lane.length + agents.half_lengths[k]:
+                continue
+            if abs(lat) > tol and (sweep == 0.0 or abs(lat) > tol + sweep or not outside_of_turn(lane, s, pos)):
                 continue
             along = offset + s
             if along <= my_s:

@@ -477,17 +477,40 @@ def test_a_turning_cars_swept_front_is_kept_clear_of_a_standing_vehicle(lateral_
     """The car steers its rear along the path, so in a turn its front runs outside the arc by length^2 / (2 R)
     (0.88 m on a 12 m turn): a truck standing 2.5 m from a turn's centre line (centre points count within
     2.2 m on a straight) is in the way (a turning car clipped one standing at the exit), one 3.3 m away is not."""
+    from towndrive.sim.traffic import front_sweep_m
+
+    lane = _quarter_turn()
+    assert front_sweep_m(lane, 2.3) == pytest.approx(4.6 ** 2 / 24.0)
+    assert (_turn_gap(lane, 12.0, lateral_m, outside=True) is not None) == blocks
+
+
+def _quarter_turn():
     from highway_env.road.lane import CircularLane
 
-    from towndrive.sim.traffic import Agents, front_sweep_m, path_gap
+    return CircularLane(np.array([0.0, 0.0]), 12.0, 0.0, math.pi / 2, clockwise=True, width=3.5)
 
-    lane = CircularLane(np.array([0.0, 0.0]), 12.0, 0.0, math.pi / 2, clockwise=True, width=3.5)
-    assert front_sweep_m(lane, 2.3) == pytest.approx(4.6 ** 2 / 24.0)
-    s = 12.0
-    outside = min((lane.position(s, side * lateral_m) for side in (1.0, -1.0)), key=lambda p: -np.hypot(*p))
-    centre = outside  # on the outside of the arc, where the front swings
-    agents = Agents(positions=centre[None, :], headings=np.array([lane.heading_at(s)]), speeds=np.array([0.0]),
-                    half_lengths=np.array([3.4]), is_pedestrian=np.array([False]), ids=np.array([7]),
-                    on_crossing=np.array([False]))
+
+def _turn_gap(lane, s: float, lateral_m: float, outside: bool, half_length_m: float = 3.4) -> float | None:
+    """``path_gap`` of a car at s = 2 m on the lane to a truck standing at s, lateral_m off the centre line on
+    the outside or the inside of the turn."""
+    from towndrive.sim.traffic import Agents, path_gap
+
+    side = [lane.position(s, sign * lateral_m) for sign in (1.0, -1.0)]
+    point = max(side, key=lambda p: np.hypot(*p)) if outside else min(side, key=lambda p: np.hypot(*p))
+    agents = Agents(positions=point[None, :], headings=np.array([lane.heading_at(max(s, 0.0))]),
+                    speeds=np.array([0.0]), half_lengths=np.array([half_length_m]), is_pedestrian=np.array([False]),
+                    ids=np.array([7]), on_crossing=np.array([False]))
     gap, _ = path_gap([(lane, 0.0)], 2.0, 2.3, agents, skip_id=999, origin=lane.position(2.0, 0.0), lookahead_m=40.0)
-    assert (gap is not None) == blocks
+    return gap
+
+
+def test_the_swept_front_is_only_outside_the_turn_and_beside_it():
+    """The front swings out only on the outside of the arc and only once the car is in the turn: a car
+    standing 2.8 m off the centre line on the inside of the turn, or beside the lane just before the turn
+    starts (a car waiting in the next lane at the line while this one turns away), is not in the way. Before,
+    the sweep counted on both sides and before the turn, and a car turning right waited behind the line for
+    one standing in the next lane until that one left."""
+    lane = _quarter_turn()
+    assert _turn_gap(lane, 12.0, 2.8, outside=True, half_length_m=2.3) is not None
+    assert _turn_gap(lane, 12.0, 2.8, outside=False, half_length_m=2.3) is None
+    assert _turn_gap(lane, -1.5, 2.8, outside=True, half_length_m=2.3) is None
