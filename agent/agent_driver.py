@@ -62,7 +62,7 @@ from towndrive.agent.decision.signs import lanes_each_way
 from towndrive.agent.perception.box_geometry import BoxGeometry
 from towndrive.agent.perception.classes import LIGHT_CLASSES
 from towndrive.agent.perception.detector import Detection, OnnxDetector
-from towndrive.agent.perception.lanes import LaneDetector, LaneResult, lane_centre_of
+from towndrive.agent.perception.lanes import LaneConfig, LaneDetector, LaneResult, lane_centre_of
 from towndrive.agent.perception.object_memory import MemoryRules, ObjectMemory
 from towndrive.agent.perception.objects import TRACKED, ObjectEstimator, ObjectRules, PerceivedObject
 from towndrive.agent.perception.pilotnet import DEFAULT_MODEL, PilotNetModel
@@ -274,7 +274,8 @@ class AgentDriver:
             self.controller.line, odometry, camera.mount_forward_m, cfg.road)
         mirror = BoxGeometry(self._mirror_camera, cfg.row_sigma_px, cfg.prior_sigma)
         return Stages(
-            lanes=LaneDetector(camera), stop=StopLineDetector(camera), geometry=geometry,
+            lanes=LaneDetector(camera, LaneConfig(lane_width_prior_m=cfg.road.lane_width_m)),
+            stop=StopLineDetector(camera), geometry=geometry,
             objects=ObjectEstimator(geometry, ObjectRules(cfg.history_s, cfg.still_lateral_mps, cfg.edge_confirm_s,
                                                           cfg.whole_margin_px, cfg.person_height_ratio,
                                                           cfg.stereo_max_m), stereo),
@@ -519,7 +520,7 @@ class AgentDriver:
         hold = st.junction.hold(command)
         turn = st.junction.turn_steer(command, speed)
         decision = self._decide(speed, command, pilot, hold, turn, held, objects, light, stop, lanes, centre)
-        st.junction.note(stop)  # the bar as measured this frame, where the car is this frame
+        st.junction.note(stop, None, lanes.boundary_width_m)  # the bar as measured this frame, where the car is
         odo.advance(speed, decision.steer, command, self.dt)
         lap("control")
         in_path = st.memory.note(objects, decision.in_path, st.objects.edge_only)

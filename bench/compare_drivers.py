@@ -31,6 +31,7 @@ from towndrive.envs.parallel import DriverSpec, available_cores, parse_workers  
 from towndrive.envs.rules_cli import add_rule_arguments, rules_from_arguments  # noqa: E402
 from towndrive.extras import import_for  # noqa: E402
 from towndrive.sim.render import LIGHTING_PRESETS  # noqa: E402
+from towndrive.sim.road_priors import road_priors  # noqa: E402
 from towndrive.sim.splits import TOWN_SPLITS, split_towns  # noqa: E402
 from towndrive.sim.town import TownConfig  # noqa: E402
 from towndrive.sim.town_style import STYLES  # noqa: E402
@@ -65,6 +66,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="the agent pipelined: it perceives frame t while the simulator renders frame t+1 and acts a "
                          "frame late (AgentConfig.pipeline); its row is 'agent (pipelined)'")
     add_rule_arguments(ap)
+    ap.add_argument("--road-priors", default="classic", choices=["classic", "style"],
+                    help="the road design the agent assumes: the classic one, or the town style's (sim.road_priors)")
     ap.add_argument("--reuse", action="store_true",
                     help="take a driver's row from an earlier run in --out with the same settings instead of re-running")
     args = ap.parse_args(argv)
@@ -97,6 +100,8 @@ def main(argv: list[str] | None = None) -> int:
         label = f"{name} ({Path(model).stem})" if model else name
         kwargs: dict = {"model": Path(model)} if model else {}
         piped = args.pipeline and name == "agent"
+        if name == "agent" and args.road_priors == "style":
+            kwargs["road"] = road_priors(args.town_style)
         if name == "agent":
             # One worker process per core: each agent then keeps to its own core (the actions are the same).
             kwargs["stage_threads"] = 1 if args.workers > 1 or args.ray else 0

@@ -105,12 +105,27 @@ class VehicleSpec:
 class RoadDesign:
     """How the default towns are built, and so what the agent assumes of a road it has not measured."""
 
+    # A number with an ``_sd_m`` beside it is a prior: its mean and how far it spreads between junctions of
+    # this design (``sim.road_priors`` measures a town style's); the agent corrects it by what it measures.
     lane_width_m: float = 3.5
+    lane_width_sd_m: float = 0.0
     stop_line_setback_m: float = 12.0  # junction centre to a stop bar's far edge, where the connectors start
+    stop_line_setback_sd_m: float = 0.0
+    zebra_to_centre_m: float = 7.6  # junction centre to the near zebra's far edge (cross street half + kerb gap)
+    zebra_to_centre_sd_m: float = 0.0
+    # A turn's radius (left: from the inner lane; right: from the kerb lane); None: the quarter circle from the
+    # stop bar into the same lane of the road turned into (the classic design). With a radius, the turn runs
+    # straight on past the bar and bends where an arc of that radius meets the lane turned into.
+    left_turn_radius_m: float | None = None
+    right_turn_radius_m: float | None = None
     stop_bar_depth_m: float = 0.5  # the painted bar's depth along the lane
     signal_head_height_m: float = 5.2  # signal heads hang this high above the road on mast arms
+    signal_head_height_sd_m: float = 0.0
     signal_housing_height_m: float = 2.1  # a three-lamp head's housing
     light_beyond_stop_line_m: float = 21.0  # our light stands across the junction (measured 21.4 m beyond the bar)
+    light_beyond_stop_line_sd_m: float = 0.0
+    light_lateral_m: float = 1.75  # our head right of our lane's centre (over the incoming lanes' middle)
+    light_lateral_sd_m: float = 0.0
     sign_before_stop_line_m: float = 2.5  # a stop or yield sign's post stands this far before the bar's near edge
     sign_plate_size_m: float = 0.75  # a sign plate's width (stop, yield, speed limit)
     sign_plate_height_m: float = 2.1  # the plate's centre above the road
@@ -130,6 +145,15 @@ class RoadDesign:
         check_number("road sign_plate_size_m", self.sign_plate_size_m, 0.2, 2.0)
         check_number("road sign_plate_height_m", self.sign_plate_height_m, 0.5, 6.0)
         check_number("road multi_lane_limit_kmh", self.multi_lane_limit_kmh, 5.0, 200.0)
+        check_number("road zebra_to_centre_m", self.zebra_to_centre_m, 1.0, 40.0)
+        check_number("road light_lateral_m", self.light_lateral_m, -20.0, 20.0)
+        for name in ("left_turn_radius_m", "right_turn_radius_m"):
+            radius = getattr(self, name)
+            if radius is not None:
+                check_number(f"road {name}", radius, 3.0, 60.0)
+        for name in ("lane_width_sd_m", "stop_line_setback_sd_m", "zebra_to_centre_sd_m", "signal_head_height_sd_m",
+                     "light_beyond_stop_line_sd_m", "light_lateral_sd_m"):
+            check_number(f"road {name}", getattr(self, name), 0.0, 20.0)
         check_number("road single_lane_limit_kmh", self.single_lane_limit_kmh, 5.0, 200.0)
 
 

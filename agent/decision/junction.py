@@ -1,10 +1,13 @@
 """Steering through a junction, where there are no lines to follow.
 
 Going straight, the car holds the approach lane's heading and its place across it (``Odometry``). Turning, it
-pursues the road design's turn arc (a quarter circle from the stop bar's far edge into the same lane of the road
-turned into) from the rear axle, as the autopilot follows lanes. The arc is placed by the stop bar tracked by the
-controller (``StopLineTrack``) and the approach lane measured before it. Road-design numbers are ``sim.spec``'s
-priors.
+pursues the road design's turn from the rear axle, as the autopilot follows lanes: straight on past the stop bar,
+then an arc into the same lane of the road turned into (with no radius in the design, the quarter circle from the
+bar's far edge). The turn is placed by the stop bar tracked by the controller (``StopLineTrack``) and the approach
+lane measured before it. How far the lane turned into lies beyond the bar is the design's setback (a prior,
+``sim.spec.RoadDesign``), corrected by where the zebra beyond the bar ends: the zebra's far edge lies a cross
+street's half width and a kerb gap before the junction's centre, which spreads less between junctions than the
+setback does. The lane offset is the lane width the lane finder measured, where the design lets widths differ.
 """
 
 from __future__ import annotations
@@ -16,23 +19,27 @@ from functools import lru_cache
 import numpy as np
 
 from towndrive.agent.decision.odometry import Odometry
+from towndrive.agent.decision.priors import fused
 from towndrive.agent.decision.stop_line_track import StopLineTrack
 from towndrive.agent.perception.stop_line import StopLine
 from towndrive.sim.spec import ROAD, VEHICLE, RoadDesign
 
 
-@lru_cache(maxsize=16)
+@lru_cache(maxsize=64)
 def turn_path(command: int, setback_m: float, lane_offset_m: float, bar_depth_m: float = ROAD.stop_bar_depth_m,
-              step_m: float = 0.2) -> tuple[np.ndarray, float]:
+              radius_m: float | None = None, step_m: float = 0.2) -> tuple[np.ndarray, float]:
     """A junction turn in the approach frame (x along the approach lane from its stop bar's near edge, y to the
-    right): 30 m of approach, the design's quarter circle from the bar's far edge (``bar_depth_m`` on) into the same lane of
-    the road turned into, then 30 m of that road; and the path length at which the arc ends. The lane's centre
-    is ``lane_offset_m`` right of the road's centre line, so a right turn's radius is ``setback - offset`` and a
-    left turn's ``setback + offset`` (``sim/town.py``, junction connectors)."""
+    right): 30 m of approach, straight on past the bar's far edge (``bar_depth_m`` on), an arc into the same lane
+    of the road turned into, then 30 m of that road; and the path length at which the arc ends. The lane's centre
+    is ``lane_offset_m`` right of the road's centre line, so the lane turned into lies ``setback - offset``
+    beyond the bar's far edge for a right turn and ``setback + offset`` for a left one. With no ``radius_m`` the
+    arc is the quarter circle from the bar with that radius (``sim/town.py``, classic junction connectors); with
+    one (at most that distance), the arc tangent to both lanes, after a straight lead-in (styled towns' fillets)."""
     right = command == 2
-    radius = setback_m - lane_offset_m if right else setback_m + lane_offset_m
+    reach = setback_m - lane_offset_m if right else setback_m + lane_offset_m
+    radius = reach if radius_m is None else min(radius_m, reach)
     side = 1.0 if right else -1.0
-    x0 = bar_depth_m
+    x0 = bar_depth_m + (reach - radius)  # where the arc begins
     before = np.arange(x0 - 30.0, x0, step_m)
     approach = np.stack([before, np.zeros(len(before))], axis=1)
     theta = np.arange(0.0, math.pi / 2, step_m / radius)
@@ -43,6 +50,10 @@ def turn_path(command: int, setback_m: float, lane_offset_m: float, bar_depth_m:
     path = np.concatenate([approach, arc, exit_])
     path.setflags(write=False)
     return path, (len(approach) + len(arc)) * step_m
+
+
+ZEBRA_SD_M = 0.4  # spread of one junction's zebra readings (a band's edge at 5-15 m, a row of the view or two)
+LANE_WIDTH_SD_M = 0.15  # spread of the lane finder's width once both lines were seen
 
 
 @dataclass(frozen=True)
@@ -70,8 +81,16 @@ class JunctionGuidance:
         self.reset()
 
     def reset(self) -> None:
+        self.setback_m = self.road.stop_line_setback_m  # the design's setback, corrected by the zebra
+        self.lane_width_m = self.road.lane_width_m  # the design's lane width, corrected by the lane finder
+        self.forget()
+
+    def forget(self) -> None:
+        """Done with this junction: the next one is measured afresh (the straight hold still uses this one's
+        setback until then)."""
         # the stop bar ahead (x, y, road yaw) and the command of the turn once it has begun (0: not yet)
         self.junction: tuple[float, float, float, int] | None = None
+        self._zebra_m: list[float] = []  # bar's far edge to the zebra's far edge, as measured at this junction
 
     @property
     def placed(self) -> bool:
@@ -81,21 +100,33 @@ class JunctionGuidance:
         """Going straight through a junction, the steer that keeps the approach lane's heading and our place
         across it; None when this does not apply."""
         line, cfg, odo = self.line, self.rules, self.odo
-        inside = line.ignore_light_m > line.config.junction_ignore_m - cfg.junction_hold_m
+        # the configured hold is for the classic design; a wider junction (a longer setback) is held longer
+        hold_m = cfg.junction_hold_m + 2.0 * (self.setback_m - ROAD.stop_line_setback_m)
+        inside = line.ignore_light_m > line.junction_ignore_m - hold_m
         if command != 3 or not inside or odo.road_yaw is None:
             return None
         steer = -(cfg.hold_heading_gain * (odo.yaw - odo.road_yaw) + cfg.hold_offset_gain * odo.road_offset)
         return float(np.clip(steer, -cfg.hold_max_steer, cfg.hold_max_steer))
 
-    def note(self, stop: StopLine | None) -> None:
+    def note(self, stop: StopLine | None, zebra_far_m: float | None = None, lane_width_m: float | None = None) -> None:
         """Where the stop bar ahead lies in the odometry frame (the approach lane's centre at the bar's near edge),
         from the tracked bar and the approach lane measured before it. Only a bar seen within ``turn_bar_seen_m``
-        of the camera places a turn (farther readings are a metre or so off)."""
-        line, odo = self.line, self.odo
+        of the camera places a turn (farther readings are a metre or so off). ``zebra_far_m``: the camera to the
+        far edge of the zebra beyond the bar this frame; ``lane_width_m``: the lane width the lane finder
+        measured (both correct the design's priors, module docstring)."""
+        line, odo, road = self.line, self.odo, self.road
         if line.ignore_light_m > 0 or not line.stop_line_measured or line.stop_line is None or odo.road_yaw is None:
             return
         if self.junction is None and (stop is None or stop.distance_m > self.rules.turn_bar_seen_m):
             return
+        if stop is not None:  # still before the bar: not yet turning
+            if lane_width_m is not None and math.isfinite(lane_width_m):
+                self.lane_width_m = fused(road.lane_width_m, road.lane_width_sd_m, lane_width_m, LANE_WIDTH_SD_M)
+            if zebra_far_m is not None:
+                self._zebra_m.append(zebra_far_m - stop.distance_m - road.stop_bar_depth_m)
+            measured = float(np.median(self._zebra_m)) + road.zebra_to_centre_m if self._zebra_m else None
+            self.setback_m = fused(road.stop_line_setback_m, road.stop_line_setback_sd_m, measured,
+                                   math.hypot(road.zebra_to_centre_sd_m, ZEBRA_SD_M))
         ahead = line.stop_line + line.config.camera_to_front_m + self.camera_to_centre_m  # car centre to the bar
         u = np.array([math.cos(odo.road_yaw), math.sin(odo.road_yaw)])
         right = np.array([-u[1], u[0]])
@@ -113,7 +144,7 @@ class JunctionGuidance:
             command = started  # command already announces the next one)
         elif command not in (1, 2):
             if self.line.ignore_light_m > 0:  # through this junction another way: its bar is behind us
-                self.junction = None
+                self.forget()
             return None
         # Left turns from the inner lane (0), right turns from the outer one (1). Taken from the other lane, this
         # arc still ends in a lane of the road turned into: the arc is placed from our own lane, and a right
@@ -127,15 +158,16 @@ class JunctionGuidance:
         # car's heading on a curve of curvature tan(delta) / length
         here = np.array([float(rel @ u) - half * math.cos(heading), float(rel[0] * -u[1] + rel[1] * u[0])
                          - half * math.sin(heading)])
-        path, arc_end = turn_path(command, self.road.stop_line_setback_m, (k + 0.5) * self.road.lane_width_m,
-                                   self.road.stop_bar_depth_m)
+        radius = self.road.left_turn_radius_m if command == 1 else self.road.right_turn_radius_m
+        path, arc_end = turn_path(command, round(self.setback_m, 1), round((k + 0.5) * self.lane_width_m, 2),
+                                  self.road.stop_bar_depth_m, radius)
         lookahead = cfg.turn_lookahead_m + cfg.turn_lookahead_s * speed
         if here[0] < self.road.stop_bar_depth_m - lookahead:  # not yet: the lookahead point is still before the arc
             return None
         step = float(np.hypot(*(path[1] - path[0])))
         nearest = int(np.argmin(np.sum((path - here) ** 2, axis=1)))
         if nearest * step > arc_end + 6.0:  # out of the turn, lined up on the road turned into: the lines lead again
-            self.junction = None
+            self.forget()
             return None
         if not started:
             self.junction = (bx, by, road_yaw, command)

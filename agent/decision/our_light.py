@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from towndrive.agent.decision.priors import fused
 from towndrive.agent.decision.stop_line_track import StopLineTrack
 from towndrive.agent.perception.box_geometry import BoxGeometry
 from towndrive.agent.perception.detector import Detection
@@ -46,14 +47,20 @@ class OurLight:
 
     def distance(self, box: tuple[float, float, float, float]) -> float:
         """Ground distance (m) to a signal head from how far above the horizon its box's centre is (the head
-        hangs at the design's height), or from its height in pixels when it is too near the horizon for that."""
+        hangs at the design's height), or from its height in pixels when it is too near the horizon for that.
+        Where the design's heads hang at heights that differ (a prior with a spread: mast arms and posts), the
+        two readings are weighed by how sure each is: the height's spread against a pixel of the box."""
         x0, y0, x1, y1 = box
-        k, camera = self.geometry.k, self.geometry.camera
+        k, camera, road = self.geometry.k, self.geometry.camera, self.road
         above_axis = math.atan((float(k[1, 2]) - 0.5 * (y0 + y1)) / self.geometry.f)
         elevation = above_axis + math.radians(camera.pitch_deg)
-        if elevation > math.radians(2.0):
-            return (self.road.signal_head_height_m - camera.mount_height_m) / math.tan(elevation)
-        return self.geometry.f * self.road.signal_housing_height_m / max(y1 - y0 - self.rules.light_box_pad_px, 1.0)
+        rows = max(y1 - y0 - self.rules.light_box_pad_px, 1.0)
+        by_size = self.geometry.f * road.signal_housing_height_m / rows
+        if elevation <= math.radians(2.0):
+            return by_size
+        rise = road.signal_head_height_m - camera.mount_height_m
+        by_height = rise / math.tan(elevation)
+        return fused(by_height, by_height * road.signal_head_height_sd_m / rise, by_size, by_size / rows)
 
     def choose(self, lights: list[Detection], line: StopLineTrack, turned_rad: float) -> LightSeen | None:
         """Our light among ``lights``, given the tracked stop line and the heading change ``turned_rad`` since the
@@ -61,8 +68,14 @@ class OurLight:
         best = None
         rules = self.rules
         expected = None
+        road = self.road
         if line.stop_line_measured and line.stop_line is not None:
-            expected = line.stop_line + line.config.camera_to_front_m + self.road.light_beyond_stop_line_m
+            expected = line.stop_line + line.config.camera_to_front_m + road.light_beyond_stop_line_m
+        # The windows are the classic design's; a design whose heads stand elsewhere moves them by the difference
+        # and widens them by twice its spread.
+        line_tolerance = rules.light_line_tolerance_m + 2.0 * road.light_beyond_stop_line_sd_m
+        lateral_shift = road.light_lateral_m - ROAD.light_lateral_m
+        lateral_tolerance = rules.light_max_lateral_m + 2.0 * road.light_lateral_sd_m
         cos_t, sin_t = math.cos(turned_rad), math.sin(turned_rad)
         for d in lights:
             x0, y0, x1, y1 = d.box
@@ -71,9 +84,9 @@ class OurLight:
             z_cam = self.distance(d.box)
             x_cam = self.geometry.lateral(0.5 * (x0 + x1), z_cam)
             lateral, z = x_cam * cos_t + z_cam * sin_t, z_cam * cos_t - x_cam * sin_t
-            if abs(lateral) > rules.light_max_lateral_m:
+            if abs(lateral - lateral_shift) > lateral_tolerance:
                 continue
-            if expected is not None and abs(z - expected) > rules.light_line_tolerance_m:
+            if expected is not None and abs(z - expected) > line_tolerance:
                 continue
             if best is None or z < best.distance_m:
                 best = LightSeen(d.name.removeprefix("light_"), d.box, z, d.score)

@@ -51,6 +51,13 @@ class StopLineTrack:
         self.road = road
         self.reset()
 
+    @property
+    def junction_ignore_m(self) -> float:
+        """Travel past a stop line during which lights are ignored: the configured distance is for the classic
+        design's junctions; a design whose stop bars stand farther from the centre adds the difference on both
+        sides (its junctions are that much wider)."""
+        return self.config.junction_ignore_m + 2.0 * (self.road.stop_line_setback_m - ROAD.stop_line_setback_m)
+
     def reset(self) -> None:
         self.stop_line: float | None = None  # bumper to the stop line, metres
         self.stop_line_measured = False  # True once a bar was seen (not only inferred from the light)
@@ -98,8 +105,11 @@ class StopLineTrack:
                 self.stop_line, self.stop_line_measured = None, False
         elif (not self.stop_line_measured and light_distance_m is not None and self.ignore_light_m <= 0
               and light in LIGHT_STATES):
-            inferred = light_distance_m - self.road.light_beyond_stop_line_m - cfg.camera_to_front_m \
-                - cfg.light_fallback_margin_m
+            # where the design's heads stand at different distances beyond the line, the nearest of them (the
+            # line is then put farther off than it may be: the car stops early rather than late)
+            road = self.road
+            beyond = max(0.0, road.light_beyond_stop_line_m - 2.0 * road.light_beyond_stop_line_sd_m)
+            inferred = light_distance_m - beyond - cfg.camera_to_front_m - cfg.light_fallback_margin_m
             # A reading far from the tracked one, or one that puts the car past a line it never saw, is believed
             # only when seen again where odometry puts it: a light misread for one frame would otherwise put the
             # car "in the junction" short of the real line, ignoring its light (docs/agent_rules.md).
@@ -110,6 +120,6 @@ class StopLineTrack:
                 self._odd_light.clear()
         if self.stop_line is not None and self.stop_line < -1.0:  # the bumper is past the line: in the junction
             self.stop_line, self.stop_line_measured = None, False
-            self.ignore_light_m = cfg.junction_ignore_m
+            self.ignore_light_m = self.junction_ignore_m
             return True
         return False

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from towndrive.sim.spec import CameraConfig
+from towndrive.sim.spec import ROAD, CameraConfig
 
 
 # --------------------------------------------------------------------------- geometry
@@ -256,7 +256,7 @@ class LaneConfig:
     full_extent_m: float = 14.0  # ... and earns full confidence from this span on
     max_rms_m: float = 0.2  # residual of the fit beyond which confidence drops to 0
     min_confidence: float = 0.25  # per line
-    lane_width_prior_m: float = 3.5  # used until both lines have been seen together
+    lane_width_prior_m: float = ROAD.lane_width_m  # used until both lines have been seen together
     lane_width_range_m: tuple[float, float] = (2.6, 4.4)
     smoothing: float = 0.5  # weight of the new fit in the running average
     quadratic_min_extent_m: float = 10.0  # shorter evidence gets a straight-line fit

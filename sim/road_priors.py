@@ -1,0 +1,94 @@
+"""The road-design priors of a town style: what a driver who knows the kind of place, but not the town, assumes.
+
+Why: the camera-only agent places junction turns and picks its traffic light from road-design numbers (how far the
+stop bar stands from the junction's centre, how wide the turns are, where the signal heads hang). A real car knows
+its country's road design, not each junction; a town style is such a design. Its priors are the statistics of the
+style's junctions in the training towns (``sim.splits``): the mean of each number and how far it spreads, which the
+agent then corrects by what it measures (``agent.decision.junction``, ``agent.decision.our_light``). The classic
+style is the design the agent was built on (``sim.spec.ROAD``); its numbers stay exact.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from functools import lru_cache
+
+import numpy as np
+
+from towndrive.sim.fillet_lane import FilletLane
+from towndrive.sim.spec import ROAD, RoadDesign
+from towndrive.sim.splits import split_towns
+from towndrive.sim.town import Command, Town, TownConfig, generate_town
+from towndrive.sim.town_style import CLASSIC, style_named
+
+PRIOR_TOWNS = 4  # training towns a style's priors are measured on (their junctions number in the hundreds)
+
+
+def junction_samples(town: Town) -> dict[str, list[float]]:
+    """Each junction arm's road-design numbers in one town (the quantities ``RoadDesign`` holds)."""
+    out: dict[str, list[float]] = {k: [] for k in ("setback", "zebra", "left", "right", "height", "beyond",
+                                                   "lateral", "width")}
+    zebra_at = {(cw.node, cw.arm): cw for cw in town.crosswalks}
+    depth = ROAD.stop_bar_depth_m
+    for entry in town.entries:
+        centre = town.node_position(entry.node)
+        t = np.array([np.cos(entry.travel_heading), np.sin(entry.travel_heading)])
+        right = np.array([-t[1], t[0]])
+        bar_near = float((centre - entry.line_center) @ t)  # bar's near edge to the junction centre
+        out["setback"].append(bar_near - depth)
+        cw = zebra_at.get((entry.node, entry.arm))
+        if cw is not None:
+            out["zebra"].append(float(np.min((centre - cw.polygon) @ t)))  # its far edge, to the centre
+        for idx, info in town.lane_info.items():
+            if idx[0] != entry.edge[1] or info.kind != "connector":
+                continue
+            lane = town.lane(idx)
+            radius = _turn_radius(lane)
+            if info.command == Command.LEFT and idx[2] == 0:
+                out["left"].append(radius)
+            elif info.command == Command.RIGHT and idx[2] == entry.lane_count - 1:
+                out["right"].append(radius)
+        if entry.approach >= 0:
+            ap = town.approaches[entry.approach]
+            out["height"].append(float(ap.head_height_m))
+            out["beyond"].append(float((ap.light_head - entry.line_center) @ t) - depth)
+            # across the incoming lanes from their middle (positive: right), then from our lane's centre
+            # (the agent drives the inner lane of two, the middle of one)
+            lanes_w = entry.lane_count * town.lane_width
+            out["lateral"].append(float((ap.light_head - entry.line_center) @ right) + lanes_w / 2
+                                  - 0.5 * town.lane_width)
+    out["width"].append(float(town.lane_width))
+    return out
+
+
+def _turn_radius(lane: object) -> float:
+    if isinstance(lane, FilletLane):
+        return float(lane.tightest_turn()[0])
+    return float(getattr(lane, "radius", np.inf))
+
+
+@lru_cache(maxsize=8)
+def road_priors(style: str, towns: int = PRIOR_TOWNS) -> RoadDesign:
+    """The road design a driver assumes in towns of ``style`` (module docstring): the classic design for the
+    classic style, else the mean and spread of the style's junctions in its first ``towns`` training towns."""
+    if style_named(style).name == CLASSIC.name:
+        return ROAD
+    samples: dict[str, list[float]] = {}
+    for seed in split_towns("train", towns):
+        for k, v in junction_samples(generate_town(TownConfig.of_style(style), seed=seed)).items():
+            samples.setdefault(k, []).extend(v)
+    a = {k: np.asarray(v, float) for k, v in samples.items()}
+
+    def mean(k: str) -> float:
+        return round(float(np.mean(a[k])), 2)
+
+    def sd(k: str) -> float:
+        return round(float(np.std(a[k])), 2)
+
+    return replace(ROAD, lane_width_m=mean("width"), lane_width_sd_m=sd("width"),
+                   stop_line_setback_m=mean("setback"), stop_line_setback_sd_m=sd("setback"),
+                   zebra_to_centre_m=mean("zebra"), zebra_to_centre_sd_m=sd("zebra"),
+                   left_turn_radius_m=mean("left"), right_turn_radius_m=mean("right"),
+                   signal_head_height_m=mean("height"), signal_head_height_sd_m=sd("height"),
+                   light_beyond_stop_line_m=mean("beyond"), light_beyond_stop_line_sd_m=sd("beyond"),
+                   light_lateral_m=mean("lateral"), light_lateral_sd_m=sd("lateral"))
