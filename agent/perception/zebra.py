@@ -42,7 +42,9 @@ from towndrive.sim.spec import CameraConfig
 
 @dataclass(frozen=True)
 class ZebraConfig:
-    birdseye: BirdsEyeConfig = field(default_factory=BirdsEyeConfig)
+    # Half the lane detector's lateral resolution: a stripe and a gap are still 5 columns each, and the warp and
+    # the row statistics cost half as much.
+    birdseye: BirdsEyeConfig = field(default_factory=lambda: BirdsEyeConfig(px_per_m_x=10.0))
     stripe_width_m: float = 0.5  # painted stripe (and gap) width across the road
     kernel_stripes: float = 1.7  # horizontal top-hat width, in stripe widths (a stop bar is several)
     kernel_bands: int = 6  # image row bands, each with one top-hat width
@@ -103,10 +105,13 @@ class ZebraDetector:
 
     def bright_mask(self, rgb: np.ndarray) -> np.ndarray:
         """Camera-image mask (uint8 0/255) of paint narrower than the row's top-hat: stripes, lines, dashes."""
-        light = cv2.cvtColor(rgb, cv2.COLOR_RGB2HLS)[..., 1]
-        out = np.zeros(light.shape, np.uint8)
+        out = np.zeros(rgb.shape[:2], np.uint8)
+        if not self._bands:
+            return out
+        top = self._bands[-1][0]  # the rows above see beyond the bird's-eye view: not converted
+        light = cv2.cvtColor(rgb[top:], cv2.COLOR_RGB2HLS)[..., 1]
         for v0, v1, kernel in self._bands:
-            lf = light[v0:v1]
+            lf = light[v0 - top:v1 - top]
             bg = cv2.morphologyEx(lf, cv2.MORPH_OPEN, kernel, borderType=cv2.BORDER_REPLICATE).astype(np.int16)
             li = lf.astype(np.int16)
             cfg = self.config
