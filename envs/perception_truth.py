@@ -282,6 +282,43 @@ def stop_line_truth(world: World, camera: CameraConfig, segmentation: np.ndarray
     return StopLineTruth(dist, visible)
 
 
+@dataclass
+class ZebraTruth:
+    bar_m: float  # camera to the near edge of the stop (or give-way) line of the entry ahead, along the heading; nan: none
+    near_m: float  # camera to the near edge of that entry's zebra along the car's heading; nan when none or missed
+    far_m: float  # ... and to its far edge
+
+
+def zebra_truth(world: World, camera: CameraConfig) -> ZebraTruth:
+    """The zebra across the arm by which the car's current road enters a junction, where the camera's forward
+    ray crosses its painted area (``Town.crosswalks``, matched to the entry by node and arm)."""
+    nan = math.nan
+    if world.ego_lane is None:
+        return ZebraTruth(nan, nan, nan)
+    town = world.town
+    entry = town.entry_for_edge(world.ego_lane[0][:2])
+    if entry is None:
+        return ZebraTruth(nan, nan, nan)
+    ahead = np.array([math.cos(world.ego.heading), math.sin(world.ego.heading)])
+    cam = world.ego.position + ahead * camera.mount_forward_m
+    bar = float((entry.line_center - cam) @ ahead)
+    hits: list[float] = []
+    for cw in town.crosswalks:
+        if cw.node != entry.node or cw.arm != entry.arm:
+            continue
+        poly = cw.polygon
+        for a, b in zip(poly, np.roll(poly, -1, axis=0), strict=True):
+            m = np.array([[ahead[0], a[0] - b[0]], [ahead[1], a[1] - b[1]]])
+            if abs(np.linalg.det(m)) < 1e-9:
+                continue
+            t, u = np.linalg.solve(m, a - cam)
+            if 0.0 <= u <= 1.0:
+                hits.append(float(t))
+    if len(hits) < 2:
+        return ZebraTruth(bar, nan, nan)
+    return ZebraTruth(bar, min(hits), max(hits))
+
+
 # --------------------------------------------------------------------------- objects
 def object_boxes(info: dict, min_pixels: int = 25) -> tuple[np.ndarray, np.ndarray]:
     """Ground-truth boxes (N x 4: x0, y0, x1, y1 in pixels) and simulator object ids of the cars, trucks

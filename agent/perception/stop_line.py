@@ -53,6 +53,31 @@ class StopLine:
     row: int  # bird's-eye row of the near edge
 
 
+def lane_corridor(lanes: LaneResult | None, z_m: np.ndarray, half_m: float,
+                  inset_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Left and right bounds (x, metres) of the car's lane corridor at each forward distance ``z_m``.
+
+    Between the two lines, ``inset_m`` clear of each, when both are known; ``half_m`` either side of the
+    lane centre placed half a lane width from the one line there is; ``half_m`` either side of the camera
+    without a lane. Shared by the painted-band detectors (stop bars, zebras) so they look at the same lane.
+    """
+    if lanes is not None and lanes.left is not None and lanes.right is not None:
+        return lanes.left.x_at(z_m) + inset_m, lanes.right.x_at(z_m) - inset_m
+    if lanes is not None and lanes.detected and math.isfinite(lanes.offset_m):
+        line = lanes.left or lanes.right
+        assert line is not None
+        centre = line.x_at(z_m) + (lanes.lane_width_m / 2 if line is lanes.left else -lanes.lane_width_m / 2)
+        return centre - half_m, centre + half_m
+    return np.full(len(z_m), -half_m), np.full(len(z_m), half_m)
+
+
+def row_bands(rows: np.ndarray) -> list[tuple[int, int]]:
+    """Runs of consecutive True bird's-eye rows as (first, one past the last), nearest (bottom) first."""
+    edges = np.diff(np.r_[0, rows.astype(np.int8), 0])
+    starts, ends = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
+    return sorted(zip(starts.tolist(), ends.tolist(), strict=True), key=lambda b: -b[1])
+
+
 class StopLineDetector:
     """Finds the nearest stop bar in the lane ahead."""
 
@@ -121,25 +146,12 @@ class StopLineDetector:
         h, w = bright.shape
         z = be.z_of_row
         x = be.x_of_col
-        if lanes is not None and lanes.left is not None and lanes.right is not None:
-            lo = lanes.left.x_at(z) + cfg.corridor_inset_m
-            hi = lanes.right.x_at(z) - cfg.corridor_inset_m
-        elif lanes is not None and lanes.detected and math.isfinite(lanes.offset_m):
-            line = lanes.left or lanes.right
-            assert line is not None
-            centre = line.x_at(z) + (lanes.lane_width_m / 2 if line is lanes.left else -lanes.lane_width_m / 2)
-            lo, hi = centre - cfg.corridor_half_m, centre + cfg.corridor_half_m
-        else:
-            lo = np.full(h, -cfg.corridor_half_m)
-            hi = np.full(h, cfg.corridor_half_m)
+        lo, hi = lane_corridor(lanes, z, cfg.corridor_half_m, cfg.corridor_inset_m)
         inside = (x[None, :] >= lo[:, None]) & (x[None, :] <= hi[:, None])
         width = inside.sum(axis=1)
         fill = np.where(width > 0, (bright & inside).sum(axis=1) / np.maximum(width, 1), 0.0)
         rows = fill >= cfg.min_fill
-        # Bands of consecutive rows, nearest (bottom) first.
-        edges = np.diff(np.r_[0, rows.astype(np.int8), 0])
-        starts, ends = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
-        for r0, r1 in sorted(zip(starts, ends, strict=True), key=lambda b: -b[1]):
+        for r0, r1 in row_bands(rows):
             depth_m = (r1 - r0) / cfg.birdseye.px_per_m_z
             # Far away the band is one image row smeared over a metre or more of bird's-eye rows, so its
             # lower edge is biased near; its fill-weighted centre is not. Near edge = centre - half the depth.

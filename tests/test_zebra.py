@@ -1,0 +1,86 @@
+"""Zebra-crossing detection on rendered frames: the far edge against the town's crosswalks, nothing on the
+open road, and one clear error for a frame of the wrong size."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from towndrive.agent.perception.lanes import LaneDetector
+from towndrive.agent.perception.stop_line import StopLineDetector
+from towndrive.agent.perception.zebra import ZebraDetector
+from towndrive.envs.drive_env import DriveConfig, DriveEnv
+from towndrive.envs.perception_truth import zebra_truth
+from towndrive.sim.town import TownConfig
+from towndrive.sim.world import World, WorldConfig, cached_town
+
+FAR_EDGE_TOLERANCE_M = 0.8  # one image row spans 0.5 m of road at 16 m, 1 m at 20 m
+
+
+def _frame(style: str, town_seed: int, entry_index: int, before_end_m: float) -> tuple[np.ndarray, DriveEnv]:
+    """The camera frame of a car in lane 0 of an entry's road, ``before_end_m`` before the road's end."""
+    cfg = DriveConfig(world=WorldConfig(town=TownConfig.of_style(style)))
+    env = DriveEnv(cfg)
+    town = cached_town(cfg.world.town, town_seed)
+    entry = town.entries[entry_index]
+    lane = town.lane((*entry.edge, 0))
+    world = World(town, cfg.world, seed=0, start=(*entry.edge, 0), start_s=lane.length - before_end_m,
+                  spawn_traffic=False)
+    obs, _ = env.reset(seed=0, options={"world": world, "town_seed": town_seed})
+    return obs["image"], env
+
+
+def _chain(rgb: np.ndarray, env: DriveEnv):
+    cam = env.config.camera
+    lanes = LaneDetector(cam).detect(rgb)
+    stop = StopLineDetector(cam).detect(rgb, lanes)
+    return ZebraDetector(cam).detect(rgb, lanes, stop.distance_m if stop is not None else None)
+
+
+@pytest.mark.parametrize("style, town_seed, before_end_m", [("classic", 4000, 8.0), ("classic", 4000, 14.0),
+                                                            ("suburb", 4000, 10.0)])
+def test_far_edge_matches_the_town(style: str, town_seed: int, before_end_m: float) -> None:
+    rgb, env = _frame(style, town_seed, 0, before_end_m)
+    assert env.world is not None
+    truth = zebra_truth(env.world, env.config.camera)
+    zebra = _chain(rgb, env)
+    env.close()
+    assert math.isfinite(truth.far_m) and truth.far_m < 25.0
+    assert zebra is not None
+    assert abs(zebra.far_m - truth.far_m) <= FAR_EDGE_TOLERANCE_M
+    assert abs(zebra.near_m - truth.near_m) <= FAR_EDGE_TOLERANCE_M
+    assert 0.3 <= zebra.fill <= 0.75  # stripes 0.5 m every 1 m
+
+
+def test_nothing_on_the_open_road() -> None:
+    """Far from the junction (its line beyond the 30 m view) no zebra is reported, with or without a stop line."""
+    rgb, env = _frame("classic", 4000, 0, 60.0)
+    assert env.world is not None
+    truth = zebra_truth(env.world, env.config.camera)
+    cam = env.config.camera
+    lanes = LaneDetector(cam).detect(rgb)
+    env.close()
+    assert truth.bar_m > 40.0
+    assert lanes.detected  # the corridor is the lane's, as when driving
+    assert ZebraDetector(cam).detect(rgb, lanes) is None
+    assert ZebraDetector(cam).detect(rgb, None) is None
+
+
+def test_a_zebra_too_far_past_the_stop_line_does_not_count() -> None:
+    rgb, env = _frame("classic", 4000, 0, 10.0)
+    zebra = _chain(rgb, env)
+    assert zebra is not None
+    cam = env.config.camera
+    env.close()
+    lanes = LaneDetector(cam).detect(rgb)
+    assert ZebraDetector(cam).detect(rgb, lanes, stop_line_m=zebra.near_m - 9.0) is None
+
+
+def test_wrong_frame_is_one_value_error() -> None:
+    detector = ZebraDetector()
+    with pytest.raises(ValueError, match="320x160 uint8 RGB"):
+        detector.detect(np.zeros((160, 320), np.uint8), None)
+    with pytest.raises(ValueError, match="320x160 uint8 RGB"):
+        detector.detect(np.zeros((120, 320, 3), np.uint8), None)
