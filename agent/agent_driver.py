@@ -69,6 +69,7 @@ from towndrive.agent.perception.pilotnet import DEFAULT_MODEL, PilotNetModel
 from towndrive.agent.perception.signs import SignLocator, SignRules, SignSeen
 from towndrive.agent.perception.stop_line import StopLine, StopLineDetector
 from towndrive.agent.perception.tracking import Sort, SortConfig, Track
+from towndrive.agent.perception.zebra import ZebraDetector
 from towndrive.agent.shipped import DETECTOR_ONNX, REFINER_ONNX
 from towndrive.envs.driver_context import DriverContext
 from towndrive.sim.spec import CAMERA, MIRRORS, ROAD, VEHICLE, CameraConfig, RoadDesign
@@ -199,6 +200,7 @@ class Stages:
     blind_spot: BlindSpot
     stereo: Any = None  # agent.perception.stereo.StereoDepth with distance="stereo"
     signs: SignLocator | None = None  # the road signs addressing the car (agent.perception.signs)
+    zebra: ZebraDetector | None = None  # the zebra beyond the stop bar, where the road design's setback may vary
 
 
 class AgentDriver:
@@ -285,7 +287,8 @@ class AgentDriver:
                                                 cfg.light_line_tolerance_m, cfg.light_box_pad_px), cfg.road),
             odometry=odometry, junction=junction,
             blind_spot=BlindSpot(mirror, MirrorMount(MIRRORS.ahead_m, MIRRORS.out_m, MIRRORS.yaw_deg), cfg.blind_spot),
-            stereo=stereo, signs=SignLocator(geometry, cfg.signs, cfg.road))
+            stereo=stereo, signs=SignLocator(geometry, cfg.signs, cfg.road),
+            zebra=ZebraDetector(camera) if cfg.road.stop_line_setback_sd_m > 0 else None)
 
     def _setup(self, camera: CameraConfig, dt: float) -> None:
         self.camera = camera
@@ -307,6 +310,7 @@ class AgentDriver:
         self.adas.reset()
         self.timings = []
         self.view = self._last_view = None
+        self._zebra_far_m: float | None = None  # this frame's zebra far edge (camera to it), when looked for
         self._frame = 0
         self._restart()
 
@@ -429,7 +433,13 @@ class AgentDriver:
 
     def _lanes_and_stop(self, image: np.ndarray, times: dict[str, float]) -> tuple[LaneResult, StopLine | None]:
         lanes = self._timed("lanes", times, self.stages.lanes.detect, image)
-        return lanes, self._timed("stop_line", times, self.stages.stop.detect, image, lanes)
+        stop = self._timed("stop_line", times, self.stages.stop.detect, image, lanes)
+        zebra = self.stages.zebra
+        self._zebra_far_m = None
+        if zebra is not None and stop is not None and stop.distance_m <= self.config.turn_bar_seen_m:
+            seen = self._timed("zebra", times, zebra.detect, image, lanes, stop.distance_m)
+            self._zebra_far_m = None if seen is None else seen.far_m
+        return lanes, stop
 
     def _act(self, observation: dict[str, Any],
              look: Callable[[str], np.ndarray] | None) -> tuple[np.ndarray, AgentView, dict[str, float]]:
@@ -520,7 +530,7 @@ class AgentDriver:
         hold = st.junction.hold(command)
         turn = st.junction.turn_steer(command, speed)
         decision = self._decide(speed, command, pilot, hold, turn, held, objects, light, stop, lanes, centre)
-        st.junction.note(stop, None, lanes.boundary_width_m)  # the bar as measured this frame, where the car is
+        st.junction.note(stop, self._zebra_far_m, lanes.boundary_width_m)  # as measured this frame, where the car is
         odo.advance(speed, decision.steer, command, self.dt)
         lap("control")
         in_path = st.memory.note(objects, decision.in_path, st.objects.edge_only)

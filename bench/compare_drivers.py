@@ -25,6 +25,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from towndrive.agent.drivers import make_driver  # noqa: E402
+from towndrive.agent.shipped import DETECTOR_SIGNS_ONNX, SIGN_READER_ONNX  # noqa: E402
 from towndrive.envs.drive_env import DriveConfig  # noqa: E402
 from towndrive.envs.evaluation import evaluate  # noqa: E402
 from towndrive.envs.parallel import DriverSpec, available_cores, parse_workers  # noqa: E402
@@ -68,6 +69,8 @@ def main(argv: list[str] | None = None) -> int:
     add_rule_arguments(ap)
     ap.add_argument("--road-priors", default="classic", choices=["classic", "style"],
                     help="the road design the agent assumes: the classic one, or the town style's (sim.road_priors)")
+    ap.add_argument("--signs", action="store_true",
+                    help="the agent with the sign-class detector and the sign reader (shipped beside the default)")
     ap.add_argument("--reuse", action="store_true",
                     help="take a driver's row from an earlier run in --out with the same settings instead of re-running")
     args = ap.parse_args(argv)
@@ -102,6 +105,9 @@ def main(argv: list[str] | None = None) -> int:
         piped = args.pipeline and name == "agent"
         if name == "agent" and args.road_priors == "style":
             kwargs["road"] = road_priors(args.town_style)
+        if name == "agent" and args.signs:
+            kwargs.update(detector=DETECTOR_SIGNS_ONNX, sign_reader=SIGN_READER_ONNX)
+            label += " (signs)"
         if name == "agent":
             # One worker process per core: each agent then keeps to its own core (the actions are the same).
             kwargs["stage_threads"] = 1 if args.workers > 1 or args.ray else 0
