@@ -69,6 +69,9 @@ def main(argv: list[str] | None = None) -> int:
     add_rule_arguments(ap)
     ap.add_argument("--road-priors", default="classic", choices=["classic", "style"],
                     help="the road design the agent assumes: the classic one, or the town style's (sim.road_priors)")
+    ap.add_argument("--camera-raise-m", type=float, default=0.0,
+                    help="mount the camera this much higher than the default rig (a different car)")
+    ap.add_argument("--hfov-deg", type=float, default=None, help="the camera's horizontal field of view")
     ap.add_argument("--signs", action="store_true",
                     help="the agent with the sign-class detector and the sign reader (shipped beside the default)")
     ap.add_argument("--reuse", action="store_true",
@@ -90,7 +93,10 @@ def main(argv: list[str] | None = None) -> int:
     base = WorldConfig(town=TownConfig.of_style(args.town_style))
     world = replace(base, npc_count=round(base.npc_count * args.traffic),
                     pedestrian_count=round(base.pedestrian_count * args.traffic))
-    config = DriveConfig(world=world, max_time_s=args.seconds)
+    rig = DriveConfig().camera
+    camera = replace(rig, mount_height_m=rig.mount_height_m + args.camera_raise_m,
+                     hfov_deg=rig.hfov_deg if args.hfov_deg is None else args.hfov_deg)
+    config = DriveConfig(world=world, max_time_s=args.seconds, camera=camera)
     rules = rules_from_arguments(args)
 
     options = functools.partial(episode_options, args.town_seed, args.towns, weathers)
