@@ -16,7 +16,7 @@ from functools import lru_cache
 import numpy as np
 
 from towndrive.sim.fillet_lane import FilletLane
-from towndrive.sim.spec import ROAD, RoadDesign
+from towndrive.sim.spec import ROAD, RoadDesign, SignalMount
 from towndrive.sim.splits import split_towns
 from towndrive.sim.town import Command, Town, TownConfig, generate_town
 from towndrive.sim.town_style import CLASSIC, style_named
@@ -26,8 +26,7 @@ PRIOR_TOWNS = 4  # training towns a style's priors are measured on (their juncti
 
 def junction_samples(town: Town) -> dict[str, list[float]]:
     """Each junction arm's road-design numbers in one town (the quantities ``RoadDesign`` holds)."""
-    out: dict[str, list[float]] = {k: [] for k in ("setback", "zebra", "left", "right", "height", "beyond",
-                                                   "lateral", "width")}
+    out: dict[str, list[float]] = {k: [] for k in ("setback", "zebra", "left", "right", "width")}
     zebra_at = {(cw.node, cw.arm): cw for cw in town.crosswalks}
     depth = ROAD.stop_bar_depth_m
     for entry in town.entries:
@@ -50,13 +49,13 @@ def junction_samples(town: Town) -> dict[str, list[float]]:
                 out["right"].append(radius)
         if entry.approach >= 0:
             ap = town.approaches[entry.approach]
-            out["height"].append(float(ap.head_height_m))
-            out["beyond"].append(float((ap.light_head - entry.line_center) @ t) - depth)
             # across the incoming lanes from their middle (positive: right), then from our lane's centre
             # (the agent drives the inner lane of two, the middle of one)
             lanes_w = entry.lane_count * town.lane_width
-            out["lateral"].append(float((ap.light_head - entry.line_center) @ right) + lanes_w / 2
-                                  - 0.5 * town.lane_width)
+            for key, value in (("beyond", float((ap.light_head - entry.line_center) @ t) - depth),
+                               ("lateral", float((ap.light_head - entry.line_center) @ right) + lanes_w / 2
+                                - 0.5 * town.lane_width), ("height", float(ap.head_height_m))):
+                out.setdefault(f"{ap.mount}:{key}", []).append(value)
     out["width"].append(float(town.lane_width))
     return out
 
@@ -85,10 +84,14 @@ def road_priors(style: str, towns: int = PRIOR_TOWNS) -> RoadDesign:
     def sd(k: str) -> float:
         return round(float(np.std(a[k])), 2)
 
+    # one mode per kind of mount (where heads hang is a kind, not a spread)
+    mounts = {m: SignalMount(mean(f"{m}:beyond"), mean(f"{m}:lateral"), mean(f"{m}:height"))
+              for m in {k.split(":")[0] for k in a if ":" in k}}
+    main = mounts.get("mast_arm")
+    mast_arm = {} if main is None else {"light_beyond_stop_line_m": main.beyond_stop_line_m,
+                                        "light_lateral_m": main.lateral_m, "signal_head_height_m": main.height_m}
     return replace(ROAD, lane_width_m=mean("width"), lane_width_sd_m=sd("width"),
                    stop_line_setback_m=mean("setback"), stop_line_setback_sd_m=sd("setback"),
                    zebra_to_centre_m=mean("zebra"), zebra_to_centre_sd_m=sd("zebra"),
                    left_turn_radius_m=mean("left"), right_turn_radius_m=mean("right"),
-                   signal_head_height_m=mean("height"), signal_head_height_sd_m=sd("height"),
-                   light_beyond_stop_line_m=mean("beyond"), light_beyond_stop_line_sd_m=sd("beyond"),
-                   light_lateral_m=mean("lateral"), light_lateral_sd_m=sd("lateral"))
+                   **mast_arm, other_signal_mounts=tuple(mounts[m] for m in sorted(mounts) if m != "mast_arm"))

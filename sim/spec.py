@@ -102,6 +102,20 @@ class VehicleSpec:
 
 
 @dataclass(frozen=True)
+class SignalMount:
+    """Where one kind of signal head hangs, relative to the approach it governs."""
+
+    beyond_stop_line_m: float  # along the approach, past the stop bar's far edge (negative: before it)
+    lateral_m: float  # right of the centre of the lane the agent drives (the inner one of two)
+    height_m: float  # the head's centre above the road
+
+    def __post_init__(self) -> None:
+        check_number("signal mount beyond_stop_line_m", self.beyond_stop_line_m, -10.0, 80.0)
+        check_number("signal mount lateral_m", self.lateral_m, -20.0, 20.0)
+        check_number("signal mount height_m", self.height_m, 2.0, 12.0)
+
+
+@dataclass(frozen=True)
 class RoadDesign:
     """How the default towns are built, and so what the agent assumes of a road it has not measured."""
 
@@ -119,13 +133,14 @@ class RoadDesign:
     left_turn_radius_m: float | None = None
     right_turn_radius_m: float | None = None
     stop_bar_depth_m: float = 0.5  # the painted bar's depth along the lane
+    # Where our signal head hangs: on a mast arm over the incoming lanes, across the junction. A design with
+    # other mounts (posts at a corner) lists them in ``other_signal_mounts``: where heads hang is a kind, not a
+    # number that spreads, so each kind is one mode of the prior.
     signal_head_height_m: float = 5.2  # signal heads hang this high above the road on mast arms
-    signal_head_height_sd_m: float = 0.0
     signal_housing_height_m: float = 2.1  # a three-lamp head's housing
     light_beyond_stop_line_m: float = 21.0  # our light stands across the junction (measured 21.4 m beyond the bar)
-    light_beyond_stop_line_sd_m: float = 0.0
     light_lateral_m: float = 1.75  # our head right of our lane's centre (over the incoming lanes' middle)
-    light_lateral_sd_m: float = 0.0
+    other_signal_mounts: tuple[SignalMount, ...] = ()
     sign_before_stop_line_m: float = 2.5  # a stop or yield sign's post stands this far before the bar's near edge
     sign_plate_size_m: float = 0.75  # a sign plate's width (stop, yield, speed limit)
     sign_plate_height_m: float = 2.1  # the plate's centre above the road
@@ -151,9 +166,14 @@ class RoadDesign:
             radius = getattr(self, name)
             if radius is not None:
                 check_number(f"road {name}", radius, 3.0, 60.0)
-        for name in ("lane_width_sd_m", "stop_line_setback_sd_m", "zebra_to_centre_sd_m", "signal_head_height_sd_m",
-                     "light_beyond_stop_line_sd_m", "light_lateral_sd_m"):
+        for name in ("lane_width_sd_m", "stop_line_setback_sd_m", "zebra_to_centre_sd_m"):
             check_number(f"road {name}", getattr(self, name), 0.0, 20.0)
+
+    @property
+    def signal_mounts(self) -> tuple[SignalMount, ...]:
+        """Every place the design hangs a signal head: the mast arm of the scalar fields, then the others."""
+        main = SignalMount(self.light_beyond_stop_line_m, self.light_lateral_m, self.signal_head_height_m)
+        return (main, *self.other_signal_mounts)
         check_number("road single_lane_limit_kmh", self.single_lane_limit_kmh, 5.0, 200.0)
 
 

@@ -29,7 +29,8 @@ def test_the_classic_style_s_priors_are_the_classic_design_and_a_styled_one_s_ar
     assert downtown.stop_line_setback_m > ROAD.stop_line_setback_m + 4.0 and downtown.stop_line_setback_sd_m > 0.5
     assert downtown.left_turn_radius_m is not None and downtown.right_turn_radius_m is not None
     assert 0.0 < downtown.zebra_to_centre_sd_m < downtown.stop_line_setback_sd_m  # the zebra is the better anchor
-    assert downtown.signal_head_height_sd_m > 0.3  # mast arms and posts
+    heights = sorted(m.height_m for m in downtown.signal_mounts)  # mast arms and posts: one mode each
+    assert len(heights) == 3 and heights[0] < heights[-1] - 1.0
 
 
 def test_a_turn_with_a_radius_runs_straight_past_the_bar_then_bends_into_the_lane_turned_into() -> None:
@@ -136,3 +137,64 @@ def test_the_junction_guidance_corrects_its_setback_and_lane_width_by_what_is_me
     classic = guidance(ROAD)
     classic.note(StopLine(10.0, 0.5, 0.9, 0), 10.0 + 0.5 + 9.0, 3.2)
     assert classic.setback_m == ROAD.stop_line_setback_m and classic.lane_width_m == ROAD.lane_width_m
+
+
+def _head_box(camera, x_m: float, z_m: float, height_m: float) -> tuple[float, float, float, float]:
+    """The box a three-lamp head (0.84 m wide, 2.1 m tall) at (x right, z ahead of the camera, centre height) draws."""
+    theta = math.radians(-camera.pitch_deg)
+    s, c = math.sin(theta), math.cos(theta)
+    k = camera.intrinsics()
+
+    def pixel(x: float, up: float, z: float) -> tuple[float, float]:
+        y = camera.mount_height_m - up  # the level frame's y points down from the camera
+        cam = np.array([x, y * c - z * s, y * s + z * c])
+        uvw = k @ cam
+        return float(uvw[0] / uvw[2]), float(uvw[1] / uvw[2])
+
+    u0, v0 = pixel(x_m - 0.42, height_m + 1.05, z_m)
+    u1, v1 = pixel(x_m + 0.42, height_m - 1.05, z_m)
+    return (u0, v0 - 0.5, u1, v1 + 0.5)
+
+
+def test_a_design_with_heads_on_posts_finds_its_light_on_a_post_and_the_classic_design_does_not() -> None:
+    """Where heads hang is a kind (``RoadDesign.signal_mounts``): with the stop line measured 10 m ahead, a head on
+    the far corner's post (3.6 m up, 7.5 m right, 29.5 m beyond the line) is ours for a design that uses such posts,
+    at the distance the post's height gives; the classic design (mast arms only) takes no such head."""
+    from types import SimpleNamespace
+
+    from towndrive.agent.decision.our_light import LightRules, OurLight
+    from towndrive.agent.perception.box_geometry import BoxGeometry
+    from towndrive.agent.perception.classes import CLASSES
+    from towndrive.agent.perception.detections import Detection
+    from towndrive.sim.spec import CameraConfig
+
+    camera = CameraConfig()
+    geometry = BoxGeometry(camera)
+    line = SimpleNamespace(stop_line_measured=True, stop_line=10.0, config=SimpleNamespace(camera_to_front_m=1.3))
+    downtown = road_priors("downtown")
+    post = next(m for m in downtown.other_signal_mounts if m.lateral_m > 6.0 and m.beyond_stop_line_m > 20.0)
+    z = 10.0 + 1.3 + post.beyond_stop_line_m
+    box = _head_box(camera, post.lateral_m - 0.0, z, post.height_m)
+    red = Detection(box, CLASSES.index("light_red"), 0.9)
+    seen = OurLight(geometry, LightRules(), downtown).choose([red], line, 0.0)
+    assert seen is not None and seen.state == "red" and seen.distance_m == pytest.approx(z, rel=0.1)
+    assert OurLight(geometry, LightRules(), ROAD).choose([red], line, 0.0) is None
+    # without the stop line measured, a post's head is not taken for ours (it may be the cross street's)
+    unmeasured = SimpleNamespace(stop_line_measured=False, stop_line=None, config=line.config)
+    assert OurLight(geometry, LightRules(), downtown).choose([red], unmeasured, 0.0) is None
+
+
+def test_a_profile_sets_the_priors_their_spreads_and_the_signal_mounts_and_bad_ones_get_one_sentence() -> None:
+    from towndrive.agent.deploy.profiles import ProfileError, profile_from_dict
+
+    road = profile_from_dict({"road": {"left_turn_radius_m": 11.0, "stop_line_setback_sd_m": 1.5,
+                                       "other_signal_mounts": [{"beyond_stop_line_m": 28.0, "lateral_m": 7.0,
+                                                                "height_m": 3.6}]}}).road
+    assert road.left_turn_radius_m == 11.0 and road.stop_line_setback_sd_m == 1.5
+    assert [m.height_m for m in road.signal_mounts] == [ROAD.signal_head_height_m, 3.6]
+    for bad, words in (({"other_signal_mounts": 3}, "must be a list"),
+                       ({"other_signal_mounts": [{"height_m": "high"}]}, "height_m must be a number"),
+                       ({"other_signal_mounts": [{"height_m": 50}]}, "height_m"),
+                       ({"left_turn_radius_m": -2}, "left_turn_radius_m")):
+        with pytest.raises(ProfileError, match=words):
+            profile_from_dict({"road": bad})

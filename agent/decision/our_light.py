@@ -14,7 +14,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from towndrive.agent.decision.priors import fused
 from towndrive.agent.decision.stop_line_track import StopLineTrack
 from towndrive.agent.perception.box_geometry import BoxGeometry
 from towndrive.agent.perception.detector import Detection
@@ -35,6 +34,7 @@ class LightRules:
     light_max_lateral_m: float = 4.5  # our light hangs over the lane divider, within a lane of our axis
     light_line_tolerance_m: float = 5.0  # with the stop line measured, ours hangs where the design says, give or take
     light_box_pad_px: float = 1.0  # light boxes come out about a pixel taller than the housing (measured)
+    light_size_agreement: float = 0.3  # with several mounts, the head's height and its box's size agree this well
 
 
 class OurLight:
@@ -45,49 +45,61 @@ class OurLight:
         self.rules = rules
         self.road = road  # where signal heads hang (height, housing, distance beyond the stop line)
 
-    def distance(self, box: tuple[float, float, float, float]) -> float:
+    def distance(self, box: tuple[float, float, float, float], height_m: float | None = None) -> float:
         """Ground distance (m) to a signal head from how far above the horizon its box's centre is (the head
-        hangs at the design's height), or from its height in pixels when it is too near the horizon for that.
-        Where the design's heads hang at heights that differ (a prior with a spread: mast arms and posts), the
-        two readings are weighed by how sure each is: the height's spread against a pixel of the box."""
+        hangs at ``height_m``, the design's mast-arm height by default), or from its height in pixels when it is
+        too near the horizon for that."""
         x0, y0, x1, y1 = box
-        k, camera, road = self.geometry.k, self.geometry.camera, self.road
+        k, camera = self.geometry.k, self.geometry.camera
         above_axis = math.atan((float(k[1, 2]) - 0.5 * (y0 + y1)) / self.geometry.f)
         elevation = above_axis + math.radians(camera.pitch_deg)
-        rows = max(y1 - y0 - self.rules.light_box_pad_px, 1.0)
-        by_size = self.geometry.f * road.signal_housing_height_m / rows
-        if elevation <= math.radians(2.0):
-            return by_size
-        rise = road.signal_head_height_m - camera.mount_height_m
-        by_height = rise / math.tan(elevation)
-        return fused(by_height, by_height * road.signal_head_height_sd_m / rise, by_size, by_size / rows)
+        if elevation > math.radians(2.0):
+            height = self.road.signal_head_height_m if height_m is None else height_m
+            return (height - camera.mount_height_m) / math.tan(elevation)
+        return self.by_size(box)
+
+    def by_size(self, box: tuple[float, float, float, float]) -> float:
+        """Ground distance (m) to a signal head from its housing's height in pixels."""
+        return self.geometry.f * self.road.signal_housing_height_m / max(box[3] - box[1] - self.rules.light_box_pad_px,
+                                                                         1.0)
 
     def choose(self, lights: list[Detection], line: StopLineTrack, turned_rad: float) -> LightSeen | None:
         """Our light among ``lights``, given the tracked stop line and the heading change ``turned_rad`` since the
-        car last drove along its lane; None when none qualifies."""
+        car last drove along its lane; None when none qualifies.
+
+        A design with several signal mounts (``RoadDesign.signal_mounts``) is a prior with one mode per mount: a
+        box is ours if it fits one of them, with that mount's height (the distance by the head's height must then
+        agree with the distance by the box's size), across the lane where that mount puts heads, and, the stop
+        line measured, that far beyond it. Before the line is measured only the main mount (the scalar fields)
+        can be ours: a post beside the line and the cross street's heads are told apart only by where the line is.
+        """
         best = None
-        rules = self.rules
-        expected = None
-        road = self.road
-        if line.stop_line_measured and line.stop_line is not None:
-            expected = line.stop_line + line.config.camera_to_front_m + road.light_beyond_stop_line_m
-        # The windows are the classic design's; a design whose heads stand elsewhere moves them by the difference
-        # and widens them by twice its spread.
-        line_tolerance = rules.light_line_tolerance_m + 2.0 * road.light_beyond_stop_line_sd_m
-        lateral_shift = road.light_lateral_m - ROAD.light_lateral_m
-        lateral_tolerance = rules.light_max_lateral_m + 2.0 * road.light_lateral_sd_m
+        rules, road = self.rules, self.road
+        mounts = road.signal_mounts
+        several = len(mounts) > 1
+        measured = line.stop_line_measured and line.stop_line is not None
         cos_t, sin_t = math.cos(turned_rad), math.sin(turned_rad)
         for d in lights:
             x0, y0, x1, y1 = d.box
             if d.score < rules.light_score_threshold or y1 - y0 < 2 or y0 <= 1.0:
                 continue
-            z_cam = self.distance(d.box)
-            x_cam = self.geometry.lateral(0.5 * (x0 + x1), z_cam)
-            lateral, z = x_cam * cos_t + z_cam * sin_t, z_cam * cos_t - x_cam * sin_t
-            if abs(lateral - lateral_shift) > lateral_tolerance:
-                continue
-            if expected is not None and abs(z - expected) > line_tolerance:
-                continue
-            if best is None or z < best.distance_m:
-                best = LightSeen(d.name.removeprefix("light_"), d.box, z, d.score)
+            size_z = self.by_size(d.box) if several else math.nan
+            for k, mount in enumerate(mounts):
+                if k > 0 and not measured:
+                    break
+                z_cam = self.distance(d.box, mount.height_m)
+                if several and abs(z_cam - size_z) > rules.light_size_agreement * size_z:
+                    continue
+                x_cam = self.geometry.lateral(0.5 * (x0 + x1), z_cam)
+                lateral, z = x_cam * cos_t + z_cam * sin_t, z_cam * cos_t - x_cam * sin_t
+                if abs(lateral - (mount.lateral_m - road.light_lateral_m)) > rules.light_max_lateral_m:
+                    continue
+                if measured:
+                    assert line.stop_line is not None
+                    expected = line.stop_line + line.config.camera_to_front_m + mount.beyond_stop_line_m
+                    if abs(z - expected) > rules.light_line_tolerance_m:
+                        continue
+                if best is None or z < best.distance_m:
+                    best = LightSeen(d.name.removeprefix("light_"), d.box, z, d.score)
+                break
         return best

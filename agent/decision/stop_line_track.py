@@ -105,11 +105,9 @@ class StopLineTrack:
                 self.stop_line, self.stop_line_measured = None, False
         elif (not self.stop_line_measured and light_distance_m is not None and self.ignore_light_m <= 0
               and light in LIGHT_STATES):
-            # where the design's heads stand at different distances beyond the line, the nearest of them (the
-            # line is then put farther off than it may be: the car stops early rather than late)
-            road = self.road
-            beyond = max(0.0, road.light_beyond_stop_line_m - 2.0 * road.light_beyond_stop_line_sd_m)
-            inferred = light_distance_m - beyond - cfg.camera_to_front_m - cfg.light_fallback_margin_m
+            # (before a bar is measured, our light can only be the design's main mount: agent.decision.our_light)
+            inferred = light_distance_m - self.road.light_beyond_stop_line_m - cfg.camera_to_front_m \
+                - cfg.light_fallback_margin_m
             # A reading far from the tracked one, or one that puts the car past a line it never saw, is believed
             # only when seen again where odometry puts it: a light misread for one frame would otherwise put the
             # car "in the junction" short of the real line, ignoring its light (docs/agent_rules.md).

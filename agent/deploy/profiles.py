@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any, get_type_hints
 
 from towndrive.agent.shipped import ROOT
-from towndrive.sim.spec import ROAD, RoadDesign
+from towndrive.sim.spec import ROAD, RoadDesign, SignalMount
 
 PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
 
@@ -291,7 +291,16 @@ def profile_from_dict(data: Any, source: str = "<dict>", default_name: str = "cp
     camera = _build(CameraProfile, data.pop("camera", {}), source, "camera", CameraProfile())
     alerts = _build(AlertProfile, data.pop("alerts", {}), source, "alerts", AlertProfile())
     try:
-        road = _build(RoadDesign, data.pop("road", {}), source, "road", ROAD)
+        road_data = dict(_mapping(data.pop("road", {}), source, "road"))
+        mounts = road_data.pop("other_signal_mounts", None)
+        road = _build(RoadDesign, road_data, source, "road", ROAD)
+        if mounts is not None:
+            if not isinstance(mounts, list):
+                raise ProfileError(f"{source}: road.other_signal_mounts must be a list of "
+                                   f"{{beyond_stop_line_m, lateral_m, height_m}}, not {mounts!r}.")
+            base = SignalMount(0.0, 0.0, ROAD.signal_head_height_m)
+            road = replace(road, other_signal_mounts=tuple(
+                _build(SignalMount, m, source, f"road.other_signal_mounts[{k}]", base) for k, m in enumerate(mounts)))
     except ProfileError:
         raise
     except ValueError as exc:  # a prior outside real roads' range (RoadDesign checks its own)
@@ -350,7 +359,7 @@ def _value(hint: Any, value: Any, source: str, key: str) -> Any:
     elif hint is int or text.startswith("int"):
         if isinstance(value, int) and not isinstance(value, bool):
             return value
-    elif hint is float:
+    elif hint is float or text.startswith("float"):
         if isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value):
             return float(value)
     elif text.startswith("tuple"):
