@@ -563,7 +563,7 @@ class AgentDriver:
         scene = Scene(speed, objects, light.state if light else None, light.distance_m if light else None,
                       stop.distance_m if stop is not None else None, centre, max(lane_range, 8.0),
                       turning=command in (1, 2), speed_caps=caps, signs=self._signs,
-                      lanes_each_way=lanes_each_way(lanes))
+                      lanes_each_way=lanes_each_way(lanes), light_in_view_m=light.in_view_m if light else 0.0)
         decision = self.controller.step(scene, pilot, self.dt)
         if hold is not None:  # the steering was overridden too: say so, and keep what PilotNet proposed
             decision.pilot_steer = net_steer

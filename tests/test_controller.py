@@ -381,3 +381,31 @@ def test_commanded_turn_inside_a_junction_is_taken_slowly() -> None:
     # announced before the junction, on a lane, steering straight: no cap yet
     ahead = drive(lambda s, v, t: Scene(v, turning=True, lane_centre=np.zeros(3)), 3.0, v0=8.0)
     assert min(ahead.speed) > 7.5
+
+
+def test_a_red_light_on_a_post_beside_the_line_is_waited_for_where_its_head_stays_in_the_picture() -> None:
+    """A near-side head (1.5 m before the line, beside the lane) leaves the 90-degree view before the car reaches
+    the line, and then its change to green would never be seen: the car stops where the head is still in the
+    picture (``Scene.light_in_view_m``, from the head's box), sees green, and goes. With the head beyond the
+    junction (the classic mast arm) the stop point is the line's, as before."""
+    in_view = 9.0  # camera to head: nearer, the head's box leaves the picture
+
+    def near_post(line_m: float) -> Callable[[float, float, float], Scene]:
+        def scene(s: float, v: float, t: float) -> Scene:
+            bumper_to_line = line_m - s
+            head = bumper_to_line + CAM - 1.5
+            # the camera sees the head only this far off, and it is taken for ours once the line is measured
+            seen = in_view <= head and bumper_to_line + CAM <= 20.0
+            state = "red" if t < 30.0 else "green"
+            return Scene(v, light=state if seen else None, light_distance_m=head if seen else None,
+                         stop_line_m=bar_seen(bumper_to_line + CAM), light_in_view_m=in_view if seen else 0.0)
+        return scene
+
+    run = drive(near_post(40.0), 29.0)
+    stopped = 40.0 - run.travelled  # bumper to the line where the car stands
+    assert run.speed[-1] < 0.1 and in_view - CAM + 1.5 - 1.0 <= stopped <= in_view - CAM + 1.5 + 1.0, stopped
+    assert run.decisions[-1].reason.startswith("red light")
+    later = drive(near_post(40.0), 40.0)
+    assert later.travelled > 45.0  # it saw green and went through
+    beyond = drive(light_scene(45.0, lambda t: "red"), 20.0)
+    assert 0.0 <= 45.0 - beyond.travelled <= 2.0  # a far head: stop at the line

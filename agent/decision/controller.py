@@ -148,6 +148,7 @@ class Scene:
     speed_caps: list[tuple[str, float]] = field(default_factory=list)  # other limits: (reason, m/s)
     signs: list[SignSeen] = field(default_factory=list)  # signs addressing us this frame (nearest first)
     lanes_each_way: int | None = None  # the kind of street the lane lines tell (agent.decision.signs)
+    light_in_view_m: float = 0.0  # camera to the light head below which it leaves the picture
 
 
 @dataclass
@@ -208,6 +209,7 @@ class Controller:
         self._light_count = 0
         self._light_unseen_s = math.inf
         self._yellow_go: bool | None = None  # the yellow decision, taken once per yellow
+        self._view_back_m = 0.0  # stop this far before the line to keep our light's head in the picture
         self.note = ""  # why a seen light does not stop the car (shown as the reason when nothing else acts)
         self.unconfirmed_held_s = 0.0  # standstill so far for unconfirmed objects in our path (module docstring)
         self._no_unconfirmed_s = 0.0  # since an unconfirmed object was last in our path
@@ -296,6 +298,11 @@ class Controller:
     def _update_light(self, scene: Scene, dt: float) -> None:
         cfg = self.config
         seen = scene.light if scene.light in LIGHT_STATES else None
+        if seen is not None and scene.light_distance_m is not None and self.stop_line is not None:
+            # Where the car may stop and still see the head (it turns green while the car waits): the head stands
+            # (camera distance - bumper distance to the line) past the line, which travel does not change.
+            head_from_line = scene.light_distance_m - self.stop_line
+            self._view_back_m = max(0.0, scene.light_in_view_m - head_from_line)
         if seen is None:
             self._light_unseen_s += dt
             self._light_count = 0
@@ -326,7 +333,10 @@ class Controller:
                                   cfg.red_no_line_speed_mps, 0.0, 0.0)
             self.note = "yellow light, stop line not seen"
             return None
-        gap = self.stop_line - cfg.stop_line_target_m
+        # The stop point: before the line, and far enough back that our light stays in the picture, unless the car
+        # is already past that point (then at the line, as before: the legal stop is the line).
+        back = self._view_back_m if self.stop_line - self._view_back_m > -1.0 else 0.0
+        gap = self.stop_line - max(cfg.stop_line_target_m, back)
         need = speed * speed / (2.0 * max(gap, 0.05))  # deceleration to stop at the point
         if state == "yellow":
             if self._yellow_go is None:
@@ -430,6 +440,7 @@ class Controller:
         self.signs.update(scene.signs, scene.lanes_each_way, speed, dt)
         if self.line.update(scene.speed_mps, scene.stop_line_m, scene.light, scene.light_distance_m, dt):
             self.light_state, self._light_candidate, self._yellow_go = None, None, None  # in the junction
+            self._view_back_m = 0.0
             self.signs.entered()
         elif self.signs.passed(self.stop_line):
             self.signs.entered()

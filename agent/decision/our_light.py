@@ -26,6 +26,7 @@ class LightSeen:
     box: tuple[float, float, float, float]
     distance_m: float
     score: float
+    in_view_m: float = 0.0  # nearer than this (camera to head) the head leaves the picture (``OurLight.in_view``)
 
 
 @dataclass(frozen=True)
@@ -35,6 +36,7 @@ class LightRules:
     light_line_tolerance_m: float = 5.0  # with the stop line measured, ours hangs where the design says, give or take
     light_box_pad_px: float = 1.0  # light boxes come out about a pixel taller than the housing (measured)
     light_size_agreement: float = 0.3  # with several mounts, the head's height and its box's size agree this well
+    view_margin_px: float = 4.0  # a head kept in view stays this far inside the picture's edges
 
 
 class OurLight:
@@ -100,6 +102,19 @@ class OurLight:
                     if abs(z - expected) > rules.light_line_tolerance_m:
                         continue
                 if best is None or z < best.distance_m:
-                    best = LightSeen(d.name.removeprefix("light_"), d.box, z, d.score)
+                    best = LightSeen(d.name.removeprefix("light_"), d.box, z, d.score, self.in_view(d.box, z))
                 break
         return best
+
+    def in_view(self, box: tuple[float, float, float, float], z_m: float) -> float:
+        """How near (camera to head, along the road) the car may come before this head leaves the picture by its
+        top or its side (``view_margin_px`` inside). Driving straight at it, a head's angles above and beside
+        the axis grow as 1 / distance; a head beside the stop line (a near-side post) leaves the 90-degree view
+        before the car reaches the line, and then its change to green is never seen."""
+        x0, y0, x1, _ = box
+        k, camera, margin = self.geometry.k, self.geometry.camera, self.rules.view_margin_px
+        cx, cy, f = float(k[0, 2]), float(k[1, 2]), self.geometry.f
+        up = (cy - y0) / f  # tan of the top edge's angle above the axis
+        side = max(abs(x0 - cx), abs(x1 - cx)) / f
+        up_limit, side_limit = (cy - margin) / f, (camera.width - 1.0 - margin - cx) / f
+        return z_m * max(up / up_limit, side / side_limit)
