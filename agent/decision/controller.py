@@ -114,6 +114,7 @@ class ControllerConfig:
     red_memory_s: float = 4.0  # a red is kept longer: not seeing the light is no reason to go
     light_fallback_margin_m: float = 2.0  # stop this much earlier when the bar was never seen
     red_no_line_speed_mps: float = 4.0  # approach speed under a red light whose stop line is unknown
+    near_side_head_m: float = 5.0  # a head at most this far past the line stands at it (a post): kept in view
     yellow_commit_s: float = 1.0  # turning: a yellow this near in time at the car's speed is driven through
     junction_turn_speed_mps: float = 3.0  # turning at a junction: the 90-degree camera sees the crosswalk of the
     #                                       arm we turn into only when the car already points at it
@@ -301,8 +302,10 @@ class Controller:
         if seen is not None and scene.light_distance_m is not None and self.stop_line is not None:
             # Where the car may stop and still see the head (it turns green while the car waits): the head stands
             # (camera distance - bumper distance to the line) past the line, which travel does not change.
+            # Only a head at the line (a near-side post) is kept in view: one across the junction is seen anyway.
             head_from_line = scene.light_distance_m - self.stop_line
-            self._view_back_m = max(0.0, scene.light_in_view_m - head_from_line)
+            near_side = head_from_line - cfg.camera_to_front_m <= cfg.near_side_head_m
+            self._view_back_m = max(0.0, scene.light_in_view_m - head_from_line) if near_side else 0.0
         if seen is None:
             self._light_unseen_s += dt
             self._light_count = 0

@@ -37,6 +37,7 @@ class LightRules:
     light_box_pad_px: float = 1.0  # light boxes come out about a pixel taller than the housing (measured)
     light_size_agreement: float = 0.3  # with several mounts, the head's height and its box's size agree this well
     view_margin_px: float = 4.0  # a head kept in view stays this far inside the picture's edges
+    view_min_box_px: float = 8.0  # a head box at least this tall says where the head would leave the picture
 
 
 class OurLight:
@@ -111,10 +112,15 @@ class OurLight:
         top or its side (``view_margin_px`` inside). Driving straight at it, a head's angles above and beside
         the axis grow as 1 / distance; a head beside the stop line (a near-side post) leaves the 90-degree view
         before the car reaches the line, and then its change to green is never seen."""
-        x0, y0, x1, _ = box
+        x0, y0, x1, y1 = box
         k, camera, margin = self.geometry.k, self.geometry.camera, self.rules.view_margin_px
+        if y1 - y0 < self.rules.view_min_box_px:  # too small to tell (far off, where it does not matter)
+            return 0.0
         cx, cy, f = float(k[0, 2]), float(k[1, 2]), self.geometry.f
-        up = (cy - y0) / f  # tan of the top edge's angle above the axis
+        pitch = math.radians(camera.pitch_deg)
+        # tangents of the head top's elevation above the horizontal, now and at the picture's top edge
+        up = math.tan(math.atan((cy - y0) / f) + pitch)
+        up_limit = math.tan(math.atan((cy - margin) / f) + pitch)
         side = max(abs(x0 - cx), abs(x1 - cx)) / f
-        up_limit, side_limit = (cy - margin) / f, (camera.width - 1.0 - margin - cx) / f
-        return z_m * max(up / up_limit, side / side_limit)
+        side_limit = (camera.width - 1.0 - margin - cx) / f
+        return z_m * max(up / up_limit, side / side_limit, 0.0)
