@@ -198,3 +198,17 @@ def test_a_profile_sets_the_priors_their_spreads_and_the_signal_mounts_and_bad_o
                        ({"left_turn_radius_m": -2}, "left_turn_radius_m")):
         with pytest.raises(ProfileError, match=words):
             profile_from_dict({"road": bad})
+
+
+def test_the_cli_gives_the_agent_a_style_s_priors_and_the_sign_detector_and_refuses_them_for_other_drivers() -> None:
+    from towndrive.agent.shipped import DETECTOR_SIGNS_ONNX
+    from towndrive.drive_cli import driver_spec, parse_args
+
+    args = parse_args(["--driver", "agent", "--road-priors", "style", "--town-style", "suburb", "--signs"])
+    args.workers = 1
+    kwargs = dict(driver_spec(args).kwargs)
+    assert kwargs["road"] == road_priors("suburb") and kwargs["detector"] == DETECTOR_SIGNS_ONNX
+    other = parse_args(["--driver", "autopilot", "--road-priors", "style"])
+    other.workers = 1
+    with pytest.raises(ValueError, match="for the agent driver"):
+        driver_spec(other)

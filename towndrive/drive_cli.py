@@ -51,6 +51,11 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
                    help="agent: threads for a frame's independent stages: 1 one after another, 2 on two cores, 0 the "
                         "faster of the two, timed now and then (default; 1 with --workers or --ray: one core per "
                         "worker); the actions are the same")
+    p.add_argument("--road-priors", default="classic", choices=["classic", "style"],
+                   help="agent: the road design it assumes, the classic towns' or the --town-style's (measured on "
+                        "its training towns)")
+    p.add_argument("--signs", action="store_true",
+                   help="agent: the detector with the road-sign classes and the sign reader (stop, yield, limits)")
     p.add_argument("--pipeline", action="store_true",
                    help="agent: perceive frame t while the simulator renders frame t+1, acting a frame late")
     p.add_argument("--profile", default=None, metavar="NAME",
@@ -243,6 +248,18 @@ def driver_spec(args: argparse.Namespace) -> Any:
     elif args.model is not None and args.driver not in ("rl", "agent"):
         raise ValueError(f"--model is for the pilotnet, agent and rl drivers, not {args.driver}.")
     threads, pipeline = getattr(args, "threads", None), getattr(args, "pipeline", False)
+    road, signs = getattr(args, "road_priors", "classic"), getattr(args, "signs", False)
+    if args.driver == "agent":
+        if road == "style":
+            from towndrive.sim.road_priors import road_priors
+
+            kwargs["road"] = road_priors(args.town_style)
+        if signs:
+            from towndrive.agent.shipped import DETECTOR_SIGNS_ONNX, SIGN_READER_ONNX
+
+            kwargs.update(detector=DETECTOR_SIGNS_ONNX, sign_reader=SIGN_READER_ONNX)
+    elif road != "classic" or signs:
+        raise ValueError(f"--road-priors and --signs are for the agent driver, not {args.driver}.")
     if args.driver == "agent":
         parallel = getattr(args, "workers", 1) > 1 or bool(getattr(args, "ray", None))
         kwargs["stage_threads"] = threads if threads is not None else (1 if parallel else 0)
