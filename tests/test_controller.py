@@ -409,3 +409,20 @@ def test_a_red_light_on_a_post_beside_the_line_is_waited_for_where_its_head_stay
     assert later.travelled > 45.0  # it saw green and went through
     beyond = drive(light_scene(45.0, lambda t: "red"), 20.0)
     assert 0.0 <= 45.0 - beyond.travelled <= 2.0  # a far head: stop at the line
+
+
+def test_a_person_standing_still_beside_the_path_is_passed_and_one_on_the_move_there_is_stopped_for() -> None:
+    """A person waiting on the kerb 1.5-2.1 m right of the car's axis (inside the full pedestrian margin, clear of
+    the car's width) does not hold it, as the world's drivers judge a standing person; one at the same place who
+    moves (along the road, towards us, or sideways) keeps the full margin. The car stands (a wider camera showed
+    people on the corner and held it at every junction)."""
+    ctrl = Controller(CFG)
+    standing = PerceivedObject(1, "pedestrian", 4.0, 1.5, 2.1, 0.0, 0.0)  # closing 0: standing, like us
+    d = ctrl.step(Scene(0.0, objects=[standing]), 0.0, DT)
+    assert d.in_path == [] and d.accel_mps2 > 0
+    walking = PerceivedObject(2, "pedestrian", 4.0, 1.5, 2.1, 1.2, 0.0)  # walking towards us along the kerb
+    d = Controller(CFG).step(Scene(0.0, objects=[walking]), 0.0, DT)
+    assert d.in_path == [2]
+    nearer = PerceivedObject(3, "pedestrian", 4.0, 1.0, 1.6, 0.0, 0.0)  # standing where the car would brush them
+    d = Controller(CFG).step(Scene(0.0, objects=[nearer]), 0.0, DT)
+    assert d.in_path == [3]

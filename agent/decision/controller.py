@@ -101,7 +101,8 @@ class ControllerConfig:
     hold_margin_m: float = 0.8  # within this of the stop point at walking pace, brake to a standstill
     camera_to_front_m: float = CAMERA_TO_FRONT_M  # the rig's camera to the front bumper (sim.spec)
     path_half_width_m: float = 1.3  # half the car (0.95 m) and a margin: an object overlapping this is in our path
-    pedestrian_margin_m: float = 0.9  # extra corridor width for people (they step out)
+    pedestrian_margin_m: float = 0.9  # extra corridor width for people on the move (they step out)
+    standing_pedestrian_margin_m: float = 0.0  # ... and for people standing still (a car's width and 0.35 m clear)
     entering_horizon_s: float = 2.5  # a pedestrian whose motion enters the corridor within this counts
     min_lateral_speed_mps: float = 0.3  # slower lateral motion is not "entering" (box jitter)
     lookahead_m: float = 45.0  # objects farther than this are ignored
@@ -244,8 +245,20 @@ class Controller:
         """Whether the object's lateral extent overlaps the corridor at its distance (people: wider)."""
         cfg = self.config
         centre = self.path_centre(scene, obj.distance_m, steer)
-        half = cfg.path_half_width_m + (cfg.pedestrian_margin_m if obj.kind == "pedestrian" else 0.0)
+        half = cfg.path_half_width_m + self.margin(scene, obj)
         return obj.lateral_right_m >= centre - half and obj.lateral_left_m <= centre + half
+
+    def margin(self, scene: Scene, obj: PerceivedObject) -> float:
+        """The corridor's extra width for an object: none for a vehicle; for a person on the move the full
+        ``pedestrian_margin_m`` (they step out); for one standing still (waiting on the kerb) only
+        ``standing_pedestrian_margin_m``: a standing person blocks what would brush them, as the world's own
+        drivers judge it, and the entering test catches them the moment they move towards the corridor."""
+        cfg = self.config
+        if obj.kind != "pedestrian":
+            return 0.0
+        still = (abs(obj.lateral_speed_mps) < cfg.min_lateral_speed_mps
+                 and abs(obj.closing_speed_mps - scene.speed_mps) < cfg.min_lateral_speed_mps)
+        return cfg.standing_pedestrian_margin_m if still else cfg.pedestrian_margin_m
 
     def in_sweep(self, scene: Scene, obj: PerceivedObject, steer: float) -> bool:
         """Whether a person stands where the car's body will pass if it keeps this steering.
@@ -281,7 +294,7 @@ class Controller:
         if obj.distance_m <= 0 or obj.distance_m > cfg.lookahead_m:
             return False
         centre = self.path_centre(scene, obj.distance_m, steer)
-        half = cfg.path_half_width_m + (cfg.pedestrian_margin_m if obj.kind == "pedestrian" else 0.0)
+        half = cfg.path_half_width_m + self.margin(scene, obj)
         lo, hi = centre - half, centre + half
         if obj.lateral_right_m >= lo and obj.lateral_left_m <= hi:
             return True
