@@ -25,14 +25,13 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from towndrive.agent.drivers import make_driver  # noqa: E402
-from towndrive.agent.shipped import DETECTOR_SIGNS_ONNX, SIGN_READER_ONNX  # noqa: E402
+from towndrive.drive_cli import add_agent_variant_arguments, agent_variant  # noqa: E402
 from towndrive.envs.drive_env import DriveConfig  # noqa: E402
 from towndrive.envs.evaluation import evaluate  # noqa: E402
 from towndrive.envs.parallel import DriverSpec, available_cores, parse_workers  # noqa: E402
 from towndrive.envs.rules_cli import add_rule_arguments, rules_from_arguments  # noqa: E402
 from towndrive.extras import import_for  # noqa: E402
 from towndrive.sim.render import LIGHTING_PRESETS  # noqa: E402
-from towndrive.sim.road_priors import road_priors  # noqa: E402
 from towndrive.sim.splits import TOWN_SPLITS, split_towns  # noqa: E402
 from towndrive.sim.town import TownConfig  # noqa: E402
 from towndrive.sim.town_style import STYLES  # noqa: E402
@@ -67,13 +66,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="the agent pipelined: it perceives frame t while the simulator renders frame t+1 and acts a "
                          "frame late (AgentConfig.pipeline); its row is 'agent (pipelined)'")
     add_rule_arguments(ap)
-    ap.add_argument("--road-priors", default="classic", choices=["classic", "style"],
-                    help="the road design the agent assumes: the classic one, or the town style's (sim.road_priors)")
+    add_agent_variant_arguments(ap)
     ap.add_argument("--camera-raise-m", type=float, default=0.0,
                     help="mount the camera this much higher than the default rig (a different car)")
     ap.add_argument("--hfov-deg", type=float, default=None, help="the camera's horizontal field of view")
-    ap.add_argument("--signs", action="store_true",
-                    help="the agent with the sign-class detector and the sign reader (shipped beside the default)")
     ap.add_argument("--reuse", action="store_true",
                     help="take a driver's row from an earlier run in --out with the same settings instead of re-running")
     args = ap.parse_args(argv)
@@ -109,11 +105,9 @@ def main(argv: list[str] | None = None) -> int:
         label = f"{name} ({Path(model).stem})" if model else name
         kwargs: dict = {"model": Path(model)} if model else {}
         piped = args.pipeline and name == "agent"
-        if name == "agent" and args.road_priors == "style":
-            kwargs["road"] = road_priors(args.town_style)
-        if name == "agent" and args.signs:
-            kwargs.update(detector=DETECTOR_SIGNS_ONNX, sign_reader=SIGN_READER_ONNX)
-            label += " (signs)"
+        if name == "agent":
+            kwargs.update(agent_variant(args.town_style, args.road_priors, args.signs))
+            label += " (signs)" if args.signs else ""
         if name == "agent":
             # One worker process per core: each agent then keeps to its own core (the actions are the same).
             kwargs["stage_threads"] = 1 if args.workers > 1 or args.ray else 0

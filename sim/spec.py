@@ -160,6 +160,7 @@ class RoadDesign:
         check_number("road sign_plate_size_m", self.sign_plate_size_m, 0.2, 2.0)
         check_number("road sign_plate_height_m", self.sign_plate_height_m, 0.5, 6.0)
         check_number("road multi_lane_limit_kmh", self.multi_lane_limit_kmh, 5.0, 200.0)
+        check_number("road single_lane_limit_kmh", self.single_lane_limit_kmh, 5.0, 200.0)
         check_number("road zebra_to_centre_m", self.zebra_to_centre_m, 1.0, 40.0)
         check_number("road light_lateral_m", self.light_lateral_m, -20.0, 20.0)
         for name in ("left_turn_radius_m", "right_turn_radius_m"):
@@ -174,7 +175,6 @@ class RoadDesign:
         """Every place the design hangs a signal head: the mast arm of the scalar fields, then the others."""
         main = SignalMount(self.light_beyond_stop_line_m, self.light_lateral_m, self.signal_head_height_m)
         return (main, *self.other_signal_mounts)
-        check_number("road single_lane_limit_kmh", self.single_lane_limit_kmh, 5.0, 200.0)
 
 
 # The rules of the road as the world judges them and every driver obeys them (``sim.rules``, ``sim.traffic``, the

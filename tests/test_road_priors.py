@@ -195,7 +195,8 @@ def test_a_profile_sets_the_priors_their_spreads_and_the_signal_mounts_and_bad_o
     for bad, words in (({"other_signal_mounts": 3}, "must be a list"),
                        ({"other_signal_mounts": [{"height_m": "high"}]}, "height_m must be a number"),
                        ({"other_signal_mounts": [{"height_m": 50}]}, "height_m"),
-                       ({"left_turn_radius_m": -2}, "left_turn_radius_m")):
+                       ({"left_turn_radius_m": -2}, "left_turn_radius_m"),
+                       ({"single_lane_limit_kmh": 0}, "single_lane_limit_kmh")):
         with pytest.raises(ProfileError, match=words):
             profile_from_dict({"road": bad})
 

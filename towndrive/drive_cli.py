@@ -51,11 +51,7 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
                    help="agent: threads for a frame's independent stages: 1 one after another, 2 on two cores, 0 the "
                         "faster of the two, timed now and then (default; 1 with --workers or --ray: one core per "
                         "worker); the actions are the same")
-    p.add_argument("--road-priors", default="classic", choices=["classic", "style"],
-                   help="agent: the road design it assumes, the classic towns' or the --town-style's (measured on "
-                        "its training towns)")
-    p.add_argument("--signs", action="store_true",
-                   help="agent: the detector with the road-sign classes and the sign reader (stop, yield, limits)")
+    add_agent_variant_arguments(p)
     p.add_argument("--pipeline", action="store_true",
                    help="agent: perceive frame t while the simulator renders frame t+1, acting a frame late")
     p.add_argument("--profile", default=None, metavar="NAME",
@@ -118,6 +114,29 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
     p.add_argument("--side-cameras", action="store_true",
                    help="record: also store left and right side cameras (0.6 m off centre) for PilotNet training")
     return p.parse_args(argv)
+
+
+def add_agent_variant_arguments(p: argparse.ArgumentParser) -> None:
+    """The agent's road design and sign detector as flags (here and in ``bench/compare_drivers.py``)."""
+    p.add_argument("--road-priors", default="classic", choices=["classic", "style"],
+                   help="agent: the road design it assumes, the classic towns' or the --town-style's (measured on "
+                        "its training towns, sim.road_priors)")
+    p.add_argument("--signs", action="store_true",
+                   help="agent: the detector with the road-sign classes and the sign reader (stop, yield, limits)")
+
+
+def agent_variant(town_style: str, road_priors_name: str, signs: bool) -> dict[str, Any]:
+    """The agent's keyword arguments for ``--road-priors`` and ``--signs``."""
+    kwargs: dict[str, Any] = {}
+    if road_priors_name == "style":
+        from towndrive.sim.road_priors import road_priors
+
+        kwargs["road"] = road_priors(town_style)
+    if signs:
+        from towndrive.agent.shipped import DETECTOR_SIGNS_ONNX, SIGN_READER_ONNX
+
+        kwargs.update(detector=DETECTOR_SIGNS_ONNX, sign_reader=SIGN_READER_ONNX)
+    return kwargs
 
 
 def check_args(args: argparse.Namespace) -> None:
@@ -250,14 +269,7 @@ def driver_spec(args: argparse.Namespace) -> Any:
     threads, pipeline = getattr(args, "threads", None), getattr(args, "pipeline", False)
     road, signs = getattr(args, "road_priors", "classic"), getattr(args, "signs", False)
     if args.driver == "agent":
-        if road == "style":
-            from towndrive.sim.road_priors import road_priors
-
-            kwargs["road"] = road_priors(args.town_style)
-        if signs:
-            from towndrive.agent.shipped import DETECTOR_SIGNS_ONNX, SIGN_READER_ONNX
-
-            kwargs.update(detector=DETECTOR_SIGNS_ONNX, sign_reader=SIGN_READER_ONNX)
+        kwargs.update(agent_variant(args.town_style, road, signs))
     elif road != "classic" or signs:
         raise ValueError(f"--road-priors and --signs are for the agent driver, not {args.driver}.")
     if args.driver == "agent":

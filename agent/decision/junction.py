@@ -19,7 +19,7 @@ from functools import lru_cache
 import numpy as np
 
 from towndrive.agent.decision.odometry import Odometry
-from towndrive.agent.decision.priors import fused
+from towndrive.agent.decision.priors import fused, junction_widening_m
 from towndrive.agent.decision.stop_line_track import StopLineTrack
 from towndrive.agent.perception.stop_line import StopLine
 from towndrive.sim.spec import ROAD, VEHICLE, RoadDesign
@@ -101,7 +101,7 @@ class JunctionGuidance:
         across it; None when this does not apply."""
         line, cfg, odo = self.line, self.rules, self.odo
         # the configured hold is for the classic design; a wider junction (a longer setback) is held longer
-        hold_m = cfg.junction_hold_m + 2.0 * (self.setback_m - ROAD.stop_line_setback_m)
+        hold_m = cfg.junction_hold_m + junction_widening_m(self.setback_m)
         inside = line.ignore_light_m > line.junction_ignore_m - hold_m
         if command != 3 or not inside or odo.road_yaw is None:
             return None

@@ -8,6 +8,8 @@ does not move with measurement noise.
 
 from __future__ import annotations
 
+from towndrive.sim.spec import ROAD
+
 
 def fused(prior: float, prior_sd: float, measured: float | None, measured_sd: float) -> float:
     """The prior corrected by the measurement, each weighted by its inverse variance; a prior with no spread is
@@ -16,3 +18,9 @@ def fused(prior: float, prior_sd: float, measured: float | None, measured_sd: fl
         return prior
     wp, wm = 1.0 / prior_sd ** 2, 1.0 / max(measured_sd, 1e-3) ** 2
     return (wp * prior + wm * measured) / (wp + wm)
+
+
+def junction_widening_m(setback_m: float) -> float:
+    """How much wider a junction whose stop bars stand ``setback_m`` from its centre is than the classic design's,
+    along the approach (both sides): the agent's distances inside a junction are configured for the classic one."""
+    return 2.0 * (setback_m - ROAD.stop_line_setback_m)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from towndrive.agent.decision.priors import junction_widening_m
 from towndrive.sim.spec import ROAD, RoadDesign
 
 if TYPE_CHECKING:
@@ -56,7 +57,7 @@ class StopLineTrack:
         """Travel past a stop line during which lights are ignored: the configured distance is for the classic
         design's junctions; a design whose stop bars stand farther from the centre adds the difference on both
         sides (its junctions are that much wider)."""
-        return self.config.junction_ignore_m + 2.0 * (self.road.stop_line_setback_m - ROAD.stop_line_setback_m)
+        return self.config.junction_ignore_m + junction_widening_m(self.road.stop_line_setback_m)
 
     def reset(self) -> None:
         self.stop_line: float | None = None  # bumper to the stop line, metres
