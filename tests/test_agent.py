@@ -156,6 +156,39 @@ def test_a_car_wholly_beside_the_axis_is_placed_by_its_far_corner_not_nearer() -
     assert obj.lateral_right_m == pytest.approx(driver.geometry.lateral(moving.box[2], obj.distance_m))
 
 
+def car_across_box(geo: BoxGeometry, inner_m: float, near_m: float, length_m: float = 4.5,
+                   width_m: float = 1.9) -> np.ndarray:
+    """The box of a 1.5 m tall car standing across our axis, wholly left of it, its side towards us: near side
+    at ``near_m`` spanning ``inner_m`` to ``inner_m + length_m`` left; the right box edge from its far inner corner."""
+    (u_out, v_bottom), = geo.birdseye.image_of_ground(np.array([-(inner_m + length_m)]), np.array([near_m]))
+    (u_in, _), = geo.birdseye.image_of_ground(np.array([-inner_m]), np.array([near_m + width_m]))
+    return np.array([u_out, v_bottom - geo.f * 1.5 / near_m, u_in, v_bottom])
+
+
+@needs_models
+def test_a_car_parked_lengthwise_is_placed_by_its_length_and_one_across_by_its_width() -> None:
+    """The box's width tells a car standing lengthwise (parked at the kerb) from one standing across: the first
+    is read its length beyond its near face, so a parked car 1.2 m beside the axis is no longer put in our
+    1.3 m corridor (read by its width it was 0.3 m nearer); one across is read by its width, never beyond it."""
+    from towndrive.agent.drivers import make_driver
+    from towndrive.agent.perception.classes import CLASSES
+    from towndrive.agent.perception.tracking import Track
+    from towndrive.envs.drive_env import DriveConfig
+
+    driver = make_driver("agent")
+    half = driver.controller.config.path_half_width_m
+    for make, inner, near in ((car_beside_box, 1.4, 5.0), (car_beside_box, 1.4, 9.0), (car_across_box, 1.4, 9.0)):
+        driver.reset(SimpleNamespace(config=DriveConfig()))
+        box = make(driver.geometry, inner_m=inner, near_m=near)
+        track = Track(3, box, hits=10, age=10, time_since_update=0, label=CLASSES.index("car"))
+        for k in range(8):  # standing still for 0.35 s
+            obj = driver.stages.objects.update([track], 0.05 * k, None)[0]
+        assert obj.lateral_right_m >= -inner - 0.05  # never beyond the truth
+        if make is car_beside_box:
+            assert obj.lateral_right_m <= -half  # clear of the corridor
+            assert obj.lateral_right_m == pytest.approx(-inner, abs=0.1)
+
+
 @needs_models
 def test_a_pedestrian_box_too_small_for_where_it_stands_is_no_person() -> None:
     from towndrive.agent.drivers import make_driver

@@ -20,6 +20,9 @@ HEIGHT_PRIOR_M = {"car": 1.5, "truck": 2.8, "pedestrian": 1.75}
 # The least depth a vehicle shows, whatever its yaw: its width (depth = L|sin| + W|cos| >= W). A vehicle wholly
 # to one side of the camera axis draws its inner box edge from its far side, not from its near face.
 DEPTH_PRIOR_M = {"car": 1.9, "truck": 2.3}
+# Typical lengths, on the short side (a shorter length puts the inner edge nearer our path): the depth a vehicle
+# shows when it stands lengthwise along the camera axis (parked at the kerb, waiting in the next lane).
+LENGTH_PRIOR_M = {"car": 4.3, "truck": 6.5}
 
 
 def at_side_edge(box: tuple[float, float, float, float] | np.ndarray, width_px: int, margin_px: float = 0.5) -> bool:
@@ -74,6 +77,30 @@ class BoxGeometry:
         if not math.isfinite(z) or z <= 0:
             return math.nan
         return z * (y1 - y0) / (self.f * HEIGHT_PRIOR_M.get(kind, 1.5))
+
+    def lengthwise(self, box: np.ndarray | tuple[float, ...], z_m: float, kind: str) -> bool:
+        """Whether a vehicle wholly to one side of the camera axis stands lengthwise along it rather than across.
+
+        Its outer box edge comes from its near outer corner (at ``z_m``), its inner edge from its far inner corner,
+        a depth D beyond. Seen lengthwise, D is its length and its lateral extent its width; seen across, the
+        other way round. The box's width at ``z_m`` is then ``a D + E`` (``a``: the inner edge's ray, lateral
+        metres per metre of depth; E: the lateral extent), and the two hypotheses predict ``a L + W`` and
+        ``a W + L``: the nearer one wins. A yawed vehicle lies between and counts as across (the nearer inner
+        edge). A box cut by the image's side edge is not judged (its outer edge is not the vehicle's)."""
+        if kind not in LENGTH_PRIOR_M or at_side_edge(box, self.camera.width):
+            return False
+        cx = float(self.k[0, 2])
+        x0, x2 = float(box[0]), float(box[2])
+        if x0 > cx:
+            inner, outer = x0 - cx, x2 - cx
+        elif x2 < cx:
+            inner, outer = cx - x2, cx - x0
+        else:
+            return False
+        a = inner / self.f
+        apparent = (outer - inner) / self.f * z_m
+        length, width = LENGTH_PRIOR_M[kind], DEPTH_PRIOR_M[kind]
+        return apparent < 0.5 * ((a * length + width) + (a * width + length))
 
     def lateral(self, u_px: float, z_m: float) -> float:
         """Metres right of the camera axis of image column ``u_px`` at forward distance ``z_m``."""

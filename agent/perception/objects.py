@@ -3,8 +3,9 @@
 Each SORT track of a vehicle or person becomes a ``PerceivedObject`` in the camera's ground frame: its distance
 from box geometry (or stereo, near), its lateral extent, and its closing and lateral speeds from a least-squares
 fit over the track's last second. A vehicle standing wholly to one side of the camera axis and not moving
-sideways draws its inner box edge from its far side: that edge is read at least the vehicle's width beyond its
-near face (a car waiting in the oncoming lane is not in our path).
+sideways draws its inner box edge from its far side: that edge is read the vehicle's depth beyond its near face,
+its length when the box's width says it stands lengthwise (parked at the kerb), else its width (a car waiting in
+the oncoming lane is not in our path, and a parked one is as far from it as it is).
 
 What is easy to fake is marked unconfirmed (the controller stands for it only for a bounded time): a track the
 detector missed this frame (SORT coasting), and a person seen only at the image's side edge. A real person at
@@ -22,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from towndrive.agent.perception.box_geometry import DEPTH_PRIOR_M, BoxGeometry, at_side_edge
+from towndrive.agent.perception.box_geometry import DEPTH_PRIOR_M, LENGTH_PRIOR_M, BoxGeometry, at_side_edge
 from towndrive.agent.perception.classes import CLASSES
 from towndrive.agent.perception.tracking import Track
 
@@ -87,6 +88,7 @@ class ObjectEstimator:
         self._history: dict[int, deque[tuple[float, float, float]]] = {}
         self._whole_at: dict[int, float] = {}  # track id -> when a person's track was last seen whole
         self._standing_unconfirmed: dict[int, int] = {}  # track id -> frames in a row unconfirmed, the car standing
+        self._lengthwise: set[int] = set()  # still vehicles' tracks last judged lengthwise along the camera axis
         self.expired: set[int] = set()  # this frame's tracks dropped for that (UNCONFIRMED_STANDING_FRAMES)
         self.edge_only: set[int] = set()  # this frame's people seen only at the image's side edge
 
@@ -129,13 +131,21 @@ class ObjectEstimator:
                 closing = -float((tt * (arr[:, 1] - arr[:, 1].mean())).sum()) / denom
                 lateral = float((tt * (arr[:, 2] - arr[:, 2].mean())).sum()) / denom
             if kind in DEPTH_PRIOR_M and known and abs(lateral) < rules.still_lateral_mps:
-                # Wholly to one side: the inner edge's ray meets the vehicle at least its width beyond the near
-                # face (exact for a crossing car, still conservative for one alongside, which shows its length).
+                # Wholly to one side: the inner edge's ray meets the vehicle its depth beyond the near face: its
+                # length if it stands lengthwise (judged on a whole box, and remembered for the track while its
+                # box is cut, as it does not turn while still), else its width (the least depth it can show).
+                if geometry.lengthwise(box, z, kind):
+                    self._lengthwise.add(tr.track_id)
+                elif not at_side_edge(box, geometry.camera.width):
+                    self._lengthwise.discard(tr.track_id)
+                depth_m = (LENGTH_PRIOR_M if tr.track_id in self._lengthwise else DEPTH_PRIOR_M)[kind]
                 cx = float(geometry.k[0, 2])
                 if box[0] > cx:
-                    xl = geometry.lateral(box[0], z + DEPTH_PRIOR_M[kind])
+                    xl = geometry.lateral(box[0], z + depth_m)
                 elif box[2] < cx:
-                    xr = geometry.lateral(box[2], z + DEPTH_PRIOR_M[kind])
+                    xr = geometry.lateral(box[2], z + depth_m)
+            else:
+                self._lengthwise.discard(tr.track_id)
             confirmed = self._confirmed(tr, kind, t)
             # Confirmed by a detection this frame: matched, and a person's box clear of the side edges (seen
             # whole lately is not enough here: standing, the same cut box comes back frame after frame).
@@ -161,6 +171,7 @@ class ObjectEstimator:
         for tid in list(self._whole_at):
             if tid not in alive:
                 del self._whole_at[tid]
+        self._lengthwise &= alive
         return out
 
     def _confirmed(self, track: Track, kind: str, t: float) -> bool:
