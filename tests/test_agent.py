@@ -190,6 +190,33 @@ def test_a_car_parked_lengthwise_is_placed_by_its_length_and_one_across_by_its_w
 
 
 @needs_models
+def test_a_parked_car_passed_at_3_mps_stays_still_and_beside_the_corridor() -> None:
+    """Nearing a parked car, its box grows towards the image's edge and is then cut by it; read at its near face,
+    the box's centre drifted towards our axis at about half a metre a second, so the car looked as if it pulled
+    out and was read at its near face (in our corridor). Followed by its far inner corner it stays put."""
+    from towndrive.agent.drivers import make_driver
+    from towndrive.agent.perception.classes import CLASSES
+    from towndrive.agent.perception.tracking import Track
+    from towndrive.envs.drive_env import DriveConfig
+
+    driver = make_driver("agent")
+    driver.reset(SimpleNamespace(config=DriveConfig()))
+    geo, half = driver.geometry, driver.controller.config.path_half_width_m
+    width = geo.camera.width
+    cut = False
+    for k in range(45):  # 2.25 s at 3 m/s: from 9 m to 2.4 m
+        box = car_beside_box(geo, inner_m=1.6, near_m=9.0 - 0.15 * k)
+        cut = cut or box[0] < 0
+        box = np.clip(box, 0.0, [width - 1, geo.camera.height - 1, width - 1, geo.camera.height - 1])
+        track = Track(5, box, hits=10, age=10, time_since_update=0, label=CLASSES.index("car"))
+        obj = driver.stages.objects.update([track], 0.05 * k, None, speed_mps=3.0)[0]
+        if k >= 8:
+            assert abs(obj.lateral_speed_mps) < 0.3, k
+            assert -1.6 - 0.1 <= obj.lateral_right_m <= -half, (k, obj.lateral_right_m)
+    assert cut  # the last boxes were cut by the image's edge
+
+
+@needs_models
 def test_a_pedestrian_box_too_small_for_where_it_stands_is_no_person() -> None:
     from towndrive.agent.drivers import make_driver
     from towndrive.agent.perception.classes import CLASSES

@@ -75,6 +75,12 @@ class ObjectRules:
     stereo_max_m: float = 15.0  # beyond this stereo disparity is too small: use geometry
 
 
+def slope(t: list[float], v: list[float]) -> float:
+    """The least-squares rate of change of ``v`` over times ``t``."""
+    tt = np.asarray(t) - np.mean(t)
+    return float((tt * (np.asarray(v) - np.mean(v))).sum() / (tt ** 2).sum())
+
+
 class ObjectEstimator:
     """Tracks in, ``PerceivedObject`` out (module docstring); keeps each track's recent history."""
 
@@ -85,7 +91,7 @@ class ObjectEstimator:
         self.reset()
 
     def reset(self) -> None:
-        self._history: dict[int, deque[tuple[float, float, float]]] = {}
+        self._history: dict[int, deque[tuple[float, float, float, tuple[int, float]]]] = {}  # t, z, x, what x is
         self._whole_at: dict[int, float] = {}  # track id -> when a person's track was last seen whole
         self._standing_unconfirmed: dict[int, int] = {}  # track id -> frames in a row unconfirmed, the car standing
         self._lengthwise: set[int] = set()  # still vehicles' tracks last judged lengthwise along the camera axis
@@ -117,35 +123,40 @@ class ObjectEstimator:
             if not math.isfinite(z) or z <= 0:
                 continue
             xl, xr = geometry.lateral(box[0], z), geometry.lateral(box[2], z)
+            # A vehicle wholly to one side is followed by its inner edge where its far inner corner stands (its
+            # depth beyond the near face): that point stays put while a still vehicle's box grows and is cut as
+            # we near it, where the box's centre read at the near face drifts towards our axis (half a metre a
+            # second, passing a parked car at 3 m/s) and made it look as if it were pulling out.
+            cx = float(geometry.k[0, 2])
+            side = (1 if box[0] > cx else -1 if box[2] < cx else 0) if kind in DEPTH_PRIOR_M else 0
+            if side and not at_side_edge(box, geometry.camera.width):  # judged on a whole box, kept while cut
+                if geometry.lengthwise(box, z, kind):
+                    self._lengthwise.add(tr.track_id)
+                else:
+                    self._lengthwise.discard(tr.track_id)
+            depth_m = (LENGTH_PRIOR_M if tr.track_id in self._lengthwise else DEPTH_PRIOR_M).get(kind, 0.0)
+            inner = geometry.lateral(box[0] if side > 0 else box[2], z + depth_m) if side else 0.5 * (xl + xr)
+            mode = (side, depth_m)
             hist = self._history.setdefault(tr.track_id, deque())
-            hist.append((t, z, 0.5 * (xl + xr)))
+            hist.append((t, z, inner, mode))
             while hist and hist[0][0] < t - rules.history_s:
                 hist.popleft()
             alive.add(tr.track_id)
             closing, lateral = 0.0, 0.0
             known = len(hist) >= 4 and hist[-1][0] - hist[0][0] >= 0.2  # enough history for speeds
+            same = [h for h in hist if h[3] == mode]  # lateral motion only from readings of the same point
+            known_lateral = len(same) >= 4 and same[-1][0] - same[0][0] >= 0.2
             if known:
-                arr = np.array(hist)
-                tt = arr[:, 0] - arr[:, 0].mean()
-                denom = float((tt ** 2).sum())
-                closing = -float((tt * (arr[:, 1] - arr[:, 1].mean())).sum()) / denom
-                lateral = float((tt * (arr[:, 2] - arr[:, 2].mean())).sum()) / denom
-            if kind in DEPTH_PRIOR_M and known and abs(lateral) < rules.still_lateral_mps:
-                # Wholly to one side: the inner edge's ray meets the vehicle its depth beyond the near face: its
-                # length if it stands lengthwise (judged on a whole box, and remembered for the track while its
-                # box is cut, as it does not turn while still), else its width (the least depth it can show).
-                if geometry.lengthwise(box, z, kind):
-                    self._lengthwise.add(tr.track_id)
-                elif not at_side_edge(box, geometry.camera.width):
-                    self._lengthwise.discard(tr.track_id)
-                depth_m = (LENGTH_PRIOR_M if tr.track_id in self._lengthwise else DEPTH_PRIOR_M)[kind]
-                cx = float(geometry.k[0, 2])
-                if box[0] > cx:
-                    xl = geometry.lateral(box[0], z + depth_m)
-                elif box[2] < cx:
-                    xr = geometry.lateral(box[2], z + depth_m)
-            else:
-                self._lengthwise.discard(tr.track_id)
+                closing = -slope([h[0] for h in hist], [h[1] for h in hist])
+            if known_lateral:
+                lateral = slope([h[0] for h in same], [h[2] for h in same])
+            if side and known_lateral and abs(lateral) < rules.still_lateral_mps:
+                # Still and wholly to one side: its inner edge is where the far inner corner stands (lengthwise:
+                # its length beyond the near face; else its width, the least depth a vehicle can show).
+                if side > 0:
+                    xl = inner
+                else:
+                    xr = inner
             confirmed = self._confirmed(tr, kind, t)
             # Confirmed by a detection this frame: matched, and a person's box clear of the side edges (seen
             # whole lately is not enough here: standing, the same cut box comes back frame after frame).
