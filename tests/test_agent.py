@@ -128,6 +128,15 @@ def car_beside_box(geo: BoxGeometry, inner_m: float, near_m: float, length_m: fl
     return np.array([u_out, v_bottom - geo.f * 1.5 / near_m, u_in, v_bottom])
 
 
+def car_across_box(geo: BoxGeometry, inner_m: float, near_m: float, length_m: float = 4.5,
+                   width_m: float = 1.9) -> np.ndarray:
+    """The box of a 1.5 m tall car standing across our axis, wholly left of it, its side towards us: near side
+    at ``near_m`` spanning ``inner_m`` to ``inner_m + length_m`` left; the right box edge from its far inner corner."""
+    (u_out, v_bottom), = geo.birdseye.image_of_ground(np.array([-(inner_m + length_m)]), np.array([near_m]))
+    (u_in, _), = geo.birdseye.image_of_ground(np.array([-inner_m]), np.array([near_m + width_m]))
+    return np.array([u_out, v_bottom - geo.f * 1.5 / near_m, u_in, v_bottom])
+
+
 @needs_models
 def test_a_car_wholly_beside_the_axis_is_placed_by_its_far_corner_not_nearer() -> None:
     from towndrive.agent.drivers import make_driver
@@ -143,26 +152,19 @@ def test_a_car_wholly_beside_the_axis_is_placed_by_its_far_corner_not_nearer() -
     half = driver.controller.config.path_half_width_m
     assert naive > -half  # read at its near face, the car 2.5 m to our left would be in our 1.3 m corridor
     first = driver.stages.objects.update([track], 0.0, None)[0]
-    assert first.lateral_right_m == pytest.approx(naive)  # no history yet: it might be moving sideways
+    # no history yet: its box's shape says it stands lengthwise, and it is read by its length at once
+    assert -2.5 - 0.1 <= first.lateral_right_m <= -half - 0.3
     for k in range(1, 8):  # standing still for 0.35 s
         obj = driver.stages.objects.update([track], 0.05 * k, None)[0]
     assert -2.5 - 0.1 <= obj.lateral_right_m <= -half - 0.3  # clear of the corridor, never beyond the truth
-    # the same box drifting sideways towards us keeps the conservative near-face reading
+    # a car standing across, its box drifting sideways towards us, keeps the conservative near-face reading
     driver.reset(SimpleNamespace(config=DriveConfig()))
-    for k in range(8):
-        moving = Track(8, box + np.array([4.0 * k, 0, 4.0 * k, 0]), hits=10, age=10, time_since_update=0,
+    across = car_across_box(driver.geometry, inner_m=2.5, near_m=8.0)
+    for k in range(13):
+        moving = Track(8, across + np.array([2.5 * k, 0, 2.5 * k, 0]), hits=10, age=10, time_since_update=0,
                        label=CLASSES.index("car"))
         obj = driver.stages.objects.update([moving], 0.05 * k, None)[0]
     assert obj.lateral_right_m == pytest.approx(driver.geometry.lateral(moving.box[2], obj.distance_m))
-
-
-def car_across_box(geo: BoxGeometry, inner_m: float, near_m: float, length_m: float = 4.5,
-                   width_m: float = 1.9) -> np.ndarray:
-    """The box of a 1.5 m tall car standing across our axis, wholly left of it, its side towards us: near side
-    at ``near_m`` spanning ``inner_m`` to ``inner_m + length_m`` left; the right box edge from its far inner corner."""
-    (u_out, v_bottom), = geo.birdseye.image_of_ground(np.array([-(inner_m + length_m)]), np.array([near_m]))
-    (u_in, _), = geo.birdseye.image_of_ground(np.array([-inner_m]), np.array([near_m + width_m]))
-    return np.array([u_out, v_bottom - geo.f * 1.5 / near_m, u_in, v_bottom])
 
 
 @needs_models

@@ -35,6 +35,8 @@ TRACKED = ("car", "truck", "pedestrian")
 # of the same track makes it an ordinary object again.
 UNCONFIRMED_STANDING_FRAMES = 40  # 2 s at the 20 Hz step
 STANDING_MPS = 0.5  # the car stands below this speed (as the controller's standstill_mps)
+SIDE_LATERAL_SPAN_S = 0.5  # history over which a vehicle beside us is judged moving sideways or not
+STILL_ALONG_MPS = 1.5  # a vehicle beside us whose fitted speed along our axis is under this is taken as standing
 
 
 @dataclass
@@ -136,23 +138,38 @@ class ObjectEstimator:
                     self._lengthwise.discard(tr.track_id)
             depth_m = (LENGTH_PRIOR_M if tr.track_id in self._lengthwise else DEPTH_PRIOR_M).get(kind, 0.0)
             inner = geometry.lateral(box[0] if side > 0 else box[2], z + depth_m) if side else 0.5 * (xl + xr)
+            bearing = geometry.lateral(box[0] if side > 0 else box[2], 1.0)  # the inner edge's ray, m per m
             mode = (side, depth_m)
             hist = self._history.setdefault(tr.track_id, deque())
-            hist.append((t, z, inner, mode))
+            hist.append((t, z, inner if not side else bearing, mode))
             while hist and hist[0][0] < t - rules.history_s:
                 hist.popleft()
             alive.add(tr.track_id)
             closing, lateral = 0.0, 0.0
             known = len(hist) >= 4 and hist[-1][0] - hist[0][0] >= 0.2  # enough history for speeds
             same = [h for h in hist if h[3] == mode]  # lateral motion only from readings of the same point
-            known_lateral = len(same) >= 4 and same[-1][0] - same[0][0] >= 0.2
+            # a side vehicle's bearing moves a pixel or two in 0.2 s at 7 m/s, as much as the box's edge jitters:
+            # its sideways motion is judged over half a second
+            known_lateral = len(same) >= 4 and same[-1][0] - same[0][0] >= (SIDE_LATERAL_SPAN_S if side else 0.2)
             if known:
                 closing = -slope([h[0] for h in hist], [h[1] for h in hist])
-            if known_lateral:
+            if known_lateral and side:
+                # x = bearing x depth, so dx/dt = d(bearing)/dt x depth + bearing x d(depth)/dt. The bearing is
+                # read to a pixel; the depth's own change is our speed for a vehicle standing along our axis
+                # (a box's distance wanders by a metre while we near it at 7 m/s: differentiated, that reads as
+                # a vehicle moving sideways), else its fitted closing speed.
+                along = speed_mps - closing if math.isfinite(speed_mps) else math.inf
+                approach = speed_mps if abs(along) < STILL_ALONG_MPS else closing
+                lateral = slope([h[0] for h in same], [h[2] for h in same]) * (z + depth_m) - bearing * approach
+            elif known_lateral:
                 lateral = slope([h[0] for h in same], [h[2] for h in same])
-            if side and known_lateral and abs(lateral) < rules.still_lateral_mps:
-                # Still and wholly to one side: its inner edge is where the far inner corner stands (lengthwise:
-                # its length beyond the near face; else its width, the least depth a vehicle can show).
+            still = known_lateral and abs(lateral) < rules.still_lateral_mps
+            if side and (still or tr.track_id in self._lengthwise):
+                # Wholly to one side: its inner edge is where the far inner corner stands. Lengthwise, its length
+                # beyond the near face, from the first frame and moving or not: the box's shape tells it, and a
+                # car along our axis cannot move sideways faster than its yaw lets it (a cutting-in car's far
+                # inner corner is its nose, the nearest point to our path). Standing across, once seen still,
+                # its width (the least depth a vehicle can show); one moving across keeps the near face.
                 if side > 0:
                     xl = inner
                 else:
