@@ -115,6 +115,7 @@ class AgentConfig:
     turn_lookahead_m: float = 3.5  # pure pursuit of the arc from the rear axle (as the autopilot follows lanes):
     turn_lookahead_s: float = 0.4  # lookahead = this + turn_lookahead_s x speed
     turn_bar_seen_m: float = 12.0  # a turn is placed only by a stop bar seen this near
+    turn_handover_deg: float = 60.0  # with a design that spreads, the camera's steering finishes the turn from here
     road_min_confidence: float = 0.25  # a lane fit this sure measures the approach lane
     road_clear_m: float = 8.0  # the approach lane is measured only while the stop line is farther than this
     #                            (close to it, the crosswalk's stripes look like lane lines)
@@ -272,7 +273,7 @@ class AgentDriver:
         odometry = Odometry(cfg.straight_steer, cfg.road_min_confidence, cfg.road_clear_m)
         junction = JunctionGuidance(JunctionRules(
             cfg.junction_hold_m, cfg.hold_heading_gain, cfg.hold_offset_gain, cfg.hold_max_steer, cfg.turn_guidance,
-            cfg.turn_lookahead_m, cfg.turn_lookahead_s, cfg.turn_bar_seen_m),
+            cfg.turn_lookahead_m, cfg.turn_lookahead_s, cfg.turn_bar_seen_m, cfg.turn_handover_deg),
             self.controller.line, odometry, camera.mount_forward_m, cfg.road)
         mirror = BoxGeometry(self._mirror_camera, cfg.row_sigma_px, cfg.prior_sigma)
         return Stages(

@@ -139,6 +139,31 @@ def test_the_junction_guidance_corrects_its_setback_and_lane_width_by_what_is_me
     assert classic.setback_m == ROAD.stop_line_setback_m and classic.lane_width_m == ROAD.lane_width_m
 
 
+def test_with_a_design_that_spreads_the_camera_finishes_the_turn_and_with_an_exact_one_the_arc_does() -> None:
+    """Past ``turn_handover_deg`` of heading change the turn arc lets go (PilotNet steers) where the design's numbers
+    are priors with a spread; the classic design's exact arc leads on."""
+    from types import SimpleNamespace
+
+    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
+    from towndrive.agent.perception.stop_line import StopLine
+
+    def steer_at(road, yaw_deg: float) -> float | None:
+        line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
+                               config=SimpleNamespace(camera_to_front_m=2.0))
+        odo = SimpleNamespace(road_yaw=0.0, pos=np.zeros(2), road_offset=0.0, yaw=0.0)
+        g = JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
+        g.note(StopLine(8.0, 0.5, 0.9, 0))
+        odo.pos = np.array([11.0, 0.0])  # at the bar: the right turn begins
+        assert g.turn_steer(2, 3.0) is not None
+        along = g.setback_m - 0.3 * g.lane_width_m  # inside the arc, turned by yaw_deg
+        odo.pos, odo.yaw = np.array([11.0 + 0.6 * along, 0.4 * along]), math.radians(yaw_deg)
+        return g.turn_steer(2, 3.0)
+
+    assert steer_at(road_priors("downtown"), 45.0) is not None
+    assert steer_at(road_priors("downtown"), 65.0) is None  # facing the road turned into: the camera steers
+    assert steer_at(ROAD, 65.0) is not None
+
+
 def _head_box(camera, x_m: float, z_m: float, height_m: float) -> tuple[float, float, float, float]:
     """The box a three-lamp head (0.84 m wide, 2.1 m tall) at (x right, z ahead of the camera, centre height) draws."""
     theta = math.radians(-camera.pitch_deg)

@@ -8,6 +8,9 @@ lane measured before it. How far the lane turned into lies beyond the bar is the
 ``sim.spec.RoadDesign``), corrected by where the zebra beyond the bar ends: the zebra's far edge lies a cross
 street's half width and a kerb gap before the junction's centre, which spreads less between junctions than the
 setback does. The lane offset is the lane width the lane finder measured, where the design lets widths differ.
+Where the design's numbers spread, the arc still misses the lane turned into by a metre or two at its end (the
+radius and the exit lane are not measured), so it leads the turn only until the car faces the road turned into
+(``turn_handover_deg``); PilotNet, which sees that road, finishes it. An exact design's arc leads to the end.
 """
 
 from __future__ import annotations
@@ -66,6 +69,9 @@ class JunctionRules:
     turn_lookahead_m: float = 3.5  # pure pursuit of the arc from the rear axle: lookahead = this + s x speed
     turn_lookahead_s: float = 0.4
     turn_bar_seen_m: float = 12.0  # a turn is placed only by a stop bar seen this near
+    # With a design whose numbers spread, the arc (dead-reckoned from priors) leads the turn only this far; the
+    # camera's steering finishes it, facing the road turned into. An exact design's arc leads to the end.
+    turn_handover_deg: float = 60.0
 
 
 class JunctionGuidance:
@@ -91,6 +97,11 @@ class JunctionGuidance:
         # the stop bar ahead (x, y, road yaw) and the command of the turn once it has begun (0: not yet)
         self.junction: tuple[float, float, float, int] | None = None
         self._zebra_m: list[float] = []  # bar's far edge to the zebra's far edge, as measured at this junction
+
+    @property
+    def design_spreads(self) -> bool:
+        """Whether the road design's turn numbers are priors with a spread (the arc is then only as good as they)."""
+        return self.road.stop_line_setback_sd_m > 0 or self.road.lane_width_sd_m > 0
 
     @property
     def placed(self) -> bool:
@@ -163,6 +174,9 @@ class JunctionGuidance:
                                   self.road.stop_bar_depth_m, radius)
         lookahead = cfg.turn_lookahead_m + cfg.turn_lookahead_s * speed
         if here[0] < self.road.stop_bar_depth_m - lookahead:  # not yet: the lookahead point is still before the arc
+            return None
+        if started and self.design_spreads and abs(heading) > math.radians(cfg.turn_handover_deg):
+            self.forget()  # facing the road turned into: the camera's steering finishes the turn
             return None
         step = float(np.hypot(*(path[1] - path[0])))
         nearest = int(np.argmin(np.sum((path - here) ** 2, axis=1)))
