@@ -192,6 +192,37 @@ def test_a_car_parked_lengthwise_is_placed_by_its_length_and_one_across_by_its_w
 
 
 @needs_models
+def test_a_car_standing_at_an_angle_to_our_axis_is_not_read_by_its_length() -> None:
+    """A car standing 40 degrees off our axis (one waiting in a junction we turn through) draws a box narrower than
+    either the lengthwise or the across hypothesis predicts; it is read the safe way, never beyond its nearest
+    corner (read by its length, such a car was placed 1.5 m out of our path and hit)."""
+    from towndrive.agent.drivers import make_driver
+    from towndrive.agent.perception.classes import CLASSES
+    from towndrive.agent.perception.tracking import Track
+    from towndrive.envs.drive_env import DriveConfig
+
+    driver = make_driver("agent")
+    driver.reset(SimpleNamespace(config=DriveConfig()))
+    geo = driver.geometry
+    yaw = math.radians(40.0)
+    along, across = np.array([math.sin(yaw), math.cos(yaw)]), np.array([math.cos(yaw), -math.sin(yaw)])
+    centre = np.array([-3.2, 8.5])  # (x right, z ahead) of the camera
+    corners = np.array([centre + sa * 2.25 * along + sb * 0.95 * across for sa in (-1, 1) for sb in (-1, 1)])
+    uv = geo.birdseye.image_of_ground(corners[:, 0], corners[:, 1])
+    z_near = float(corners[:, 1].min())
+    box = np.array([uv[:, 0].min(), uv[:, 1].max() - geo.f * 1.5 / z_near, uv[:, 0].max(), uv[:, 1].max()])
+    assert not geo.lengthwise(box, z_near, "car")
+    # boxes the detector drew: a car standing 40 degrees off our axis in a junction we turned through (6.9 m), too
+    # narrow for either hypothesis, and a car parked lengthwise at the kerb (7.6 m)
+    assert not geo.lengthwise(np.array([32.0, 65.0, 90.0, 97.0]), 6.9, "car")
+    assert geo.lengthwise(np.array([179.0, 64.0, 233.0, 95.0]), 7.6, "car")
+    track = Track(4, box, hits=10, age=10, time_since_update=0, label=CLASSES.index("car"))
+    for k in range(12):
+        obj = driver.stages.objects.update([track], 0.05 * k, None, speed_mps=0.0)[0]
+    assert obj.lateral_right_m >= float(corners[:, 0].max()) - 0.1  # not beyond its corner nearest our axis
+
+
+@needs_models
 def test_a_parked_car_passed_at_3_mps_stays_still_and_beside_the_corridor() -> None:
     """Nearing a parked car, its box grows towards the image's edge and is then cut by it; read at its near face,
     the box's centre drifted towards our axis at about half a metre a second, so the car looked as if it pulled

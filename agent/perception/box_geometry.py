@@ -23,6 +23,7 @@ DEPTH_PRIOR_M = {"car": 1.9, "truck": 2.3}
 # Typical lengths, on the short side (a shorter length puts the inner edge nearer our path): the depth a vehicle
 # shows when it stands lengthwise along the camera axis (parked at the kerb, waiting in the next lane).
 LENGTH_PRIOR_M = {"car": 4.3, "truck": 6.5}
+LENGTHWISE_TOLERANCE = 0.25  # a box this far (a fraction) from the lengthwise width is not judged lengthwise
 
 
 def at_side_edge(box: tuple[float, float, float, float] | np.ndarray, width_px: int, margin_px: float = 0.5) -> bool:
@@ -100,7 +101,10 @@ class BoxGeometry:
         a = inner / self.f
         apparent = (outer - inner) / self.f * z_m
         length, width = LENGTH_PRIOR_M[kind], DEPTH_PRIOR_M[kind]
-        return apparent < 0.5 * ((a * length + width) + (a * width + length))
+        along, across = a * length + width, a * width + length
+        # nearer the lengthwise prediction, and near it: a box far narrower than both (a car yawed well off our
+        # axis, as one standing in a junction we turn through) fits neither and is read the safe way
+        return apparent < 0.5 * (along + across) and abs(apparent - along) <= LENGTHWISE_TOLERANCE * along
 
     def lateral(self, u_px: float, z_m: float) -> float:
         """Metres right of the camera axis of image column ``u_px`` at forward distance ``z_m``."""

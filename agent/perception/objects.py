@@ -35,6 +35,7 @@ TRACKED = ("car", "truck", "pedestrian")
 # of the same track makes it an ordinary object again.
 UNCONFIRMED_STANDING_FRAMES = 40  # 2 s at the 20 Hz step
 STANDING_MPS = 0.5  # the car stands below this speed (as the controller's standstill_mps)
+LENGTHWISE_MEMORY_S = 1.0  # a lengthwise judgement is kept this long while the box is cut (we may be turning)
 SIDE_LATERAL_SPAN_S = 0.5  # history over which a vehicle beside us is judged moving sideways or not
 STILL_ALONG_MPS = 1.5  # a vehicle beside us whose fitted speed along our axis is under this is taken as standing
 
@@ -96,7 +97,7 @@ class ObjectEstimator:
         self._history: dict[int, deque[tuple[float, float, float, tuple[int, float]]]] = {}  # t, z, x, what x is
         self._whole_at: dict[int, float] = {}  # track id -> when a person's track was last seen whole
         self._standing_unconfirmed: dict[int, int] = {}  # track id -> frames in a row unconfirmed, the car standing
-        self._lengthwise: set[int] = set()  # still vehicles' tracks last judged lengthwise along the camera axis
+        self._lengthwise: dict[int, float] = {}  # track id -> when last judged lengthwise along the camera axis
         self.expired: set[int] = set()  # this frame's tracks dropped for that (UNCONFIRMED_STANDING_FRAMES)
         self.edge_only: set[int] = set()  # this frame's people seen only at the image's side edge
 
@@ -133,9 +134,11 @@ class ObjectEstimator:
             side = (1 if box[0] > cx else -1 if box[2] < cx else 0) if kind in DEPTH_PRIOR_M else 0
             if side and not at_side_edge(box, geometry.camera.width):  # judged on a whole box, kept while cut
                 if geometry.lengthwise(box, z, kind):
-                    self._lengthwise.add(tr.track_id)
+                    self._lengthwise[tr.track_id] = t
                 else:
-                    self._lengthwise.discard(tr.track_id)
+                    self._lengthwise.pop(tr.track_id, None)
+            if t - self._lengthwise.get(tr.track_id, -math.inf) > LENGTHWISE_MEMORY_S:
+                self._lengthwise.pop(tr.track_id, None)  # our own heading may have turned since
             depth_m = (LENGTH_PRIOR_M if tr.track_id in self._lengthwise else DEPTH_PRIOR_M).get(kind, 0.0)
             inner = geometry.lateral(box[0] if side > 0 else box[2], z + depth_m) if side else 0.5 * (xl + xr)
             bearing = geometry.lateral(box[0] if side > 0 else box[2], 1.0)  # the inner edge's ray, m per m
@@ -199,7 +202,7 @@ class ObjectEstimator:
         for tid in list(self._whole_at):
             if tid not in alive:
                 del self._whole_at[tid]
-        self._lengthwise &= alive
+        self._lengthwise = {tid: at for tid, at in self._lengthwise.items() if tid in alive}
         return out
 
     def _confirmed(self, track: Track, kind: str, t: float) -> bool:
