@@ -247,6 +247,9 @@ def test_a_parked_car_passed_at_3_mps_stays_still_and_beside_the_corridor() -> N
             assert abs(obj.lateral_speed_mps) < 0.3, k
             assert -1.6 - 0.1 <= obj.lateral_right_m <= -half, (k, obj.lateral_right_m)
     assert cut  # the last boxes were cut by the image's edge
+    for k in range(45, 145):  # then standing beside it for 5 s, its box cut: still read by its length
+        obj = driver.stages.objects.update([track], 0.05 * k, None, speed_mps=0.0)[0]
+    assert -1.6 - 0.1 <= obj.lateral_right_m <= -half
 
 
 @needs_models

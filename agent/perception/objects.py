@@ -35,7 +35,7 @@ TRACKED = ("car", "truck", "pedestrian")
 # of the same track makes it an ordinary object again.
 UNCONFIRMED_STANDING_FRAMES = 40  # 2 s at the 20 Hz step
 STANDING_MPS = 0.5  # the car stands below this speed (as the controller's standstill_mps)
-LENGTHWISE_MEMORY_S = 1.0  # a lengthwise judgement is kept this long while the box is cut (we may be turning)
+LENGTHWISE_MEMORY_S = 1.0  # a lengthwise judgement is kept this long of driving while the box is cut (we may turn)
 SIDE_LATERAL_SPAN_S = 0.5  # history over which a vehicle beside us is judged moving sideways or not
 STILL_ALONG_MPS = 1.5  # a vehicle beside us whose fitted speed along our axis is under this is taken as standing
 
@@ -137,7 +137,9 @@ class ObjectEstimator:
                     self._lengthwise[tr.track_id] = t
                 else:
                     self._lengthwise.pop(tr.track_id, None)
-            if t - self._lengthwise.get(tr.track_id, -math.inf) > LENGTHWISE_MEMORY_S:
+            if standing and tr.track_id in self._lengthwise:
+                self._lengthwise[tr.track_id] = t  # standing, our heading does not turn: the judgement holds
+            elif t - self._lengthwise.get(tr.track_id, -math.inf) > LENGTHWISE_MEMORY_S:
                 self._lengthwise.pop(tr.track_id, None)  # our own heading may have turned since
             depth_m = (LENGTH_PRIOR_M if tr.track_id in self._lengthwise else DEPTH_PRIOR_M).get(kind, 0.0)
             inner = geometry.lateral(box[0] if side > 0 else box[2], z + depth_m) if side else 0.5 * (xl + xr)
