@@ -94,7 +94,8 @@ class ObjectEstimator:
         self.reset()
 
     def reset(self) -> None:
-        self._history: dict[int, deque[tuple[float, float, float, tuple[int, float]]]] = {}  # t, z, x, what x is
+        # t, z, the lateral reading (bearing or centre) and what it is
+        self._history: dict[int, deque[tuple[float, float, float, tuple[int, float]]]] = {}
         self._whole_at: dict[int, float] = {}  # track id -> when a person's track was last seen whole
         self._standing_unconfirmed: dict[int, int] = {}  # track id -> frames in a row unconfirmed, the car standing
         self._lengthwise: dict[int, float] = {}  # track id -> when last judged lengthwise along the camera axis
@@ -142,11 +143,11 @@ class ObjectEstimator:
             elif t - self._lengthwise.get(tr.track_id, -math.inf) > LENGTHWISE_MEMORY_S:
                 self._lengthwise.pop(tr.track_id, None)  # our own heading may have turned since
             depth_m = (LENGTH_PRIOR_M if tr.track_id in self._lengthwise else DEPTH_PRIOR_M).get(kind, 0.0)
-            inner = geometry.lateral(box[0] if side > 0 else box[2], z + depth_m) if side else 0.5 * (xl + xr)
-            bearing = geometry.lateral(box[0] if side > 0 else box[2], 1.0)  # the inner edge's ray, m per m
+            # beside the axis: the inner edge's ray (lateral metres per metre of depth); else the box's centre
+            bearing = geometry.lateral(box[0] if side > 0 else box[2], 1.0) if side else 0.5 * (xl + xr)
             mode = (side, depth_m)
             hist = self._history.setdefault(tr.track_id, deque())
-            hist.append((t, z, inner if not side else bearing, mode))
+            hist.append((t, z, bearing, mode))
             while hist and hist[0][0] < t - rules.history_s:
                 hist.popleft()
             alive.add(tr.track_id)
@@ -158,16 +159,17 @@ class ObjectEstimator:
             known_lateral = len(same) >= 4 and same[-1][0] - same[0][0] >= (SIDE_LATERAL_SPAN_S if side else 0.2)
             if known:
                 closing = -slope([h[0] for h in hist], [h[1] for h in hist])
-            if known_lateral and side:
-                # x = bearing x depth, so dx/dt = d(bearing)/dt x depth + bearing x d(depth)/dt. The bearing is
-                # read to a pixel; the depth's own change is our speed for a vehicle standing along our axis
-                # (a box's distance wanders by a metre while we near it at 7 m/s: differentiated, that reads as
-                # a vehicle moving sideways), else its fitted closing speed.
-                along = speed_mps - closing if math.isfinite(speed_mps) else math.inf
-                approach = speed_mps if abs(along) < STILL_ALONG_MPS else closing
-                lateral = slope([h[0] for h in same], [h[2] for h in same]) * (z + depth_m) - bearing * approach
-            elif known_lateral:
-                lateral = slope([h[0] for h in same], [h[2] for h in same])
+            if known_lateral:
+                rate = slope([h[0] for h in same], [h[2] for h in same])
+                lateral = rate
+                if side:
+                    # x = bearing x depth, so dx/dt = d(bearing)/dt x depth + bearing x d(depth)/dt. The bearing
+                    # is read to a pixel; the depth's own change is our speed for a vehicle standing along our
+                    # axis (a box's distance wanders by a metre while we near it at 7 m/s: differentiated, that
+                    # reads as a vehicle moving sideways), else its fitted closing speed.
+                    along = speed_mps - closing if math.isfinite(speed_mps) else math.inf
+                    approach = speed_mps if abs(along) < STILL_ALONG_MPS else closing
+                    lateral = rate * (z + depth_m) - bearing * approach
             still = known_lateral and abs(lateral) < rules.still_lateral_mps
             if side and (still or tr.track_id in self._lengthwise):
                 # Wholly to one side: its inner edge is where the far inner corner stands. Lengthwise, its length
@@ -176,9 +178,9 @@ class ObjectEstimator:
                 # inner corner is its nose, the nearest point to our path). Standing across, once seen still,
                 # its width (the least depth a vehicle can show); one moving across keeps the near face.
                 if side > 0:
-                    xl = inner
+                    xl = bearing * (z + depth_m)
                 else:
-                    xr = inner
+                    xr = bearing * (z + depth_m)
             confirmed = self._confirmed(tr, kind, t)
             # Confirmed by a detection this frame: matched, and a person's box clear of the side edges (seen
             # whole lately is not enough here: standing, the same cut box comes back frame after frame).
