@@ -106,6 +106,10 @@ class AgentConfig:
     # inside it (docs/agent_rules.md). People in this world are all 1.75 m tall; a world with children needs
     # a lower bound.
     person_height_ratio: tuple[float, float] = (0.7, 1.4)
+    # A person's box cut by the image's bottom edge stands nearer than the last row's road; its top row, read at
+    # that distance, shows at least the person's height (the head is above the camera). Under this fraction of
+    # 1.75 m it is no person (true detections' whole boxes never fell under 0.83).
+    cut_person_height_ratio: float = 0.8
     junction_hold_m: float = 20.0  # going straight, this far past the stop line the car holds the approach
     #                                lane's heading and offset (no lines to steer by inside the junction)
     hold_heading_gain: float = 1.5  # steer per radian of heading error (about a 1 s time constant at 5 m/s)
@@ -281,7 +285,7 @@ class AgentDriver:
             stop=StopLineDetector(camera), geometry=geometry,
             objects=ObjectEstimator(geometry, ObjectRules(cfg.history_s, cfg.still_lateral_mps, cfg.edge_confirm_s,
                                                           cfg.whole_margin_px, cfg.person_height_ratio,
-                                                          cfg.stereo_max_m), stereo),
+                                                          cfg.cut_person_height_ratio, cfg.stereo_max_m), stereo),
             memory=ObjectMemory(geometry, MemoryRules(cfg.lost_memory_s, cfg.lost_memory_m, cfg.near_memory_s,
                                                       cfg.near_memory_m)),
             light=OurLight(geometry, LightRules(cfg.light_score_threshold, cfg.light_max_lateral_m,

@@ -269,6 +269,11 @@ def test_a_pedestrian_box_too_small_for_where_it_stands_is_no_person() -> None:
     assert not driver.stages.objects.plausible_person(np.array([100.0, y1 - 0.6 * whole, 112.0, y1]))  # too short to stand there
     assert not driver.stages.objects.plausible_person(np.array([100.0, y1 - 1.5 * whole, 112.0, y1]))  # too tall
     assert driver.stages.objects.plausible_person(np.array([100.0, 0.0, 130.0, y1]))  # cut at the top: not judged
+    # Cut at the bottom: a person 1.6 m ahead shows their head where 1.75 m is at that distance
+    head = min(np.arange(-50.0, 80.0, 0.25), key=lambda v: abs(g.height_of_row(v, 1.6) - 1.75))
+    assert driver.stages.objects.plausible_person(np.array([100.0, head, 190.0, 170.0]))
+    # ... and route 504's box at the left edge, running off the bottom, reaches only 1.2 m there: a car stood 80 s
+    assert not driver.stages.objects.plausible_person(np.array([5.0, 75.0, 25.0, 172.0]))
     # Route 517's night junction: the kerb's yellow line at the left border, scored a pedestrian 2.5 m away
     kerb = np.array([2.0, 79.0, 16.0, 149.0])
     assert not driver.stages.objects.plausible_person(kerb)

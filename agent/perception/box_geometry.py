@@ -79,6 +79,30 @@ class BoxGeometry:
             return math.nan
         return z * (y1 - y0) / (self.f * HEIGHT_PRIOR_M.get(kind, 1.5))
 
+    def height_of_row(self, v_px: float, z_m: float) -> float:
+        """Metres above the road seen at image row ``v_px`` at forward ground distance ``z_m`` (the pitched pinhole:
+        a level-frame point (y down from the camera, z) lands on ``cy + f y_c / z_c``, solved for y)."""
+        theta = math.radians(-self.camera.pitch_deg)
+        s, c = math.sin(theta), math.cos(theta)
+        dv = v_px - float(self.k[1, 2])
+        y = z_m * (self.f * s + dv * c) / (self.f * c - dv * s)
+        return self.camera.mount_height_m - y
+
+    def cut_height_ratio(self, box: np.ndarray | tuple[float, ...], kind: str) -> float:
+        """For a box cut at the image's bottom edge only: the height its top row shows where the last image row
+        meets the road, over the kind's prior height; nan for any other box.
+
+        The object stands nearer than that row's distance. Its top, above the camera (as a standing person's
+        head is), then shows at least its true height there, so a value well under 1 is no such object standing
+        there: the one-sided form of ``height_ratio`` for what the picture cuts at the bottom."""
+        cut_top, cut_bottom = self.cut(box)
+        if cut_top or not cut_bottom:
+            return math.nan
+        z_last = float(self.birdseye.ground_z_of_row(np.array([self.camera.height - 1.0]))[0])
+        if not math.isfinite(z_last) or z_last <= 0:
+            return math.nan
+        return self.height_of_row(float(box[1]), z_last) / HEIGHT_PRIOR_M.get(kind, 1.5)
+
     def lengthwise(self, box: np.ndarray | tuple[float, ...], z_m: float, kind: str) -> bool:
         """Whether a vehicle wholly to one side of the camera axis stands lengthwise along it rather than across.
 

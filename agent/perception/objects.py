@@ -75,6 +75,7 @@ class ObjectRules:
     edge_confirm_s: float = 8.0  # a person at the image's side edge is confirmed this long after last seen whole
     whole_margin_px: float = 3.0  # a box this near the image's side edge may be cut: it does not show the whole
     person_height_ratio: tuple[float, float] = (0.7, 1.4)  # a whole person's box height over the prior's
+    cut_person_height_ratio: float = 0.8  # the least height a person's box cut at the bottom shows, over the prior's
     stereo_max_m: float = 15.0  # beyond this stereo disparity is too small: use geometry
 
 
@@ -228,8 +229,12 @@ class ObjectEstimator:
 
     def plausible_person(self, box: np.ndarray) -> bool:
         """Whether a pedestrian box's size agrees with where its bottom row meets the road (a box cut by the
-        image's top or bottom edge is not judged). People in this world are all 1.75 m tall, and the ratio of
-        box height to the prior's stays near 1 for true detections (``docs/agent_rules.md``)."""
+        image's top edge is not judged; one cut at the bottom must reach up to a standing person's head). People
+        in this world are all 1.75 m tall, and the ratio of box height to the prior's stays near 1 for true
+        detections (``docs/agent_rules.md``)."""
         ratio = self.geometry.height_ratio(box, "pedestrian")
         lo, hi = self.rules.person_height_ratio
-        return not math.isfinite(ratio) or lo <= ratio <= hi
+        if math.isfinite(ratio):
+            return lo <= ratio <= hi
+        cut = self.geometry.cut_height_ratio(box, "pedestrian")
+        return not math.isfinite(cut) or cut >= self.rules.cut_person_height_ratio
