@@ -253,6 +253,27 @@ def test_a_parked_car_passed_at_3_mps_stays_still_and_beside_the_corridor() -> N
 
 
 @needs_models
+def test_a_parked_car_passed_at_7_mps_does_not_seem_to_move_sideways() -> None:
+    """A still car's inner edge turns faster the nearer we come; its sideways speed is fitted to the positions each
+    bearing gives at the depth of its own time (the bearing's rate times today's depth lags and read a parked car
+    passed at 7 m/s as moving sideways at 0.3-0.5 m/s)."""
+    from towndrive.agent.drivers import make_driver
+    from towndrive.agent.perception.classes import CLASSES
+    from towndrive.agent.perception.tracking import Track
+    from towndrive.envs.drive_env import DriveConfig
+
+    driver = make_driver("agent")
+    driver.reset(SimpleNamespace(config=DriveConfig()))
+    geo = driver.geometry
+    for k in range(30):  # 1.5 s at 7 m/s: from 14 m to 3.8 m
+        box = car_beside_box(geo, inner_m=1.6, near_m=14.0 - 0.35 * k)
+        track = Track(5, box, hits=10, age=10, time_since_update=0, label=CLASSES.index("car"))
+        obj = driver.stages.objects.update([track], 0.05 * k, None, speed_mps=7.0)[0]
+        if k >= 10:
+            assert abs(obj.lateral_speed_mps) < 0.1, (k, obj.lateral_speed_mps)
+
+
+@needs_models
 def test_a_pedestrian_box_too_small_for_where_it_stands_is_no_person() -> None:
     from towndrive.agent.drivers import make_driver
     from towndrive.agent.perception.classes import CLASSES

@@ -161,16 +161,18 @@ class ObjectEstimator:
             if known:
                 closing = -slope([h[0] for h in hist], [h[1] for h in hist])
             if known_lateral:
-                rate = slope([h[0] for h in same], [h[2] for h in same])
-                lateral = rate
+                readings = [h[2] for h in same]
                 if side:
-                    # x = bearing x depth, so dx/dt = d(bearing)/dt x depth + bearing x d(depth)/dt. The bearing
-                    # is read to a pixel; the depth's own change is our speed for a vehicle standing along our
-                    # axis (a box's distance wanders by a metre while we near it at 7 m/s: differentiated, that
-                    # reads as a vehicle moving sideways), else its fitted closing speed.
+                    # x = bearing x depth. The bearing is read to a pixel; the inner edge's depth at each reading
+                    # is today's plus what was closed since: our own speed for a vehicle standing along our axis
+                    # (a box's distance wanders by a metre while we near it at 7 m/s: differentiated, that reads
+                    # as a vehicle moving sideways), else its fitted closing speed. (The rate of the bearing times
+                    # today's depth lags: half a second back the bearing turned more slowly, and a parked car
+                    # passed at 5 m/s seemed to move sideways at 0.3 m/s.)
                     along = speed_mps - closing if math.isfinite(speed_mps) else math.inf
                     approach = speed_mps if abs(along) < STILL_ALONG_MPS else closing
-                    lateral = rate * (z + depth_m) - bearing * approach
+                    readings = [h[2] * (z + depth_m + (t - h[0]) * approach) for h in same]
+                lateral = slope([h[0] for h in same], readings)
             still = known_lateral and abs(lateral) < rules.still_lateral_mps
             if side and (still or tr.track_id in self._lengthwise):
                 # Wholly to one side: its inner edge is where the far inner corner stands. Lengthwise, its length
