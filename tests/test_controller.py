@@ -426,3 +426,25 @@ def test_a_person_standing_still_beside_the_path_is_passed_and_one_on_the_move_t
     nearer = PerceivedObject(3, "pedestrian", 4.0, 1.0, 1.6, 0.0, 0.0)  # standing where the car would brush them
     d = Controller(CFG).step(Scene(0.0, objects=[nearer]), 0.0, DT)
     assert d.in_path == [3]
+
+
+def test_the_car_squeezes_past_a_still_vehicle_that_only_grazes_the_corridor_but_not_one_in_its_way() -> None:
+    """A parked car whose inner edge lies in the corridor's margin, clear of our body's side, stops the car; after
+    standing ``squeeze_after_s`` the car creeps past it. One whose edge reaches our body's side holds it."""
+
+    def parked(inner_m: float) -> Callable[[float, float, float], Scene]:
+        def scene(s: float, v: float, t: float) -> Scene:
+            z = 12.0 - s  # a car standing 12 m ahead, its inner side inner_m right of our path's centre
+            car = PerceivedObject(3, "car", z, inner_m, inner_m + 1.9, v if z > 0 else 0.0, 0.0)
+            return Scene(v, objects=[car] if z > -4.5 else [])
+        return scene
+
+    grazing = drive(parked(CFG.half_width_m + 0.2), 20.0, v0=5.0)
+    stood = [k for k, v in enumerate(grazing.speed) if v < 0.05]
+    assert stood  # it stops for it first
+    moving = next(k for k in range(stood[0], len(grazing.speed)) if grazing.speed[k] > 0.5 * CFG.creep_speed_mps)
+    assert CFG.squeeze_after_s <= (moving - stood[0]) * DT <= CFG.squeeze_after_s + 1.0
+    assert "creeping past" in grazing.decisions[moving].reason
+    assert grazing.travelled > 12.0 + 4.5  # past it
+    blocking = drive(parked(CFG.half_width_m + 0.02), 20.0, v0=5.0)
+    assert blocking.speed[-1] < 0.05 and blocking.travelled < 12.0

@@ -36,6 +36,10 @@ Why it is built this way:
   unconfirmed objects hold it); then it creeps on at ``creep_speed_mps``, so the view changes and perception
   looks again every frame, and a person the detector confirms stops it as always (what went wrong without
   it: ``docs/agent_rules.md``).
+- **No endless wait behind a parked car that leaves room.** A still vehicle wholly to one side whose inner
+  edge reaches into the corridor's margin but clears the car's body by ``squeeze_clear_m`` stops the car like
+  any other; after standing ``squeeze_after_s`` for such vehicles it creeps past at ``creep_speed_mps``,
+  looking again every frame (``Controller.grazes``).
 
 - **Signs** (``agent.decision.signs``): a stop sign asks a full stop within ``SignControlRules.full_stop_m`` of the
   next line (speed under the world's ``STOP_SPEED_MPS``), then the car goes once no moving vehicle is within
@@ -129,6 +133,8 @@ class ControllerConfig:
     creep_speed_mps: float = 1.0  # ... after which the car creeps past them at this speed, looking again every frame
     standstill_mps: float = 0.5  # below this the car counts as holding (for unconfirmed_hold_s)
     unconfirmed_reset_s: float = 1.0  # the bounded hold starts afresh once no unconfirmed object is in our path this long
+    squeeze_after_s: float = 4.0  # standing this long for a still vehicle that only grazes the corridor, creep past
+    squeeze_clear_m: float = 0.1  # ... when its inner edge clears our body's side by at least this
     max_steer_rad: float = VEHICLE.max_steer_rad
     idm_a_mps2: float = 3.0  # IDM a
     idm_b_mps2: float = 2.5  # IDM b (comfortable deceleration in the dynamic term)
@@ -166,6 +172,7 @@ class Constraint:
     hard: bool = False  # comfortable braking cannot meet it
     hold: bool = False  # at the point at walking pace: brake to a standstill and stay
     unconfirmed: bool = False  # from an object perception does not confirm (held for at most unconfirmed_hold_s)
+    grazing: bool = False  # from a still vehicle only at the corridor's edge (held for at most squeeze_after_s)
 
 
 @dataclass
@@ -215,6 +222,8 @@ class Controller:
         self.note = ""  # why a seen light does not stop the car (shown as the reason when nothing else acts)
         self.unconfirmed_held_s = 0.0  # standstill so far for unconfirmed objects in our path (module docstring)
         self._no_unconfirmed_s = 0.0  # since an unconfirmed object was last in our path
+        self.grazed_held_s = 0.0  # standstill so far for still vehicles grazing the corridor (``grazes``)
+        self._no_grazing_s = 0.0
         self.signs.reset()
         self._cruise = self.config.speed_limit_mps  # the cruise speed under the limit that applies
         self.bend_curvature = 0.0  # the curvature ahead (1/m), smoothed
@@ -287,6 +296,28 @@ class Controller:
         ring_in = radius - cfg.half_width_m - cfg.sweep_margin_m
         ring_out = math.hypot(radius + cfg.half_width_m, front) + cfg.sweep_margin_m
         return near <= ring_out and far >= ring_in
+
+    def grazes(self, scene: Scene, obj: PerceivedObject, steer: float) -> float | None:
+        """For a still vehicle wholly to one side of the camera axis and of our path's centre whose inner edge
+        overlaps the corridor but clears our body's side by ``squeeze_clear_m``: that clearance; else None.
+
+        The corridor keeps a margin beyond the body for what moves; a vehicle standing in that margin (parked a
+        little out from the kerb, or read nearer than it is: a depth prior puts the inner edge on the near side)
+        leaves room to pass, and drivers squeeze past at walking pace rather than wait behind it for ever."""
+        cfg = self.config
+        if obj.kind == "pedestrian" or obj.unconfirmed or obj.distance_m <= 0:
+            return None
+        if abs(obj.lateral_speed_mps) >= cfg.min_lateral_speed_mps or scene.speed_mps - obj.closing_speed_mps >= 0.5:
+            return None
+        centre = self.path_centre(scene, obj.distance_m, steer)
+        if obj.lateral_left_m > max(centre, 0.0):
+            gap = obj.lateral_left_m - centre
+        elif obj.lateral_right_m < min(centre, 0.0):
+            gap = centre - obj.lateral_right_m
+        else:
+            return None
+        clear = gap - cfg.half_width_m
+        return clear if clear >= cfg.squeeze_clear_m else None
 
     def in_path(self, scene: Scene, obj: PerceivedObject, steer: float) -> bool:
         """Whether the object overlaps (or, a pedestrian, walks into) the corridor at its distance."""
@@ -509,8 +540,15 @@ class Controller:
             else:
                 lead_speed = max(0.0, speed - obj.closing_speed_mps)
                 verb = "stopped" if lead_speed < 0.5 else "following"
-                c = Constraint(f"{obj.kind} #{obj.track_id} ahead at {gap:.1f} m: {verb}", gap, lead_speed,
-                               cfg.lead_min_gap_m, cfg.headway_s)
+                clear = self.grazes(scene, obj, steer)
+                if clear is not None and self.grazed_held_s >= cfg.squeeze_after_s:
+                    c = Constraint(f"{obj.kind} #{obj.track_id} standing {clear:.1f} m clear of our side: creeping "
+                                   f"past at {cfg.creep_speed_mps:.1f} m/s", math.inf, cfg.creep_speed_mps, 0.0, 0.0,
+                                   self._idm(speed, min(target, cfg.creep_speed_mps), None, 0.0, 0.0, 0.0),
+                                   grazing=True)
+                else:
+                    c = Constraint(f"{obj.kind} #{obj.track_id} ahead at {gap:.1f} m: {verb}", gap, lead_speed,
+                                   cfg.lead_min_gap_m, cfg.headway_s, grazing=clear is not None)
             ids[len(constraints)] = obj.track_id
             constraints.append(c)
 
@@ -546,6 +584,15 @@ class Controller:
             self._no_unconfirmed_s = 0.0
         if governing is not None and constraints[governing].unconfirmed and speed < cfg.standstill_mps:
             self.unconfirmed_held_s += dt
+        # The same clock for still vehicles grazing the corridor (``grazes``).
+        if not any(c.grazing for c in constraints):
+            self._no_grazing_s += dt
+            if self._no_grazing_s > cfg.unconfirmed_reset_s:
+                self.grazed_held_s = 0.0
+        else:
+            self._no_grazing_s = 0.0
+        if governing is not None and constraints[governing].grazing and speed < cfg.standstill_mps:
+            self.grazed_held_s += dt
         if holding:
             reason += " (holding)"
         if accel > 0:  # gentle: capped, and rising at most jerk x dt per frame
