@@ -63,6 +63,7 @@ from towndrive.agent.perception.box_geometry import BoxGeometry
 from towndrive.agent.perception.classes import LIGHT_CLASSES
 from towndrive.agent.perception.detector import Detection, OnnxDetector
 from towndrive.agent.perception.lanes import LaneConfig, LaneDetector, LaneResult, lane_centre_of
+from towndrive.agent.perception.model_view import ModelView
 from towndrive.agent.perception.object_memory import MemoryRules, ObjectMemory
 from towndrive.agent.perception.objects import TRACKED, ObjectEstimator, ObjectRules, PerceivedObject
 from towndrive.agent.perception.pilotnet import DEFAULT_MODEL, PilotNetModel
@@ -85,6 +86,7 @@ STAGES = ("blind_spot", "pilotnet", "detector", "tracking", "lanes", "stop_line"
 class AgentConfig:
     detect_every: int = 1  # run the detector on every k-th frame (SORT predicts in between)
     distance: str = "geometry"  # "geometry" (box and camera model) or "stereo" (needs DriveConfig.observe_stereo)
+    model_view: bool = True  # a camera unlike the trained rig is warped into its view (agent.perception.model_view)
     stereo_max_m: float = 15.0  # beyond this the 0.12 m rig's disparity is under 1.3 px: use geometry
     score_threshold: float = 0.35
     light_score_threshold: float = 0.4
@@ -257,6 +259,7 @@ class AgentDriver:
         self._look: Callable[[str], np.ndarray] | None = None  # the blind-spot camera, where there is one
         self.stage_hook = stage_hook  # wraps the stages once built (a profile's module rates)
         self._mirror_camera = MIRRORS.camera
+        self._model_view: ModelView | None = None  # a camera unlike the trained rig, warped into its view
         self._pools: dict[str, ThreadPoolExecutor] = {}  # made on first use, in the process that uses them
         self._pool_pid = -1
         self._pending: Future | None = None  # pipelined: the frame being worked on
@@ -311,7 +314,9 @@ class AgentDriver:
         # The mirror cameras, where the env has them (a recorded episode or a plain camera source has not).
         self._mirror_camera = context.mirror_camera or MIRRORS.camera
         self._look = context.mirror_frame if self.config.blind_spot.enabled else None
-        self._setup(context.camera, context.dt_s)
+        view = ModelView(context.camera) if self.config.model_view else None
+        self._model_view = view if view is not None and view.homography is not None else None
+        self._setup(view.camera if view is not None else context.camera, context.dt_s)
         self.adas.reset()
         self.timings = []
         self.view = self._last_view = None
@@ -460,6 +465,8 @@ class AgentDriver:
 
         st, odo = self.stages, self.stages.odometry
         image = observation["image"]
+        if self._model_view is not None:
+            image = self._model_view(image)
         speed = float(observation["speed"][0])
         command = int(observation["command"])
         t = self._frame * self.dt
@@ -524,6 +531,8 @@ class AgentDriver:
         depth = None
         if st.stereo is not None and "stereo" in observation:
             pair = observation["stereo"]
+            if self._model_view is not None:
+                pair = [self._model_view(p) for p in pair]
             depth = st.stereo.depth(st.stereo.disparity(pair[0], pair[1]))
         objects = st.memory.recall(st.objects.update(tracks, t, depth, speed), speed, odo.turn, self.dt,
                                    st.objects.expired)

@@ -1,0 +1,53 @@
+"""The picture the models were trained on, from a camera that differs: another field of view, pitch or size.
+
+Why: PilotNet and the detector learnt from the simulator's rig (``sim.spec.CAMERA``: 90 degrees, pitched 4 degrees
+down, 320 x 160). A car whose camera sees 100 degrees shows the road narrower and the kerbs nearer the middle, and
+PilotNet, which steers by where the lines fall in the picture, steers wrong. A camera that only differs by a turn
+about its own centre and by its lens is one homography away from the trained one, ``K_model R K_camera^-1``, exact
+for every depth (as driving stacks warp their camera into a fixed "model frame" before the network). The agent then
+works in the model's frame: the warped picture, the trained field of view and pitch, and the car's own mounting
+height and position. A different height is not a rotation and stays (the geometry uses the true height).
+A narrower lens than the trained one leaves black borders; a wider one is cropped to the trained view.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import cv2
+import numpy as np
+
+from towndrive.sim.spec import CAMERA, CameraConfig
+
+
+def model_camera(camera: CameraConfig, trained: CameraConfig = CAMERA) -> CameraConfig:
+    """The camera the agent works in: the trained rig's lens, pitch and picture size at ``camera``'s mounting."""
+    return replace(camera, hfov_deg=trained.hfov_deg, pitch_deg=trained.pitch_deg, width=trained.width,
+                   height=trained.height)
+
+
+def pitch_rotation(pitch_deg: float) -> np.ndarray:
+    """The rotation from the level frame (x right, y down, z ahead) into a camera pitched ``pitch_deg`` (negative:
+    down), as ``lanes.ground_homography`` turns it."""
+    theta = math.radians(-pitch_deg)
+    s, c = math.sin(theta), math.cos(theta)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+class ModelView:
+    """Warps ``camera``'s pictures into ``model_camera(camera)``'s (identity when they agree)."""
+
+    def __init__(self, camera: CameraConfig, trained: CameraConfig = CAMERA) -> None:
+        self.camera = model_camera(camera, trained)
+        same = (camera.hfov_deg, camera.pitch_deg, camera.width, camera.height) == (
+            self.camera.hfov_deg, self.camera.pitch_deg, self.camera.width, self.camera.height)
+        self.homography: np.ndarray | None = None if same else (
+            self.camera.intrinsics() @ pitch_rotation(self.camera.pitch_deg) @ pitch_rotation(camera.pitch_deg).T
+            @ np.linalg.inv(camera.intrinsics()))
+
+    def __call__(self, image: np.ndarray) -> np.ndarray:
+        if self.homography is None:
+            return image
+        return cv2.warpPerspective(image, self.homography, (self.camera.width, self.camera.height),
+                                   flags=cv2.INTER_LINEAR)
