@@ -26,7 +26,7 @@ PRIOR_TOWNS = 4  # training towns a style's priors are measured on (their juncti
 
 def junction_samples(town: Town) -> dict[str, list[float]]:
     """Each junction arm's road-design numbers in one town (the quantities ``RoadDesign`` holds)."""
-    out: dict[str, list[float]] = {k: [] for k in ("setback", "zebra", "left", "right", "width")}
+    out: dict[str, list[float]] = {k: [] for k in ("setback", "zebra", "left", "right", "width", "kerb_reach")}
     zebra_at = {(cw.node, cw.arm): cw for cw in town.crosswalks}
     depth = ROAD.stop_bar_depth_m
     for entry in town.entries:
@@ -47,6 +47,8 @@ def junction_samples(town: Town) -> dict[str, list[float]]:
                 out["left"].append(radius)
             elif info.command == Command.RIGHT and idx[2] == entry.lane_count - 1:
                 out["right"].append(radius)
+                # where the turn ends, along the approach from the bar's far edge
+                out["kerb_reach"].append(float((lane.position(lane.length, 0.0) - entry.line_center) @ t) - depth)
         if entry.approach >= 0:
             ap = town.approaches[entry.approach]
             # across the incoming lanes from their middle (positive: right), then from our lane's centre
@@ -94,4 +96,5 @@ def road_priors(style: str, towns: int = PRIOR_TOWNS) -> RoadDesign:
                    stop_line_setback_m=mean("setback"), stop_line_setback_sd_m=sd("setback"),
                    zebra_to_centre_m=mean("zebra"), zebra_to_centre_sd_m=sd("zebra"),
                    left_turn_radius_m=mean("left"), right_turn_radius_m=mean("right"),
+                   kerb_lane_reach_m=mean("kerb_reach"), kerb_lane_reach_sd_m=sd("kerb_reach"),
                    **mast_arm, other_signal_mounts=tuple(mounts[m] for m in sorted(mounts) if m != "mast_arm"))

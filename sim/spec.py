@@ -132,6 +132,12 @@ class RoadDesign:
     # straight on past the bar and bends where an arc of that radius meets the lane turned into.
     left_turn_radius_m: float | None = None
     right_turn_radius_m: float | None = None
+    # A right turn goes into the cross street's kerb lane: beyond the stop bar's far edge lie a gap, the zebra, the
+    # kerb, any parking strip and half a lane, whatever the cross street's lane count (its centre line lies one or
+    # two lanes farther, a count not seen before the turn). None: the classic design's kerb lane, the setback less
+    # one and a half lane widths.
+    kerb_lane_reach_m: float | None = None  # the stop bar's far edge to that lane's centre
+    kerb_lane_reach_sd_m: float = 0.0
     stop_bar_depth_m: float = 0.5  # the painted bar's depth along the lane
     # Where our signal head hangs: on a mast arm over the incoming lanes, across the junction. A design with
     # other mounts (posts at a corner) lists them in ``other_signal_mounts``: where heads hang is a kind, not a
@@ -163,12 +169,21 @@ class RoadDesign:
         check_number("road single_lane_limit_kmh", self.single_lane_limit_kmh, 5.0, 200.0)
         check_number("road zebra_to_centre_m", self.zebra_to_centre_m, 1.0, 40.0)
         check_number("road light_lateral_m", self.light_lateral_m, -20.0, 20.0)
+        if self.kerb_lane_reach_m is not None:
+            check_number("road kerb_lane_reach_m", self.kerb_lane_reach_m, 0.0, 60.0)
         for name in ("left_turn_radius_m", "right_turn_radius_m"):
             radius = getattr(self, name)
             if radius is not None:
                 check_number(f"road {name}", radius, 3.0, 60.0)
-        for name in ("lane_width_sd_m", "stop_line_setback_sd_m", "zebra_to_centre_sd_m"):
+        for name in ("lane_width_sd_m", "stop_line_setback_sd_m", "zebra_to_centre_sd_m", "kerb_lane_reach_sd_m"):
             check_number(f"road {name}", getattr(self, name), 0.0, 20.0)
+
+    @property
+    def kerb_lane_reach(self) -> float:
+        """The stop bar's far edge to the centre of the lane a right turn goes into (its prior's mean)."""
+        if self.kerb_lane_reach_m is not None:
+            return self.kerb_lane_reach_m
+        return self.stop_line_setback_m - 1.5 * self.lane_width_m
 
     @property
     def signal_mounts(self) -> tuple[SignalMount, ...]:

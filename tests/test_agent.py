@@ -422,8 +422,8 @@ def test_turn_path_is_the_towns_quarter_circle_into_the_same_lane() -> None:
     from towndrive.agent.decision.junction import turn_path
 
     for command, side in ((2, 1.0), (1, -1.0)):
-        path, arc_end = turn_path(command, 12.0, 5.25)
         radius = 12.0 - 5.25 if command == 2 else 12.0 + 5.25
+        path, arc_end = turn_path(command, radius)
         steps = np.hypot(*np.diff(path, axis=0).T)
         assert steps.max() < 0.25  # one continuous polyline
         k = int(round(arc_end / 0.2))

@@ -36,7 +36,7 @@ def test_the_classic_style_s_priors_are_the_classic_design_and_a_styled_one_s_ar
 def test_a_turn_with_a_radius_runs_straight_past_the_bar_then_bends_into_the_lane_turned_into() -> None:
     for command, side in ((2, 1.0), (1, -1.0)):
         reach = 18.0 - 1.75 if command == 2 else 18.0 + 1.75
-        path, arc_end = turn_path(command, 18.0, 1.75, 0.5, 9.0)
+        path, arc_end = turn_path(command, reach, 0.5, 9.0)
         steps = np.hypot(*np.diff(path, axis=0).T)
         assert steps.max() < 0.25  # one continuous polyline
         k = int(round(arc_end / 0.2))
@@ -45,7 +45,7 @@ def test_a_turn_with_a_radius_runs_straight_past_the_bar_then_bends_into_the_lan
         lead = path[(path[:, 0] > 0.5) & (path[:, 0] < 0.5 + reach - 9.0 - 0.2)]
         assert len(lead) > 10 and np.abs(lead[:, 1]).max() < 1e-9  # straight on before the arc
         # a radius wider than the lane turned into allows is the quarter circle from the bar
-        assert np.array_equal(turn_path(command, 18.0, 1.75, 0.5, 40.0)[0], turn_path(command, 18.0, 1.75, 0.5)[0])
+        assert np.array_equal(turn_path(command, reach, 0.5, 40.0)[0], turn_path(command, reach, 0.5)[0])
 
 
 def _connector_deviation(style: str, town_seed: int, road) -> list[float]:
@@ -70,8 +70,8 @@ def _connector_deviation(style: str, town_seed: int, road) -> list[float]:
             pts = np.array([lane.position(s, 0.0) for s in np.linspace(0.0, lane.length, 40)])
             rel = np.stack([(pts - origin) @ t, (pts - origin) @ right], axis=1)
             radius = road.left_turn_radius_m if command == Command.LEFT else road.right_turn_radius_m
-            path, _ = turn_path(int(command), setback, (k + 0.5) * road.lane_width_m,
-                                road.stop_bar_depth_m, radius)
+            reach = road.kerb_lane_reach if command == Command.RIGHT else setback + 0.5 * road.lane_width_m
+            path, _ = turn_path(int(command), reach, road.stop_bar_depth_m, radius)
             gap = np.sqrt(((rel[:, None, :] - path[None, :, :]) ** 2).sum(-1)).min(axis=1)
             out.append(float(gap.max()))
     return out

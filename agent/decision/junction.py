@@ -29,17 +29,16 @@ from towndrive.sim.spec import ROAD, VEHICLE, RoadDesign
 
 
 @lru_cache(maxsize=64)
-def turn_path(command: int, setback_m: float, lane_offset_m: float, bar_depth_m: float = ROAD.stop_bar_depth_m,
+def turn_path(command: int, reach_m: float, bar_depth_m: float = ROAD.stop_bar_depth_m,
               radius_m: float | None = None, step_m: float = 0.2) -> tuple[np.ndarray, float]:
     """A junction turn in the approach frame (x along the approach lane from its stop bar's near edge, y to the
-    right): 30 m of approach, straight on past the bar's far edge (``bar_depth_m`` on), an arc into the same lane
-    of the road turned into, then 30 m of that road; and the path length at which the arc ends. The lane's centre
-    is ``lane_offset_m`` right of the road's centre line, so the lane turned into lies ``setback - offset``
-    beyond the bar's far edge for a right turn and ``setback + offset`` for a left one. With no ``radius_m`` the
-    arc is the quarter circle from the bar with that radius (``sim/town.py``, classic junction connectors); with
-    one (at most that distance), the arc tangent to both lanes, after a straight lead-in (styled towns' fillets)."""
+    right): 30 m of approach, straight on past the bar's far edge (``bar_depth_m`` on), an arc into the lane of the
+    road turned into whose centre lies ``reach_m`` beyond the bar's far edge, then 30 m of that road; and the path
+    length at which the arc ends. With no ``radius_m`` the arc is the quarter circle from the bar with that radius
+    (``sim/town.py``, classic junction connectors); with one (at most that distance), the arc tangent to both
+    lanes, after a straight lead-in (styled towns' fillets)."""
     right = command == 2
-    reach = setback_m - lane_offset_m if right else setback_m + lane_offset_m
+    reach = reach_m
     radius = reach if radius_m is None else min(radius_m, reach)
     side = 1.0 if right else -1.0
     x0 = bar_depth_m + (reach - radius)  # where the arc begins
@@ -157,10 +156,12 @@ class JunctionGuidance:
             if self.line.ignore_light_m > 0:  # through this junction another way: its bar is behind us
                 self.forget()
             return None
-        # Left turns from the inner lane (0), right turns from the outer one (1). Taken from the other lane, this
-        # arc still ends in a lane of the road turned into: the arc is placed from our own lane, and a right
-        # turn's radius from the outer lane (or a left turn's from the inner) is the tighter one.
-        k = 0 if command == 1 else 1
+        # Left turns from the inner lane into the inner lane (half a lane beyond the cross street's centre line),
+        # right turns from the kerb lane into the kerb lane (the design's reach: unlike the centre line, it does
+        # not depend on the cross street's lane count). Taken from another lane, the arc still ends in a lane of
+        # the road turned into: it is placed from our own lane, and its radius is the tighter one.
+        reach = (self.road.kerb_lane_reach if command == 2
+                 else self.setback_m + 0.5 * self.lane_width_m)
         u = np.array([math.cos(road_yaw), math.sin(road_yaw)])
         heading = odo.yaw - road_yaw
         half = VEHICLE.length_m / 2
@@ -170,8 +171,7 @@ class JunctionGuidance:
         here = np.array([float(rel @ u) - half * math.cos(heading), float(rel[0] * -u[1] + rel[1] * u[0])
                          - half * math.sin(heading)])
         radius = self.road.left_turn_radius_m if command == 1 else self.road.right_turn_radius_m
-        path, arc_end = turn_path(command, round(self.setback_m, 1), round((k + 0.5) * self.lane_width_m, 2),
-                                  self.road.stop_bar_depth_m, radius)
+        path, arc_end = turn_path(command, round(reach, 2), self.road.stop_bar_depth_m, radius)
         lookahead = cfg.turn_lookahead_m + cfg.turn_lookahead_s * speed
         if here[0] < self.road.stop_bar_depth_m - lookahead:  # not yet: the lookahead point is still before the arc
             return None
