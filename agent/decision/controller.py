@@ -176,6 +176,26 @@ class Constraint:
 
 
 @dataclass
+class HoldClock:
+    """How long the car has stood for one kind of object that holds it only for a bounded time: it runs while the
+    car stands for such an object, keeps its count while one is in our path (creeping goes on, and a false box
+    that comes and goes does not restart it), and restarts once none has been for ``reset_s``."""
+
+    held_s: float = 0.0
+    _none_s: float = 0.0  # since one was last in our path
+
+    def update(self, in_path: bool, standing_for: bool, dt: float, reset_s: float) -> None:
+        if in_path:
+            self._none_s = 0.0
+        else:
+            self._none_s += dt
+            if self._none_s > reset_s:
+                self.held_s = 0.0
+        if standing_for:
+            self.held_s += dt
+
+
+@dataclass
 class Decision:
     """What the controller did this frame, and why."""
 
@@ -220,10 +240,8 @@ class Controller:
         self._yellow_go: bool | None = None  # the yellow decision, taken once per yellow
         self._view_back_m = 0.0  # stop this far before the line to keep our light's head in the picture
         self.note = ""  # why a seen light does not stop the car (shown as the reason when nothing else acts)
-        self.unconfirmed_held_s = 0.0  # standstill so far for unconfirmed objects in our path (module docstring)
-        self._no_unconfirmed_s = 0.0  # since an unconfirmed object was last in our path
-        self.grazed_held_s = 0.0  # standstill so far for still vehicles grazing the corridor (``grazes``)
-        self._no_grazing_s = 0.0
+        self.unconfirmed_clock = HoldClock()  # standstill for unconfirmed objects in our path (module docstring)
+        self.grazed_clock = HoldClock()  # standstill for still vehicles grazing the corridor (``grazes``)
         self.signs.reset()
         self._cruise = self.config.speed_limit_mps  # the cruise speed under the limit that applies
         self.bend_curvature = 0.0  # the curvature ahead (1/m), smoothed
@@ -518,7 +536,7 @@ class Controller:
             if math.isinf(c.gap_m):  # a speed cap, not a point to stop at
                 c.accel_mps2 = self._idm(speed, min(target, c.speed_mps), None, 0.0, 0.0, 0.0)
             constraints.append(c)
-        creep = self.unconfirmed_held_s >= cfg.unconfirmed_hold_s
+        creep = self.unconfirmed_clock.held_s >= cfg.unconfirmed_hold_s
         for obj in scene.objects:
             swept = self.in_sweep(scene, obj, steer)  # a person where the body will pass, corridor or not
             if not swept and not self.in_path(scene, obj, steer):
@@ -530,7 +548,7 @@ class Controller:
                         else "in the turn's sweep" if swept else "entering our path")
                 if obj.unconfirmed and (creep or obj.stale):
                     c = Constraint(f"pedestrian #{obj.track_id} {what} not confirmed for "
-                                   f"{self.unconfirmed_held_s:.0f} s: creeping at {cfg.creep_speed_mps:.1f} m/s",
+                                   f"{self.unconfirmed_clock.held_s:.0f} s: creeping at {cfg.creep_speed_mps:.1f} m/s",
                                    math.inf, cfg.creep_speed_mps, 0.0, 0.0,
                                    self._idm(speed, min(target, cfg.creep_speed_mps), None, 0.0, 0.0, 0.0),
                                    unconfirmed=True)
@@ -541,7 +559,7 @@ class Controller:
                 lead_speed = max(0.0, speed - obj.closing_speed_mps)
                 verb = "stopped" if lead_speed < 0.5 else "following"
                 clear = self.grazes(scene, obj, steer)
-                if clear is not None and self.grazed_held_s >= cfg.squeeze_after_s:
+                if clear is not None and self.grazed_clock.held_s >= cfg.squeeze_after_s:
                     c = Constraint(f"{obj.kind} #{obj.track_id} standing {clear:.1f} m clear of our side: creeping "
                                    f"past at {cfg.creep_speed_mps:.1f} m/s", math.inf, cfg.creep_speed_mps, 0.0, 0.0,
                                    self._idm(speed, min(target, cfg.creep_speed_mps), None, 0.0, 0.0, 0.0),
@@ -573,26 +591,11 @@ class Controller:
                 reason = constraints[governing].reason
         hard = governing is not None and constraints[governing].hard
         holding = governing is not None and constraints[governing].hold
-        # The clock of the bounded hold: it runs while the car stands for an unconfirmed object, keeps its
-        # count while one is in our path (creeping goes on, and a false box that comes and goes does not
-        # restart it), and restarts once none has been for unconfirmed_reset_s.
-        if not any(c.unconfirmed for c in constraints):
-            self._no_unconfirmed_s += dt
-            if self._no_unconfirmed_s > cfg.unconfirmed_reset_s:
-                self.unconfirmed_held_s = 0.0
-        else:
-            self._no_unconfirmed_s = 0.0
-        if governing is not None and constraints[governing].unconfirmed and speed < cfg.standstill_mps:
-            self.unconfirmed_held_s += dt
-        # The same clock for still vehicles grazing the corridor (``grazes``).
-        if not any(c.grazing for c in constraints):
-            self._no_grazing_s += dt
-            if self._no_grazing_s > cfg.unconfirmed_reset_s:
-                self.grazed_held_s = 0.0
-        else:
-            self._no_grazing_s = 0.0
-        if governing is not None and constraints[governing].grazing and speed < cfg.standstill_mps:
-            self.grazed_held_s += dt
+        standing_for = constraints[governing] if governing is not None and speed < cfg.standstill_mps else None
+        self.unconfirmed_clock.update(any(c.unconfirmed for c in constraints),
+                                      standing_for is not None and standing_for.unconfirmed, dt, cfg.unconfirmed_reset_s)
+        self.grazed_clock.update(any(c.grazing for c in constraints),
+                                 standing_for is not None and standing_for.grazing, dt, cfg.unconfirmed_reset_s)
         if holding:
             reason += " (holding)"
         if accel > 0:  # gentle: capped, and rising at most jerk x dt per frame
