@@ -315,7 +315,7 @@ class AgentDriver:
         self._mirror_camera = context.mirror_camera or MIRRORS.camera
         self._look = context.mirror_frame if self.config.blind_spot.enabled else None
         view = ModelView(context.camera) if self.config.model_view else None
-        self._model_view = view if view is not None and view.homography is not None else None
+        self._model_view = view if view is not None and view.needed else None
         self._setup(view.camera if view is not None else context.camera, context.dt_s)
         self.adas.reset()
         self.timings = []
@@ -495,7 +495,8 @@ class AgentDriver:
                                            self._last_view.lanes if self._last_view is not None else None, look,
                                            self._detect_vehicles)
             lap("blind_spot")
-            pilot = float(self.net.steer(image, 0 if held else command))  # held: follow the lane, do not change it
+            seen = self._model_view.for_pilotnet(image) if self._model_view is not None else image
+            pilot = float(self.net.steer(seen, 0 if held else command))  # held: follow the lane, do not change it
             lap("pilotnet")
         except BaseException:
             self._settle(detected, lane_job)  # the worker's stages must not outlive this frame

@@ -35,6 +35,20 @@ def test_a_wider_lens_pitched_lower_is_warped_into_the_trained_picture() -> None
     assert model_camera(replace(wide, mount_height_m=1.5)).mount_height_m == 1.5
 
 
+def test_pilotnet_sees_the_road_of_a_higher_camera_as_from_the_trained_height() -> None:
+    higher = replace(CAMERA, hfov_deg=100.0, mount_height_m=1.5)
+    view = ModelView(higher)
+    assert view.needed and view.road_homography is not None
+    trained = picture(CAMERA)
+    rotated = view(picture(higher).astype(np.uint8))
+    road = view.for_pilotnet(rotated)
+    row = view.below_horizon_row
+    assert np.array_equal(road[:row], rotated[:row])  # above the horizon: unchanged
+    before = np.abs(rotated[row:].astype(int) - trained[row:]).mean()
+    after = np.abs(road[row:].astype(int) - trained[row:]).mean()
+    assert after < 0.5 * before, (before, after)  # the lines on the road fall where the trained rig sees them
+
+
 def test_the_agent_works_in_the_trained_view_of_a_different_camera() -> None:
     from towndrive.agent.drivers import make_driver
 
