@@ -327,6 +327,29 @@ def test_a_person_who_leaves_the_view_at_its_side_edge_is_remembered_and_turns_w
 
 
 @needs_models
+def test_a_person_seen_whole_is_still_confirmed_at_the_edge_after_a_frame_sort_left_out() -> None:
+    """SORT leaves a track it coasts on out of its output for a frame or two. A person who walked up to the car
+    and was seen whole, then came back as the same track at the image's edge, was taken for a box seen only at the
+    edge (not confirmed, not remembered) and forgotten beside the car's front corner, where the turn swept into them."""
+    from towndrive.agent.drivers import make_driver
+    from towndrive.agent.perception.classes import CLASSES
+    from towndrive.agent.perception.tracking import Track
+    from towndrive.envs.drive_env import DriveConfig
+
+    driver = make_driver("agent")
+    driver.reset(SimpleNamespace(config=DriveConfig()))
+    objects = driver.stages.objects
+    person = CLASSES.index("pedestrian")
+    whole = Track(144, np.array([269.0, 45.0, 307.0, 147.0]), hits=30, age=30, time_since_update=0, label=person)
+    at_edge = Track(144, np.array([284.0, 45.0, 319.0, 155.0]), hits=31, age=32, time_since_update=0, label=person)
+    for k in range(5):
+        objects.update([whole], 0.05 * k, None, speed_mps=0.0)
+    assert objects.update([], 0.25, None, speed_mps=0.0) == []  # left out for a frame
+    seen = objects.update([at_edge], 0.30, None, speed_mps=0.0)
+    assert [o.track_id for o in seen] == [144] and seen[0].confirmed and 144 not in objects.edge_only
+
+
+@needs_models
 def test_a_person_lost_near_the_car_stays_where_last_seen_for_a_while() -> None:
     from towndrive.agent.decision.controller import PerceivedObject
     from towndrive.agent.drivers import make_driver

@@ -37,6 +37,7 @@ UNCONFIRMED_STANDING_FRAMES = 40  # 2 s at the 20 Hz step
 STANDING_MPS = 0.5  # the car stands below this speed (as the controller's standstill_mps)
 LENGTHWISE_MEMORY_S = 1.0  # a lengthwise judgement is kept this long of driving while the box is cut (we may turn)
 SIDE_LATERAL_SPAN_S = 0.5  # history over which a vehicle beside us is judged moving sideways or not
+TRACK_STATE_KEEP_S = 0.5  # a track's history and judgements are kept this long while SORT does not report it
 STILL_ALONG_MPS = 1.5  # a vehicle beside us whose fitted speed along our axis is under this is taken as standing
 
 
@@ -100,6 +101,7 @@ class ObjectEstimator:
         self._whole_at: dict[int, float] = {}  # track id -> when a person's track was last seen whole
         self._standing_unconfirmed: dict[int, int] = {}  # track id -> frames in a row unconfirmed, the car standing
         self._lengthwise: dict[int, float] = {}  # track id -> when last judged lengthwise along the camera axis
+        self._alive_at: dict[int, float] = {}  # track id -> when last among this stage's tracks
         self.expired: set[int] = set()  # this frame's tracks dropped for that (UNCONFIRMED_STANDING_FRAMES)
         self.edge_only: set[int] = set()  # this frame's people seen only at the image's side edge
 
@@ -200,16 +202,15 @@ class ObjectEstimator:
             out.append(PerceivedObject(tr.track_id, kind, float(z), float(xl), float(xr), closing, lateral,
                                        (float(box[0]), float(box[1]), float(box[2]), float(box[3])),
                                        confirmed=confirmed and not stale, stale=stale))
-        for tid in list(self._history):
-            if tid not in alive:
-                del self._history[tid]
-        for tid in list(self._standing_unconfirmed):
-            if tid not in alive:
-                del self._standing_unconfirmed[tid]
-        for tid in list(self._whole_at):
-            if tid not in alive:
-                del self._whole_at[tid]
-        self._lengthwise = {tid: at for tid, at in self._lengthwise.items() if tid in alive}
+        # A track's state outlives a frame or two without it: SORT leaves out a track it coasts on for a few
+        # frames, and the same track coming back must still count as seen whole (a person who walked up to the
+        # car and out at the image's edge was otherwise taken for a box seen only at the edge, and forgotten).
+        for tid in alive:
+            self._alive_at[tid] = t
+        gone = {tid for tid, at in self._alive_at.items() if t - at > TRACK_STATE_KEEP_S}
+        for state in (self._history, self._standing_unconfirmed, self._whole_at, self._lengthwise, self._alive_at):
+            for tid in gone.intersection(state):
+                del state[tid]
         return out
 
     def _confirmed(self, track: Track, kind: str, t: float) -> bool:
