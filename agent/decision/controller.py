@@ -523,9 +523,7 @@ class Controller:
             caps.append((f"bend ahead: {bend:.1f} m/s", bend))
         if scene.turning and (scene.lane_centre is None or abs(steer) > cfg.junction_turn_steer):
             caps.insert(0, (f"turning at a junction: {cfg.junction_turn_speed_mps:.1f} m/s", cfg.junction_turn_speed_mps))
-        for why, cap in caps:
-            constraints.append(Constraint(why, math.inf, cap, 0.0, 0.0, self._idm(speed, min(target, cap), None, 0.0,
-                                                                                 0.0, 0.0)))
+        constraints += [self._cap(why, cap, speed, target) for why, cap in caps]
         light = self._light_constraint(speed, scene.turning)
         note = self.note
         sign = self._sign_constraint(scene, speed, steer)
@@ -547,11 +545,9 @@ class Controller:
                 what = ("in our path" if self.overlaps(scene, obj, steer) and obj.distance_m > 0
                         else "in the turn's sweep" if swept else "entering our path")
                 if obj.unconfirmed and (creep or obj.stale):
-                    c = Constraint(f"pedestrian #{obj.track_id} {what} not confirmed for "
-                                   f"{self.unconfirmed_clock.held_s:.0f} s: creeping at {cfg.creep_speed_mps:.1f} m/s",
-                                   math.inf, cfg.creep_speed_mps, 0.0, 0.0,
-                                   self._idm(speed, min(target, cfg.creep_speed_mps), None, 0.0, 0.0, 0.0),
-                                   unconfirmed=True)
+                    c = self._cap(f"pedestrian #{obj.track_id} {what} not confirmed for "
+                                  f"{self.unconfirmed_clock.held_s:.0f} s: creeping at {cfg.creep_speed_mps:.1f} m/s",
+                                  cfg.creep_speed_mps, speed, target, unconfirmed=True)
                 else:
                     c = Constraint(f"pedestrian #{obj.track_id} {what} at {gap:.1f} m: stop", gap, 0.0,
                                    cfg.pedestrian_min_gap_m, 0.5, unconfirmed=obj.unconfirmed)
@@ -560,10 +556,9 @@ class Controller:
                 verb = "stopped" if lead_speed < 0.5 else "following"
                 clear = self.grazes(scene, obj, steer)
                 if clear is not None and self.grazed_clock.held_s >= cfg.squeeze_after_s:
-                    c = Constraint(f"{obj.kind} #{obj.track_id} standing {clear:.1f} m clear of our side: creeping "
-                                   f"past at {cfg.creep_speed_mps:.1f} m/s", math.inf, cfg.creep_speed_mps, 0.0, 0.0,
-                                   self._idm(speed, min(target, cfg.creep_speed_mps), None, 0.0, 0.0, 0.0),
-                                   grazing=True)
+                    c = self._cap(f"{obj.kind} #{obj.track_id} standing {clear:.1f} m clear of our side: creeping "
+                                  f"past at {cfg.creep_speed_mps:.1f} m/s", cfg.creep_speed_mps, speed, target,
+                                  grazing=True)
                 else:
                     c = Constraint(f"{obj.kind} #{obj.track_id} ahead at {gap:.1f} m: {verb}", gap, lead_speed,
                                    cfg.lead_min_gap_m, cfg.headway_s, grazing=clear is not None)
@@ -614,6 +609,12 @@ class Controller:
         return Decision(steer, float(np.clip(throttle, -1.0, 1.0)), float(accel), float(target), float(pilot_steer),
                         reason, constraints, self.light_state if self.ignore_light_m <= 0 else None,
                         self.stop_line, in_path, ids.get(governing) if governing is not None else None, holding)
+
+    def _cap(self, reason: str, cap_mps: float, speed: float, target: float, unconfirmed: bool = False,
+             grazing: bool = False) -> Constraint:
+        """A speed cap (no point to stop at): IDM towards the lower of the cap and the target speed."""
+        return Constraint(reason, math.inf, cap_mps, 0.0, 0.0, self._idm(speed, min(target, cap_mps), None, 0.0, 0.0,
+                                                                          0.0), unconfirmed=unconfirmed, grazing=grazing)
 
     def _idm(self, speed: float, target: float, gap: float | None, closing: float, min_gap: float,
              headway: float) -> float:

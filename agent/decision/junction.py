@@ -37,11 +37,9 @@ def turn_path(command: int, reach_m: float, bar_depth_m: float = ROAD.stop_bar_d
     length at which the arc ends. With no ``radius_m`` the arc is the quarter circle from the bar with that radius
     (``sim/town.py``, classic junction connectors); with one (at most that distance), the arc tangent to both
     lanes, after a straight lead-in (styled towns' fillets)."""
-    right = command == 2
-    reach = reach_m
-    radius = reach if radius_m is None else min(radius_m, reach)
-    side = 1.0 if right else -1.0
-    x0 = bar_depth_m + (reach - radius)  # where the arc begins
+    radius = reach_m if radius_m is None else min(radius_m, reach_m)
+    side = 1.0 if command == 2 else -1.0
+    x0 = bar_depth_m + (reach_m - radius)  # where the arc begins
     before = np.arange(x0 - 30.0, x0, step_m)
     approach = np.stack([before, np.zeros(len(before))], axis=1)
     theta = np.arange(0.0, math.pi / 2, step_m / radius)

@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from towndrive.agent.perception.lanes import BirdsEye
+from towndrive.agent.perception.lanes import BirdsEye, below_horizontal
 from towndrive.sim.spec import CameraConfig
 
 # Size priors (metres): typical heights, which unlike widths do not change with the viewing angle.
@@ -40,6 +40,7 @@ class BoxGeometry:
         self.k = camera.intrinsics()
         self.f = float(self.k[0, 0])
         self.birdseye = BirdsEye(camera)
+        self.last_row_z_m = float(self.birdseye.ground_z_of_row(np.array([camera.height - 1.0]))[0])
         self.row_sigma = row_sigma_px
         self.prior_sigma = prior_sigma
 
@@ -80,13 +81,8 @@ class BoxGeometry:
         return z * (y1 - y0) / (self.f * HEIGHT_PRIOR_M.get(kind, 1.5))
 
     def height_of_row(self, v_px: float, z_m: float) -> float:
-        """Metres above the road seen at image row ``v_px`` at forward ground distance ``z_m`` (the pitched pinhole:
-        a level-frame point (y down from the camera, z) lands on ``cy + f y_c / z_c``, solved for y)."""
-        theta = math.radians(-self.camera.pitch_deg)
-        s, c = math.sin(theta), math.cos(theta)
-        dv = v_px - float(self.k[1, 2])
-        y = z_m * (self.f * s + dv * c) / (self.f * c - dv * s)
-        return self.camera.mount_height_m - y
+        """Metres above the road seen at image row ``v_px`` at forward ground distance ``z_m``."""
+        return self.camera.mount_height_m - z_m * math.tan(float(below_horizontal(self.camera, v_px)))
 
     def cut_height_ratio(self, box: np.ndarray | tuple[float, ...], kind: str) -> float:
         """For a box cut at the image's bottom edge only: the height its top row shows where the last image row
@@ -98,10 +94,9 @@ class BoxGeometry:
         cut_top, cut_bottom = self.cut(box)
         if cut_top or not cut_bottom:
             return math.nan
-        z_last = float(self.birdseye.ground_z_of_row(np.array([self.camera.height - 1.0]))[0])
-        if not math.isfinite(z_last) or z_last <= 0:
+        if not math.isfinite(self.last_row_z_m) or self.last_row_z_m <= 0:
             return math.nan
-        return self.height_of_row(float(box[1]), z_last) / HEIGHT_PRIOR_M.get(kind, 1.5)
+        return self.height_of_row(float(box[1]), self.last_row_z_m) / HEIGHT_PRIOR_M.get(kind, 1.5)
 
     def lengthwise(self, box: np.ndarray | tuple[float, ...], z_m: float, kind: str) -> bool:
         """Whether a vehicle wholly to one side of the camera axis stands lengthwise along it rather than across.

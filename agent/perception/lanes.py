@@ -57,6 +57,14 @@ class BirdsEyeConfig:
                 int(round((self.z_max_m - self.z_min_m) * self.px_per_m_z)))
 
 
+def pitch_rotation(pitch_deg: float) -> np.ndarray:
+    """The rotation from the level frame (x right, y down, z forward) into a camera pitched ``pitch_deg``
+    (negative: down): y_c = y cos - z sin, z_c = y sin + z cos."""
+    theta = math.radians(-pitch_deg)
+    s, c = math.sin(theta), math.cos(theta)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
 def ground_homography(camera: CameraConfig) -> np.ndarray:
     """3x3 H mapping a road-plane point (x_m right, z_m forward, 1) below the camera to its image pixel.
 
@@ -64,12 +72,20 @@ def ground_homography(camera: CameraConfig) -> np.ndarray:
     (x right, y down, z forward) a road point is (x, h, z); rotating by the pitch gives the camera frame,
     and ``K`` projects it.
     """
-    theta = math.radians(-camera.pitch_deg)
-    h = camera.mount_height_m
-    s, c = math.sin(theta), math.cos(theta)
-    # camera = R @ (x, h, z): x_c = x; y_c = h cos - z sin; z_c = h sin + z cos
-    r = np.array([[1.0, 0.0, 0.0], [0.0, -s, h * c], [0.0, c, h * s]])
-    return camera.intrinsics() @ r
+    level = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, camera.mount_height_m], [0.0, 1.0, 0.0]])  # (x, z, 1) -> (x, h, z)
+    return camera.intrinsics() @ (pitch_rotation(camera.pitch_deg) @ level)
+
+
+def below_horizontal(camera: CameraConfig, v: np.ndarray | float) -> np.ndarray:
+    """The angle (rad) below the level horizontal of the ray through image row ``v`` (negative above the horizon)."""
+    k = camera.intrinsics()
+    return np.arctan((np.asarray(v, float) - k[1, 2]) / k[1, 1]) + math.radians(-camera.pitch_deg)
+
+
+def horizon_row(camera: CameraConfig) -> float:
+    """The image row of the level horizon."""
+    k = camera.intrinsics()
+    return float(k[1, 2]) - float(k[1, 1]) * math.tan(math.radians(-camera.pitch_deg))
 
 
 class BirdsEye:
@@ -108,10 +124,7 @@ class BirdsEye:
 
     def ground_z_of_row(self, v: np.ndarray) -> np.ndarray:
         """Forward distance of the road seen on image row ``v`` (nan at and above the horizon)."""
-        k = self.camera.intrinsics()
-        theta = math.radians(-self.camera.pitch_deg)
-        t = (np.asarray(v, float) - k[1, 2]) / k[1, 1]  # tan of the angle below the optical axis
-        below = np.arctan(t) + theta  # angle below the horizontal
+        below = below_horizontal(self.camera, v)
         with np.errstate(divide="ignore", invalid="ignore"):
             z = self.camera.mount_height_m / np.tan(below)
         # z is along the level forward axis; the ground point's z in the ground frame is the same

@@ -21,7 +21,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
-from towndrive.agent.perception.lanes import ground_homography
+from towndrive.agent.perception.lanes import ground_homography, horizon_row, pitch_rotation
 from towndrive.sim.spec import CAMERA, CameraConfig
 
 
@@ -29,14 +29,6 @@ def model_camera(camera: CameraConfig, trained: CameraConfig = CAMERA) -> Camera
     """The camera the agent works in: the trained rig's lens, pitch and picture size at ``camera``'s mounting."""
     return replace(camera, hfov_deg=trained.hfov_deg, pitch_deg=trained.pitch_deg, width=trained.width,
                    height=trained.height)
-
-
-def pitch_rotation(pitch_deg: float) -> np.ndarray:
-    """The rotation from the level frame (x right, y down, z ahead) into a camera pitched ``pitch_deg`` (negative:
-    down), as ``lanes.ground_homography`` turns it."""
-    theta = math.radians(-pitch_deg)
-    s, c = math.sin(theta), math.cos(theta)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
 
 class ModelView:
@@ -53,9 +45,7 @@ class ModelView:
         trained_height = replace(self.camera, mount_height_m=trained.mount_height_m)
         self.road_homography: np.ndarray | None = None if camera.mount_height_m == trained.mount_height_m else (
             ground_homography(trained_height) @ np.linalg.inv(ground_homography(self.camera)))
-        k = self.camera.intrinsics()
-        horizon = float(k[1, 2]) - float(k[1, 1]) * math.tan(math.radians(-self.camera.pitch_deg))
-        self.below_horizon_row = min(max(int(math.ceil(horizon)) + 1, 0), self.camera.height)
+        self.below_horizon_row = min(max(int(math.ceil(horizon_row(self.camera))) + 1, 0), self.camera.height)
 
     @property
     def needed(self) -> bool:
