@@ -577,7 +577,8 @@ class AgentDriver:
                 if held and self.stages.blind_spot.alongside(held) else [])  # let it pass; a follower is merged in front of
         scene = Scene(speed, objects, light.state if light else None, light.distance_m if light else None,
                       stop.distance_m if stop is not None else None, centre, max(lane_range, 8.0),
-                      turning=command in (1, 2), speed_caps=caps, signs=self._signs,
+                      turning=command in (1, 2), turn_left=command == 1, turned_rad=self.stages.odometry.turned,
+                      speed_caps=caps, signs=self._signs,
                       lanes_each_way=lanes_each_way(lanes), light_in_view_m=light.in_view_m if light else 0.0)
         decision = self.controller.step(scene, pilot, self.dt)
         if hold is not None:  # the steering was overridden too: say so, and keep what PilotNet proposed

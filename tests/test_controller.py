@@ -448,3 +448,29 @@ def test_the_car_squeezes_past_a_still_vehicle_that_only_grazes_the_corridor_but
     assert grazing.travelled > 12.0 + 4.5  # past it
     blocking = drive(parked(CFG.half_width_m + 0.02), 20.0, v0=5.0)
     assert blocking.speed[-1] < 0.05 and blocking.travelled < 12.0
+
+
+def test_a_left_turn_waits_at_the_line_for_oncoming_traffic_until_it_has_passed() -> None:
+    """Turning left at a green light, a car coming the other way in the oncoming lane holds the car at the line
+    while it would reach us within ``oncoming_horizon_s``; then the turn goes on. A right turn, a car far enough
+    off, or a turn already under way does not wait."""
+
+    def junction(left: bool, truck_z0: float, turned: float = 0.0) -> Callable[[float, float, float], Scene]:
+        def scene(s: float, v: float, t: float) -> Scene:
+            z = truck_z0 - s - 8.0 * t  # coming towards us at 8 m/s in the oncoming lane
+            truck = PerceivedObject(4, "truck", z, -4.8, -2.3, v + 8.0, 0.0)
+            return Scene(v, objects=[truck] if z > 2.0 else [], light="green", light_distance_m=10.0 - s + CAM + 21,
+                         stop_line_m=bar_seen(10.0 - s + CAM), turning=True, turn_left=left, turned_rad=turned)
+        return scene
+
+    waits = drive(junction(True, 60.0), 9.0, v0=3.0)
+    stood = [k for k, v in enumerate(waits.speed) if v < 0.05]
+    assert stood and "oncoming truck #4" in waits.decisions[stood[0]].reason
+    at = sum(waits.speed[: stood[0]]) * DT
+    assert 10.0 - CFG.stop_line_target_m - 1.5 <= at <= 10.0  # at the line, not past it
+    assert 60.0 - 8.0 * stood[0] * DT > 2.0  # it was still coming when the car stood
+    assert waits.speed[-1] > 1.0  # and went once it had passed
+    for kwargs in (dict(left=False, truck_z0=60.0), dict(left=True, truck_z0=95.0),
+                   dict(left=True, truck_z0=60.0, turned=-0.5)):
+        run = drive(junction(**kwargs), 4.0, v0=3.0)
+        assert min(run.speed) > 1.0, kwargs

@@ -46,6 +46,10 @@ Why it is built this way:
   ``priority_near_m`` (other than one driving away ahead in our lane) and nobody confirmed stands on the crossing
   beyond the line; a yield line is approached at ``YIELD_APPROACH_MPS`` and stopped at only for such traffic. The
   last limit sign seen (else the default for the street the lane lines tell) caps the cruise speed.
+- **Oncoming traffic before a left turn**: turning left, the car waits at the stop line (past it, or with none, where
+  it is) while a vehicle in the oncoming lanes would reach the camera within ``oncoming_horizon_s``, as the
+  world's drivers do (``sim.traffic.oncoming_conflict``), until it has turned ``oncoming_commit_deg`` (then it is
+  in the way and clears the junction). Objects are read in the approach lane's frame (``Scene.turned_rad``).
 - **Bends ahead**: the lane fit's curvature, where the fit reaches ``bend_min_range_m``, caps the speed at
   sqrt(a_lat / curvature) (a_lat: ``sim.spec.CURVE_LATERAL_ACCEL_MPS2``, the autopilot's) before the car steers
   into the bend; a curvature that grows is taken at what it grows to in ``bend_horizon_s``.
@@ -92,6 +96,9 @@ class ControllerConfig:
     priority_min_speed_mps: float = 1.0  # ahead of us) has priority; slower than this it is not moving
     yield_settle_m: float = 3.0  # at a give-way line, down to YIELD_APPROACH_MPS this far before the stop point
     crossing_depth_m: float = 8.0  # a person within this beyond the line, across the road, is on the crossing
+    oncoming_horizon_s: float = 5.0  # a left turn waits while oncoming traffic would reach the camera within this
+    oncoming_commit_deg: float = 20.0  # ... until the car has turned this far (then it clears the junction)
+    oncoming_line_m: float = 15.0  # ... at a stop line this near (or, past it or with none, where it is)
     max_accel_mps2: float = 3.0  # acceleration limit: highway-env's IDM a, as the NPCs and the autopilot
     jerk_mps3: float = 4.0  # how fast the acceleration may rise
     comfortable_brake_mps2: float = 3.0  # normal braking limit
@@ -153,6 +160,8 @@ class Scene:
     lane_centre: np.ndarray | None = None  # (a, b, c): lane centre x = a z^2 + b z + c, camera ground frame
     lane_range_m: float = 30.0  # how far the lane fit is valid; beyond, it is continued straight
     turning: bool = False  # the route command asks for a left or right turn at the next junction
+    turn_left: bool = False  # ... a left turn
+    turned_rad: float = 0.0  # heading change since the car last drove along its lane (odometry; positive right)
     speed_caps: list[tuple[str, float]] = field(default_factory=list)  # other limits: (reason, m/s)
     signs: list[SignSeen] = field(default_factory=list)  # signs addressing us this frame (nearest first)
     lanes_each_way: int | None = None  # the kind of street the lane lines tell (agent.decision.signs)
@@ -477,6 +486,36 @@ class Controller:
                 return f"{o.kind} #{o.track_id} with priority {o.distance_m:.0f} m ahead"
         return ""
 
+    def _oncoming_constraint(self, scene: Scene, speed: float) -> Constraint | None:
+        """Before an unprotected left turn: a stop at the line (or, past it or with none once the turn is under way,
+        where the car is) while oncoming traffic would reach us within ``oncoming_horizon_s`` (module docstring)."""
+        cfg = self.config
+        if not scene.turn_left or -scene.turned_rad > math.radians(cfg.oncoming_commit_deg):
+            return None
+        line = self.stop_line
+        if line is not None and line <= cfg.oncoming_line_m:
+            gap = line - cfg.stop_line_target_m
+        elif line is None and (self.line.in_junction or (scene.lane_centre is None
+                                                         and abs(self.last_steer) > cfg.junction_turn_steer)):
+            gap = speed * speed / (2.0 * cfg.comfortable_brake_mps2) + cfg.stop_line_min_gap_m  # stop where it is
+        else:
+            return None
+        w = self.road.lane_width_m
+        far = -((self.signs.lanes_each_way or 2) + 0.5) * w - 1.0  # beyond the oncoming lanes' far side
+        c, s = math.cos(scene.turned_rad), math.sin(scene.turned_rad)
+        for o in scene.objects:
+            if o.kind == "pedestrian" or o.unconfirmed:
+                continue
+            x = o.lateral_m * c + o.distance_m * s  # in the approach lane's frame
+            z = o.distance_m * c - o.lateral_m * s
+            approach = o.closing_speed_mps - scene.speed_mps  # its own speed towards us
+            if not far <= x <= -0.5 * w or approach < cfg.priority_min_speed_mps or abs(o.lateral_speed_mps) > approach:
+                continue
+            if z / approach < cfg.oncoming_horizon_s:
+                return Constraint(f"left turn: waiting for oncoming {o.kind} #{o.track_id}, {z / approach:.1f} s away",
+                                  gap, 0.0, cfg.stop_line_min_gap_m, 0.5)
+        return None
+
     def _bend_cap(self, scene: Scene, dt: float) -> float:
         """The speed a bend ahead allows, sqrt(a_lat / curvature): the lane fit's curvature (``2a`` of
         x = a z^2 + b z + c, where it reaches ``bend_min_range_m`` or farther), smoothed, taken at what it grows
@@ -528,7 +567,7 @@ class Controller:
         note = self.note
         sign = self._sign_constraint(scene, speed, steer)
         self.note = note or self.note
-        for c in (light, sign):
+        for c in (light, sign, self._oncoming_constraint(scene, speed)):
             if c is None:
                 continue
             if math.isinf(c.gap_m):  # a speed cap, not a point to stop at
