@@ -59,6 +59,7 @@ from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
 from towndrive.agent.decision.odometry import Odometry
 from towndrive.agent.decision.our_light import LightRules, LightSeen, OurLight
 from towndrive.agent.decision.signs import lanes_each_way
+from towndrive.agent.decision.turn_end import TurnEnd, TurnEndRules
 from towndrive.agent.perception.box_geometry import BoxGeometry
 from towndrive.agent.perception.classes import LIGHT_CLASSES
 from towndrive.agent.perception.detector import Detection, OnnxDetector
@@ -137,6 +138,7 @@ class AgentConfig:
     road: RoadDesign = ROAD  # road-design priors (sim.spec): a deployment profile may set a real road's
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     blind_spot: BlindSpotConfig = field(default_factory=BlindSpotConfig)
+    turn_end: TurnEndRules = field(default_factory=TurnEndRules)  # PilotNet follows the road once a turn is over
     signs: SignRules = field(default_factory=SignRules)  # which detected signs address the car
     adas: AdasConfig = field(default_factory=AdasConfig)
     sort: SortConfig = field(default_factory=SortConfig)
@@ -190,6 +192,7 @@ class AgentView:
     lane_centre: np.ndarray | None
     lane_width_m: float
     blind_spot: tuple[bool, bool] = (False, False)  # a vehicle in the left, right mirror camera's zone lately
+    turn_led: bool = False  # the junction's turn arc steered
 
 
 @dataclass
@@ -205,6 +208,7 @@ class Stages:
     odometry: Odometry
     junction: JunctionGuidance
     blind_spot: BlindSpot
+    turn_end: TurnEnd
     stereo: Any = None  # agent.perception.stereo.StereoDepth with distance="stereo"
     signs: SignLocator | None = None  # the road signs addressing the car (agent.perception.signs)
     zebra: ZebraDetector | None = None  # the zebra beyond the stop bar, where the road design's setback may vary
@@ -293,7 +297,7 @@ class AgentDriver:
                                                       cfg.near_memory_m)),
             light=OurLight(geometry, LightRules(cfg.light_score_threshold, cfg.light_max_lateral_m,
                                                 cfg.light_line_tolerance_m, cfg.light_box_pad_px), cfg.road),
-            odometry=odometry, junction=junction,
+            odometry=odometry, junction=junction, turn_end=TurnEnd(cfg.turn_end),
             blind_spot=BlindSpot(mirror, MirrorMount(MIRRORS.ahead_m, MIRRORS.out_m, MIRRORS.yaw_deg), cfg.blind_spot),
             stereo=stereo, signs=SignLocator(geometry, cfg.signs, cfg.road),
             zebra=ZebraDetector(camera) if cfg.road.stop_line_setback_sd_m > 0 else None)
@@ -331,13 +335,14 @@ class AgentDriver:
         self._drain()
         self._setup(self.camera, self.dt)
         self._restart()
+        self.stages.turn_end.reset(engaged_again=True)
 
     def _restart(self) -> None:
         """Forget every tracked and dead-reckoned state."""
         self.controller.reset()
         self.sort.reset()
         st = self.stages
-        for stage in (st.blind_spot, st.objects, st.memory, st.odometry, st.junction):
+        for stage in (st.blind_spot, st.objects, st.memory, st.odometry, st.junction, st.turn_end):
             stage.reset()
         self._lights: list[Detection] = []
         self._signs: list[SignSeen] = []
@@ -496,7 +501,10 @@ class AgentDriver:
                                            self._detect_vehicles)
             lap("blind_spot")
             seen = self._model_view.for_pilotnet(image) if self._model_view is not None else image
-            pilot = float(self.net.steer(seen, 0 if held else command))  # held: follow the lane, do not change it
+            last = self._last_view
+            net_command = st.turn_end.command(command, odo.turned, last.lanes if last is not None else None,
+                                              last is not None and last.turn_led, speed * self.dt)
+            pilot = float(self.net.steer(seen, 0 if held else net_command))  # held: follow the lane, do not change it
             lap("pilotnet")
         except BaseException:
             self._settle(detected, lane_job)  # the worker's stages must not outlive this frame
@@ -543,8 +551,10 @@ class AgentDriver:
         centre = lane_centre_of(lanes, z_car)
         odo.measure_road(centre, lanes.confidence, self.controller.line, z_car)
         hold = st.junction.hold(command)
-        turn = st.junction.turn_steer(command, speed)
+        turn = st.junction.turn_steer(net_command, speed)  # no new arc once the turn is over
         decision = self._decide(speed, command, pilot, hold, turn, held, objects, light, stop, lanes, centre)
+        if net_command != command and not held and hold is None and turn is None:
+            decision.reason += "; the turn is over: PilotNet follows the road turned into"
         st.junction.note(stop, self._zebra_far_m, lanes.boundary_width_m)  # as measured this frame, where the car is
         odo.advance(speed, decision.steer, command, self.dt)
         lap("control")
@@ -555,7 +565,7 @@ class AgentDriver:
         times["total"] = (self._now() - t_start) * 1000.0
         view = AgentView(image, t, speed, command, lanes, stop, objects, tracks, light, decision, warnings,
                          centre, lanes.lane_width_m,
-                         (st.blind_spot.holding(t, "left"), st.blind_spot.holding(t, "right")))
+                         (st.blind_spot.holding(t, "left"), st.blind_spot.holding(t, "right")), turn is not None)
         self._last_view = view
         if self._threads is not None:
             self._threads.took(threads, time.perf_counter() - t_wall)

@@ -30,23 +30,26 @@ from towndrive.sim.spec import ROAD, VEHICLE, RoadDesign
 
 @lru_cache(maxsize=64)
 def turn_path(command: int, reach_m: float, bar_depth_m: float = ROAD.stop_bar_depth_m,
-              radius_m: float | None = None, step_m: float = 0.2) -> tuple[np.ndarray, float]:
+              radius_m: float | None = None, step_m: float = 0.2, angle_deg: float = 90.0) -> tuple[np.ndarray, float]:
     """A junction turn in the approach frame (x along the approach lane from its stop bar's near edge, y to the
     right): 30 m of approach, straight on past the bar's far edge (``bar_depth_m`` on), an arc into the lane of the
-    road turned into whose centre lies ``reach_m`` beyond the bar's far edge, then 30 m of that road; and the path
-    length at which the arc ends. With no ``radius_m`` the arc is the quarter circle from the bar with that radius
-    (``sim/town.py``, classic junction connectors); with one (at most that distance), the arc tangent to both
-    lanes, after a straight lead-in (styled towns' fillets)."""
-    radius = reach_m if radius_m is None else min(radius_m, reach_m)
+    road turned into, whose centre line crosses the approach lane's ``reach_m`` beyond the bar's far edge at
+    ``angle_deg`` (the heading change of the turn), then 30 m of that road; and the path length at which the arc
+    ends. With no ``radius_m`` the arc is the quarter circle from the bar with that radius (``sim/town.py``,
+    classic junction connectors); with one (at most what fits), the arc tangent to both lanes, after a straight
+    lead-in (styled towns' fillets)."""
+    half = math.radians(angle_deg) / 2
+    fits = reach_m / math.tan(half)  # the largest radius whose arc starts at the bar's far edge
+    radius = fits if radius_m is None else min(radius_m, fits)
     side = 1.0 if command == 2 else -1.0
-    x0 = bar_depth_m + (reach_m - radius)  # where the arc begins
+    x0 = bar_depth_m + reach_m - radius * math.tan(half)  # where the arc begins
     before = np.arange(x0 - 30.0, x0, step_m)
     approach = np.stack([before, np.zeros(len(before))], axis=1)
-    theta = np.arange(0.0, math.pi / 2, step_m / radius)
+    theta = np.arange(0.0, 2 * half, step_m / radius)
     arc = np.stack([x0 + radius * np.sin(theta), side * (radius - radius * np.cos(theta))], axis=1)
-    end = np.array([x0 + radius, side * radius])
+    end = np.array([x0 + radius * math.sin(2 * half), side * (radius - radius * math.cos(2 * half))])
     along = np.arange(0.0, 30.0, step_m)
-    exit_ = np.stack([np.full(len(along), end[0]), end[1] + side * along], axis=1)
+    exit_ = end + along[:, None] * np.array([math.cos(2 * half), side * math.sin(2 * half)])
     path = np.concatenate([approach, arc, exit_])
     path.setflags(write=False)
     return path, (len(approach) + len(arc)) * step_m

@@ -1,0 +1,71 @@
+"""When a commanded turn has brought the car onto the road turned into, PilotNet is asked to follow that road.
+
+Why: the route command names the junction's turn until the car leaves the junction, and PilotNet, conditioned on
+it, keeps steering into the turn after the junction's arc hands over: where the road turned into is already
+straight ahead it overturns, and the car cuts to the turn's inner side. The same happens when the car is engaged
+again in the middle of a turn (after a safety driver's take-over), where the turn left to do is small. The lane
+finder tells when the turn is over: a confident lane lined up with the car. From then the command PilotNet gets
+is "follow the road" for ``keep_m`` of travel or until the route's command changes; the controller still knows
+the car is turning (its speed caps are unchanged).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from towndrive.agent.perception.lanes import LaneResult
+
+FOLLOW, LEFT, RIGHT = 0, 1, 2  # route commands (sim.town.Command's values, which the observation carries)
+
+
+@dataclass(frozen=True)
+class TurnEndRules:
+    enabled: bool = True
+    min_turned_deg: float = 20.0  # a turn counts as under way once the car has turned this far
+    aligned_deg: float = 8.0  # a lane this near the car's heading is the road turned into
+    min_confidence: float = 0.4  # ... when the lane finder is this sure of it
+    keep_m: float = 15.0  # then PilotNet follows the road this far (or until the command changes)
+
+
+class TurnEnd:
+    """The command PilotNet is given (module docstring). ``reset(engaged_again)`` per episode or take-over."""
+
+    def __init__(self, rules: TurnEndRules) -> None:
+        self.rules = rules
+        self.reset()
+
+    def reset(self, engaged_again: bool = False) -> None:
+        self._done: int | None = None  # the turn judged over, while its command lasts
+        self._left_m = 0.0  # travel left on the road turned into before the command is given back
+        self._engaged_in_turn = engaged_again  # engaged again, perhaps inside a turn: no turning to wait for
+        self._first = True
+
+    def command(self, command: int, turned_rad: float, lanes: LaneResult | None, arc_leads: bool,
+                travelled_m: float) -> int:
+        """The command for PilotNet this frame: ``command`` (the route's), or FOLLOW once the turn is over.
+        ``turned_rad``: the heading change since the car last drove along its lane; ``lanes``: the last lane fit;
+        ``arc_leads``: the junction's arc steers (it did on the last frame); ``travelled_m``: since the last frame."""
+        r = self.rules
+        if self._first:
+            self._first = False
+            self._engaged_in_turn = self._engaged_in_turn and command in (LEFT, RIGHT)
+            return command  # (the last lane fit is from before a take-over)
+        if command not in (LEFT, RIGHT) or command != (self._done or command):
+            self._done, self._engaged_in_turn = None, False
+            return command
+        if self._done is not None:
+            self._left_m -= travelled_m
+            if self._left_m > 0:
+                return FOLLOW
+            self._done = None
+            return command
+        if not r.enabled or arc_leads or lanes is None:
+            return command
+        under_way = abs(turned_rad) >= math.radians(r.min_turned_deg) or self._engaged_in_turn
+        aligned = (lanes.confidence >= r.min_confidence and math.isfinite(lanes.heading_rad)
+                   and abs(lanes.heading_rad) <= math.radians(r.aligned_deg))
+        if under_way and aligned:
+            self._done, self._left_m, self._engaged_in_turn = command, r.keep_m, False
+            return FOLLOW
+        return command

@@ -1,0 +1,50 @@
+"""The command PilotNet is given once a commanded turn is over (``agent.decision.turn_end``)."""
+
+from __future__ import annotations
+
+import math
+
+from towndrive.agent.decision.turn_end import FOLLOW, LEFT, RIGHT, TurnEnd, TurnEndRules
+from towndrive.agent.perception.lanes import LaneResult
+
+
+def lane(heading_deg: float, confidence: float = 0.6) -> LaneResult:
+    return LaneResult(None, None, 0.0, math.inf, math.radians(heading_deg), 3.5, confidence, True)
+
+
+def test_pilotnet_follows_the_road_once_a_turn_has_brought_the_car_onto_it() -> None:
+    end = TurnEnd(TurnEndRules())
+    end.reset()
+    assert end.command(RIGHT, 0.0, lane(0.0), False, 0.1) == RIGHT  # first frame
+    assert end.command(RIGHT, 0.0, lane(0.0), False, 0.1) == RIGHT  # approaching: not yet turning
+    assert end.command(RIGHT, math.radians(60), lane(0.0), True, 0.1) == RIGHT  # the arc leads
+    assert end.command(RIGHT, math.radians(70), lane(25.0), False, 0.1) == RIGHT  # the road turned into: still at an angle
+    assert end.command(RIGHT, math.radians(70), lane(3.0, 0.2), False, 0.1) == RIGHT  # lined up but unsure
+    assert end.command(RIGHT, math.radians(85), lane(3.0), False, 0.1) == FOLLOW  # lined up: the turn is over
+    # It stays over while the car travels keep_m (the car drives straight: the odometry's turn goes back to 0) ...
+    for _ in range(int(TurnEndRules().keep_m / 0.5) - 1):
+        assert end.command(RIGHT, 0.0, None, False, 0.5) == FOLLOW
+    assert end.command(RIGHT, 0.0, None, False, 0.5) == RIGHT
+    # ... or until the route's command changes.
+    end.reset()
+    end.command(LEFT, 0.0, None, False, 0.0)
+    assert end.command(LEFT, math.radians(-80), lane(-2.0), False, 0.1) == FOLLOW
+    assert end.command(FOLLOW, 0.0, None, False, 0.1) == FOLLOW
+    assert end.command(RIGHT, 0.0, lane(0.0), False, 0.1) == RIGHT
+
+
+def test_engaged_again_inside_a_turn_the_car_need_not_turn_far_before_following_the_road() -> None:
+    """After a take-over the safety driver leaves the car on the turn's own path, where the turn left to do may be
+    small: a lined-up lane ends it at once; without the take-over the car would have to turn 20 degrees first."""
+    end = TurnEnd(TurnEndRules())
+    end.reset(engaged_again=True)
+    end.command(RIGHT, 0.0, lane(0.0), False, 0.0)
+    assert end.command(RIGHT, math.radians(2), lane(2.0), False, 0.1) == FOLLOW
+    fresh = TurnEnd(TurnEndRules())
+    fresh.reset()
+    fresh.command(RIGHT, 0.0, lane(0.0), False, 0.0)
+    assert fresh.command(RIGHT, math.radians(2), lane(2.0), False, 0.1) == RIGHT
+    off = TurnEnd(TurnEndRules(enabled=False))
+    off.reset(engaged_again=True)
+    off.command(RIGHT, 0.0, None, False, 0.0)
+    assert off.command(RIGHT, math.radians(85), lane(0.0), False, 0.1) == RIGHT
