@@ -303,6 +303,12 @@ class DriveEnv(gym.Env):
         ego = self._require_world().ego
         return float(ego.position[0]), float(ego.position[1]), float(ego.heading)
 
+    def observe(self) -> Any:
+        """The observation of the world as it is now: after it was changed between steps (a safety driver's
+        take-over carries the car back onto its lane), the driver must see where the car is, not the last step's
+        frame."""
+        return self._observe()
+
     def _observe(self) -> Any:
         world = self._require_world()
         cfg = self.config

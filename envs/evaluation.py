@@ -231,6 +231,7 @@ def run_episode(env: DriveEnv, driver: Driver, seed: int, video: Any = None, pro
             trace.interventions.append(info["time_s"])
             new_events.append(_takeover_event(info, reason))
             world.put_back_on_route()
+            obs = env.observe()  # the driver re-engages on a frame of where the car now stands
             carried = True
             restart = getattr(driver, "on_intervention", None)  # a driver with state re-engages afresh
             if restart is not None:

@@ -58,11 +58,14 @@ def test_the_safety_driver_puts_the_car_back_and_tells_the_driver():
 
         def __init__(self) -> None:
             self.restarts = 0
+            self.first_speeds: list[float] = []  # the speed each re-engagement first sees
 
         def reset(self, env) -> None:
             pass
 
         def act(self, observation) -> np.ndarray:
+            if len(self.first_speeds) < self.restarts:
+                self.first_speeds.append(float(observation["speed"][0]))
             return np.array([0.5, 0.6], np.float32)
 
         def on_intervention(self) -> None:
@@ -72,6 +75,7 @@ def test_the_safety_driver_puts_the_car_back_and_tells_the_driver():
     trace = run_episode(DriveEnv(replace(BLIND, max_time_s=12.0)), driver, 100)
     assert len(trace.interventions) >= 1
     assert driver.restarts == len(trace.interventions)
+    assert driver.first_speeds and max(driver.first_speeds) == 0.0  # where the car stands now, not the last step
 
 
 def test_noise_injection_perturbs_but_labels_stay_clean():

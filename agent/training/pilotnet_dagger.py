@@ -72,6 +72,7 @@ def collect(model: torch.nn.Module, folder: Path, episodes: int, seed: int, town
                 if needs_intervention(info) and env.world is not None and not env.world.route_done:
                     interventions += 1
                     env.world.put_back_on_route()
+                    obs = env.observe()  # the next label is the expert's at the place the car was carried to
                 done = terminated or truncated
             writer.close()
     finally:
