@@ -325,6 +325,7 @@ class AgentDriver:
         self.timings = []
         self.view = self._last_view = None
         self._zebra_far_m: float | None = None  # this frame's zebra far edge (camera to it), when looked for
+        self._zebra_tilt: float | None = None  # ... and the slope of its edges (the cross street's direction)
         self._frame = 0
         self._restart()
 
@@ -451,9 +452,11 @@ class AgentDriver:
         stop = self._timed("stop_line", times, self.stages.stop.detect, image, lanes)
         zebra = self.stages.zebra
         self._zebra_far_m = None
+        self._zebra_tilt = None
         if zebra is not None and stop is not None and stop.distance_m <= self.config.turn_bar_seen_m:
             seen = self._timed("zebra", times, zebra.detect, image, lanes, stop.distance_m)
             self._zebra_far_m = None if seen is None else seen.far_m
+            self._zebra_tilt = None if seen is None else seen.tilt
         return lanes, stop
 
     def _act(self, observation: dict[str, Any],
@@ -555,7 +558,8 @@ class AgentDriver:
         decision = self._decide(speed, command, pilot, hold, turn, held, objects, light, stop, lanes, centre)
         if net_command != command and not held and hold is None and turn is None:
             decision.reason += "; the turn is over: PilotNet follows the road turned into"
-        st.junction.note(stop, self._zebra_far_m, lanes.boundary_width_m)  # as measured this frame, where the car is
+        # as measured this frame, where the car is
+        st.junction.note(stop, self._zebra_far_m, lanes.boundary_width_m, self._zebra_tilt)
         odo.advance(speed, decision.steer, command, self.dt)
         lap("control")
         in_path = st.memory.note(objects, decision.in_path, st.objects.edge_only)

@@ -4,8 +4,10 @@ Why: in the styled towns most take-overs come in junction turns, and a closed-lo
 error with PilotNet's, the stop bar's reading and traffic. Here each turn of a town is driven on the world's own
 bicycle model by the agent's junction guidance alone (``agent.decision.junction``), from 2.3 m before the stop
 bar with the bar's distance given exactly and no traffic, at the turn speed, until the arc hands over to the camera
-(or the car is on the road turned into). The figure per turn is the largest "outside its lanes" distance, the
-safety driver's measure (a take-over beyond 1 m); 9 means the car left the road.
+(or the car is on the road turned into). The bar's distance, the zebra's far edge and the slope of its edges (the
+cross street's direction, ``Zebra.tilt``) are given as the detectors would report them, read from the town;
+``--no-tilt`` leaves the slope out (the arc then assumes a square junction). The figure per turn is the largest
+"outside its lanes" distance, the safety driver's measure (a take-over beyond 1 m); 9 means the car left the road.
 
   python bench/turn_arc.py --style suburb --towns 4000,4001 --command right
 """
@@ -30,11 +32,12 @@ from towndrive.sim.road_priors import road_priors  # noqa: E402
 from towndrive.sim.town import Command, TownConfig  # noqa: E402
 from towndrive.sim.world import World, WorldConfig, cached_town  # noqa: E402
 
-BAR_AHEAD_M = 9.0  # the bumper's distance to the stop bar when the turn is placed
+BAR_AHEAD_M = 5.5  # the bumper's distance to the stop bar when the turn is placed (near enough to read the zebra's slope)
 OFF_ROAD = 9.0
 
 
-def drive_turn(style: str, town_seed: int, entry_index: int, command: int) -> tuple[int, int, float] | None:
+def drive_turn(style: str, town_seed: int, entry_index: int, command: int,
+               tilt: bool = True) -> tuple[int, int, float] | None:
     """(our lanes, the cross street's, the largest outside-the-lanes distance) of one turn; None if the entry
     has no such turn."""
     config = DriveConfig(world=WorldConfig(town=TownConfig.of_style(style)), render_camera=False)
@@ -61,7 +64,13 @@ def drive_turn(style: str, town_seed: int, entry_index: int, command: int) -> tu
     t = np.array([math.cos(entry.travel_heading), math.sin(entry.travel_heading)])
     zebra = next((c for c in town.crosswalks if c.node == entry.node and c.arm == entry.arm), None)
     zebra_far = None if zebra is None else camera_to_bar + float(np.max((zebra.polygon - entry.line_center) @ t))
-    guidance.note(StopLine(camera_to_bar, 0.5, 0.9, 0), zebra_far, town.lane_width)
+    slope = None
+    if zebra is not None and tilt:  # its edges' dz/dx in the approach frame (x right, z ahead)
+        axis = np.asarray(zebra.end, float) - np.asarray(zebra.start, float)
+        along, across = float(axis @ t), float(axis @ np.array([-t[1], t[0]]))
+        slope = along / across if abs(across) > 1e-9 else None
+    for _ in range(3):  # the skew is the median of a few readings
+        guidance.note(StopLine(camera_to_bar, 0.5, 0.9, 0), zebra_far, town.lane_width, slope)
     steer, worst, started = 0.0, 0.0, False
     turn_speed = controller.config.junction_turn_speed_mps
     for _ in range(400):
@@ -88,13 +97,14 @@ def main() -> None:
     ap.add_argument("--towns", default="4000,4001", help="comma-separated town seeds")
     ap.add_argument("--entries", type=int, default=14, help="the first N junction entries of each town")
     ap.add_argument("--command", choices=("left", "right"), default="right")
+    ap.add_argument("--no-tilt", action="store_true", help="leave the zebra's slope out: square junctions assumed")
     args = ap.parse_args()
     command = Command.LEFT if args.command == "left" else Command.RIGHT
     worst = []
     print("| town | entry | our lanes | cross street's | largest outside its lanes (m) |\n|---|---|---|---|---|")
     for seed in (int(s) for s in args.towns.split(",")):
         for i in range(min(args.entries, len(cached_town(TownConfig.of_style(args.style), seed).entries))):
-            row = drive_turn(args.style, seed, i, command)
+            row = drive_turn(args.style, seed, i, command, tilt=not args.no_tilt)
             if row is not None:
                 worst.append(row[2])
                 print(f"| {seed} | {i} | {row[0]} | {row[1]} | {row[2]:.2f} |", flush=True)

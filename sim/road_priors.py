@@ -47,8 +47,12 @@ def junction_samples(town: Town) -> dict[str, list[float]]:
                 out["left"].append(radius)
             elif info.command == Command.RIGHT and idx[2] == entry.lane_count - 1:
                 out["right"].append(radius)
-                # where the turn ends, along the approach from the bar's far edge
-                out["kerb_reach"].append(float((lane.position(lane.length, 0.0) - entry.line_center) @ t) - depth)
+                # where the lane turned into crosses the approach lane's centre line, from the bar's far edge (the
+                # agent's arc turns by the cross street's angle, measured, into that line)
+                end = lane.position(lane.length, 0.0) - entry.line_center
+                turn = float(np.arctan2(np.sin(lane.heading_at(lane.length) - entry.travel_heading),
+                                        np.cos(lane.heading_at(lane.length) - entry.travel_heading)))
+                out["kerb_reach"].append(float(end @ t) - depth - float(end @ right) / np.tan(turn))
         if entry.approach >= 0:
             ap = town.approaches[entry.approach]
             # across the incoming lanes from their middle (positive: right), then from our lane's centre

@@ -136,7 +136,7 @@ class RoadDesign:
     # kerb, any parking strip and half a lane, whatever the cross street's lane count (its centre line lies one or
     # two lanes farther, a count not seen before the turn). None: the classic design's kerb lane, the setback less
     # one and a half lane widths.
-    kerb_lane_reach_m: float | None = None  # the stop bar's far edge to that lane's centre
+    kerb_lane_reach_m: float | None = None  # the stop bar's far edge to where that lane's centre line crosses ours
     kerb_lane_reach_sd_m: float = 0.0
     stop_bar_depth_m: float = 0.5  # the painted bar's depth along the lane
     # Where our signal head hangs: on a mast arm over the incoming lanes, across the junction. A design with

@@ -120,7 +120,7 @@ def test_the_junction_guidance_corrects_its_setback_and_lane_width_by_what_is_me
     def guidance(road) -> JunctionGuidance:
         line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
                                config=SimpleNamespace(camera_to_front_m=2.0))
-        odo = SimpleNamespace(road_yaw=0.0, pos=np.zeros(2), road_offset=0.0)
+        odo = SimpleNamespace(road_yaw=0.0, pos=np.zeros(2), road_offset=0.0, yaw=0.0)
         return JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
 
     road = road_priors("downtown")
@@ -262,3 +262,49 @@ def test_a_right_turn_aims_at_the_kerb_lane_whatever_the_cross_street_s_lane_cou
     assert len(new) > 30
     assert float(np.mean(old)) < -1.5 and abs(float(np.mean(new))) < 0.7
     assert ROAD.kerb_lane_reach == ROAD.stop_line_setback_m - 1.5 * ROAD.lane_width_m
+
+
+def test_a_turn_into_a_cross_street_that_leans_ends_on_its_lane_at_its_angle() -> None:
+    """``turn_path`` with the cross street's angle: the arc is tangent to the approach and ends heading along the
+    lane turned into, whose centre line crosses the approach lane's ``reach`` beyond the bar's far edge."""
+    for command, side in ((2, 1.0), (1, -1.0)):
+        for angle in (80.0, 90.0, 100.0):
+            path, arc_end = turn_path(command, 15.0, 0.5, 8.0, angle_deg=angle)
+            k = int(round(arc_end / 0.2))
+            d = path[-1] - path[k]  # along the exit
+            heading = math.degrees(math.atan2(side * d[1], d[0]))
+            assert heading == pytest.approx(angle, abs=0.5)
+            # the exit line, continued back, crosses y = 0 at the bar's far edge + reach
+            crossing = path[k][0] - path[k][1] * d[0] / d[1]
+            assert crossing == pytest.approx(0.5 + 15.0, abs=0.05)
+            first = np.argmax(np.abs(path[:, 1]) > 1e-9)
+            assert abs(path[first - 1][1]) < 1e-9 and path[first - 1][0] < 0.5 + 15.0  # straight on, then the arc
+
+
+def test_the_junction_guidance_reads_the_cross_street_s_angle_from_near_zebra_readings_only() -> None:
+    """``JunctionGuidance.note`` with the zebra's edge slope: near readings (bar within ``skew_bar_max_m``), in the
+    approach lane's frame (the camera turned 2 degrees right of it here), their median once there are enough; far
+    ones and the classic design's exact square junctions are left alone."""
+    from types import SimpleNamespace
+
+    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
+    from towndrive.agent.perception.stop_line import StopLine
+
+    def guidance(road) -> JunctionGuidance:
+        line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=5.0,
+                               config=SimpleNamespace(camera_to_front_m=2.0))
+        odo = SimpleNamespace(road_yaw=0.0, pos=np.zeros(2), road_offset=0.0, yaw=math.radians(2.0))
+        return JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
+
+    road = road_priors("downtown")
+    g = guidance(road)
+    lean = math.radians(7.4)
+    g.note(StopLine(10.0, 0.5, 0.9, 0), None, None, math.tan(0.5))  # far: not taken
+    for tilt in (lean + 0.03, lean - 0.01, lean + 0.5):  # one odd reading among three
+        assert g.skew_rad == 0.0  # not enough readings yet
+        g.note(StopLine(6.0, 0.5, 0.9, 0), None, None, math.tan(tilt + math.radians(2.0)))
+    assert g.skew_rad == pytest.approx(lean + 0.03, abs=1e-6)
+    classic = guidance(ROAD)
+    for _ in range(3):
+        classic.note(StopLine(6.0, 0.5, 0.9, 0), None, None, math.tan(lean))
+    assert classic.skew_rad == 0.0

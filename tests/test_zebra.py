@@ -84,3 +84,26 @@ def test_wrong_frame_is_one_value_error() -> None:
         detector.detect(np.zeros((160, 320), np.uint8), None)
     with pytest.raises(ValueError, match="320x160 uint8 RGB"):
         detector.detect(np.zeros((120, 320, 3), np.uint8), None)
+
+
+@pytest.mark.parametrize("style, entry_index, before_end_m", [("downtown", 0, 5.0), ("downtown", 1, 7.0),
+                                                               ("suburb", 3, 5.0), ("classic", 0, 7.0)])
+def test_the_zebra_s_edges_tell_the_cross_street_s_direction(style: str, entry_index: int,
+                                                              before_end_m: float) -> None:
+    """Where a junction is not square the zebra's edges run along the cross street: the slope of its stripes' ends
+    (dz/dx, the car lined up with its lane) against the town's crosswalk, within 0.05 (3 degrees; a downtown
+    junction leans 7.4 degrees, a classic one not at all)."""
+    rgb, env = _frame(style, 4000, entry_index, before_end_m)
+    assert env.world is not None
+    town = env.world.town
+    entry = town.entries[entry_index]
+    cw = next(c for c in town.crosswalks if (c.node, c.arm) == (entry.node, entry.arm))
+    t = np.array([math.cos(entry.travel_heading), math.sin(entry.travel_heading)])
+    axis = np.asarray(cw.end, float) - np.asarray(cw.start, float)
+    truth = float(axis @ t) / float(axis @ np.array([-t[1], t[0]]))
+    zebra = _chain(rgb, env)
+    env.close()
+    assert zebra is not None and zebra.tilt is not None
+    assert abs(zebra.tilt - truth) <= 0.05, (zebra.tilt, truth)
+    if style != "classic":
+        assert abs(truth) > 0.1  # the case is one that leans

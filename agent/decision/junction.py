@@ -11,6 +11,9 @@ setback does. The lane offset is the lane width the lane finder measured, where 
 Where the design's numbers spread, the arc still misses the lane turned into by a metre or two at its end (the
 radius and the exit lane are not measured), so it leads the turn only until the car faces the road turned into
 (``turn_handover_deg``); PilotNet, which sees that road, finishes it. An exact design's arc leads to the end.
+Where junctions are not square, the arc turns by the cross street's angle, read from the zebra beyond the bar (its
+edges run along the cross street), into the lane whose centre line crosses the approach lane's where the road
+design's reach puts it.
 """
 
 from __future__ import annotations
@@ -72,6 +75,11 @@ class JunctionRules:
     # With a design whose numbers spread, the arc (dead-reckoned from priors) leads the turn only this far; the
     # camera's steering finishes it, facing the road turned into. An exact design's arc leads to the end.
     turn_handover_deg: float = 60.0
+    # The cross street's angle, from the zebra beyond the bar (``Zebra.tilt``): read only with the bar this near
+    # (the stripes' ends are sharp), taken as the median of at least this many readings, within this of square.
+    skew_bar_max_m: float = 7.0
+    skew_min_readings: int = 3
+    skew_max_deg: float = 20.0
 
 
 class JunctionGuidance:
@@ -97,6 +105,16 @@ class JunctionGuidance:
         # the stop bar ahead (x, y, road yaw) and the command of the turn once it has begun (0: not yet)
         self.junction: tuple[float, float, float, int] | None = None
         self._zebra_m: list[float] = []  # bar's far edge to the zebra's far edge, as measured at this junction
+        self._skew: list[float] = []  # the cross street's angle from square (rad, positive: its right arm leans
+        #                               away from us), as measured at this junction
+
+    @property
+    def skew_rad(self) -> float:
+        """The cross street's measured angle from square (0 until measured, and for an exact design)."""
+        if not self.design_spreads or len(self._skew) < self.rules.skew_min_readings:
+            return 0.0
+        limit = math.radians(self.rules.skew_max_deg)
+        return float(np.clip(np.median(self._skew), -limit, limit))
 
     @property
     def design_spreads(self) -> bool:
@@ -119,12 +137,14 @@ class JunctionGuidance:
         steer = -(cfg.hold_heading_gain * (odo.yaw - odo.road_yaw) + cfg.hold_offset_gain * odo.road_offset)
         return float(np.clip(steer, -cfg.hold_max_steer, cfg.hold_max_steer))
 
-    def note(self, stop: StopLine | None, zebra_far_m: float | None = None, lane_width_m: float | None = None) -> None:
+    def note(self, stop: StopLine | None, zebra_far_m: float | None = None, lane_width_m: float | None = None,
+             zebra_tilt: float | None = None) -> None:
         """Where the stop bar ahead lies in the odometry frame (the approach lane's centre at the bar's near edge),
         from the tracked bar and the approach lane measured before it. Only a bar seen within ``turn_bar_seen_m``
         of the camera places a turn (farther readings are a metre or so off). ``zebra_far_m``: the camera to the
         far edge of the zebra beyond the bar this frame; ``lane_width_m``: the lane width the lane finder
-        measured (both correct the design's priors, module docstring)."""
+        measured (both correct the design's priors, module docstring); ``zebra_tilt``: the slope of the zebra's
+        edges (dz/dx in the camera's ground frame), the cross street's direction."""
         line, odo, road = self.line, self.odo, self.road
         if line.ignore_light_m > 0 or not line.stop_line_measured or line.stop_line is None or odo.road_yaw is None:
             return
@@ -135,6 +155,9 @@ class JunctionGuidance:
                 self.lane_width_m = fused(road.lane_width_m, road.lane_width_sd_m, lane_width_m, LANE_WIDTH_SD_M)
             if zebra_far_m is not None:
                 self._zebra_m.append(zebra_far_m - stop.distance_m - road.stop_bar_depth_m)
+            if zebra_tilt is not None and stop.distance_m <= self.rules.skew_bar_max_m:
+                # in the approach lane's frame: the camera is turned (yaw - road_yaw) to the right of it
+                self._skew.append(math.atan(zebra_tilt) - (odo.yaw - odo.road_yaw))
             measured = float(np.median(self._zebra_m)) + road.zebra_to_centre_m if self._zebra_m else None
             self.setback_m = fused(road.stop_line_setback_m, road.stop_line_setback_sd_m, measured,
                                    math.hypot(road.zebra_to_centre_sd_m, ZEBRA_SD_M))
@@ -172,7 +195,9 @@ class JunctionGuidance:
         here = np.array([float(rel @ u) - half * math.cos(heading), float(rel[0] * -u[1] + rel[1] * u[0])
                          - half * math.sin(heading)])
         radius = self.road.left_turn_radius_m if command == 1 else self.road.right_turn_radius_m
-        path, arc_end = turn_path(command, round(reach, 2), self.road.stop_bar_depth_m, radius)
+        skew = math.degrees(self.skew_rad)  # a right turn is that much less than square, a left turn more
+        angle = round(90.0 - skew if command == 2 else 90.0 + skew, 1)
+        path, arc_end = turn_path(command, round(reach, 2), self.road.stop_bar_depth_m, radius, angle_deg=angle)
         lookahead = cfg.turn_lookahead_m + cfg.turn_lookahead_s * speed
         if here[0] < self.road.stop_bar_depth_m - lookahead:  # not yet: the lookahead point is still before the arc
             return None

@@ -21,6 +21,12 @@ How, and why each step:
 - The corridor is the detected lane's (``lane_corridor``, shared with the stop-line detector), continued
   straight beyond where the lane lines end (the zebra lies past them); without a lane it is straight ahead.
 - With ``stop_line_m`` given only a band starting ``after_bar_m`` past the bar counts.
+- **The cross street's direction** (``Zebra.tilt``): a zebra's edges run parallel to the street it lies beside
+  (where junctions are not square, across the car's road at the cross street's angle, not at right angles).
+  Each stripe across the whole view, not only the corridor, gives its near and far ends; a line fitted to them
+  (robustly, twice) over at least ``tilt_min_stripes`` stripes spanning ``tilt_min_span_m`` gives the edges'
+  slope. Lane lines reach beyond the band and are left out; a stripe's ends are sharp only near the car, so the
+  junction guidance takes the tilt only from near readings, and their median.
 - Relative thresholds (contrast and ratio to the local road) keep it working from noon to dusk; at night the
   headlights' pool and the darkness can leave too little contrast, and then it reports nothing.
 
@@ -61,6 +67,12 @@ class ZebraConfig:
     after_bar_m: tuple[float, float] = (-1.0, 7.5)  # where the near edge may start past the stop bar (the bar
     #                                                 is erased by the top-hat, so a bar measured long is no risk)
     max_far_m: float = 29.0  # the bird's-eye view ends at 30 m
+    tilt_pad_m: float = 1.5  # the stripes' ends are looked for this far beyond the band's rows
+    tilt_stripe_width_m: tuple[float, float] = (0.2, 1.0)  # a stripe's width in the view (one or two merged)
+    tilt_stripe_length_m: tuple[float, float] = (1.5, 4.5)  # its length along the road
+    tilt_min_stripes: int = 4
+    tilt_min_span_m: float = 3.0  # the stripes used span at least this across the road
+    tilt_residual_m: float = 0.4  # an end farther than this from the fitted edge is left out (and the fit redone)
 
 
 @dataclass
@@ -69,6 +81,7 @@ class Zebra:
     far_m: float  # camera to its far edge
     fill: float  # mean share of the corridor painted over the band
     rows: tuple[int, int] = (0, 0)  # bird's-eye rows of the band (first = farthest, one past the nearest)
+    tilt: float | None = None  # dz/dx of its edges (camera ground frame): the cross street's direction; None: unsure
 
 
 class ZebraDetector:
@@ -152,8 +165,42 @@ class ZebraDetector:
                 continue
             if stop_line_m is not None and not (cfg.after_bar_m[0] <= near - stop_line_m <= cfg.after_bar_m[1]):
                 continue
-            return Zebra(near, far, float(fill[r0:r1].mean()), (r0, r1))
+            return Zebra(near, far, float(fill[r0:r1].mean()), (r0, r1), self._tilt(bright, r0, r1))
         return None
+
+    def _tilt(self, bright: np.ndarray, r0: int, r1: int) -> float | None:
+        """The slope dz/dx of the zebra's edges from its stripes' ends (module docstring), or None."""
+        cfg, be = self.config, self.config.birdseye
+        z, x = self.birdseye.z_of_row, self.birdseye.x_of_col
+        pad = int(round(cfg.tilt_pad_m * be.px_per_m_z))
+        a, b = max(0, r0 - pad), min(len(z), r1 + pad)
+        window = bright[a:b]
+        edges = np.diff(np.r_[0, window.any(axis=0).astype(np.int8), 0])
+        ends = []
+        for c0, c1 in zip(np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0], strict=True):
+            if not cfg.tilt_stripe_width_m[0] <= (c1 - c0) / be.px_per_m_x <= cfg.tilt_stripe_width_m[1]:
+                continue
+            rows = np.nonzero(window[:, c0:c1].any(axis=1))[0]
+            if rows[0] == 0 or rows[-1] == len(window) - 1:  # runs out of the window: a lane line, not a stripe
+                continue
+            if not cfg.tilt_stripe_length_m[0] <= (rows[-1] - rows[0]) / be.px_per_m_z <= cfg.tilt_stripe_length_m[1]:
+                continue
+            ends.append((float(x[c0:c1].mean()), float(z[a + rows[-1]]), float(z[a + rows[0]])))
+        if len(ends) < cfg.tilt_min_stripes:
+            return None
+        p = np.array(ends)
+        if p[:, 0].max() - p[:, 0].min() < cfg.tilt_min_span_m:
+            return None
+        slopes = []
+        for col in (1, 2):  # near ends, far ends
+            keep = np.ones(len(p), bool)
+            for _ in range(2):
+                if keep.sum() < cfg.tilt_min_stripes - 1:
+                    return None
+                slope, icpt = np.polyfit(p[keep, 0], p[keep, col], 1)
+                keep = np.abs(p[:, col] - (icpt + slope * p[:, 0])) < cfg.tilt_residual_m
+            slopes.append(float(slope))
+        return float(np.mean(slopes))
 
     def _corridor(self, lanes: LaneResult | None, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The lane corridor, continued straight beyond the end of the lane lines (the zebra lies past it)."""
