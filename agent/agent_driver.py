@@ -554,6 +554,8 @@ class AgentDriver:
         centre = lane_centre_of(lanes, z_car)
         odo.measure_road(centre, lanes.confidence, self.controller.line, z_car)
         hold = st.junction.hold(command)
+        if st.turn_end.ended:
+            self.controller.line.leave_junction(self.config.turn_end.light_ignore_m)
         turn = st.junction.turn_steer(net_command, speed)  # no new arc once the turn is over
         decision = self._decide(speed, command, pilot, hold, turn, held, objects, light, stop, lanes, centre)
         if net_command != command and not held and hold is None and turn is None:

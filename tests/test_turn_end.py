@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+import pytest
+
 from towndrive.agent.decision.turn_end import FOLLOW, LEFT, RIGHT, TurnEnd, TurnEndRules
 from towndrive.agent.perception.lanes import LaneResult
 
@@ -48,3 +50,32 @@ def test_engaged_again_inside_a_turn_the_car_need_not_turn_far_before_following_
     off.reset(engaged_again=True)
     off.command(RIGHT, 0.0, None, False, 0.0)
     assert off.command(RIGHT, math.radians(85), lane(0.0), False, 0.1) == RIGHT
+
+
+def test_once_a_turn_is_over_the_next_junction_s_stop_bar_counts_within_metres() -> None:
+    """Past a stop line the junction's light and any bar are ignored for ``junction_ignore_m`` (a window sized for
+    crossing the junction straight on); a turn that is over ends it within ``light_ignore_m``, so the bar of a
+    junction a short block after a turn is tracked (without it, the car ran that junction's red)."""
+    from towndrive.agent.decision.controller import ControllerConfig
+    from towndrive.agent.decision.stop_line_track import StopLineTrack
+
+    def bar_after(leave: bool) -> float | None:
+        line = StopLineTrack(ControllerConfig())
+        line.update(5.0, 3.0 + ControllerConfig().camera_to_front_m, None, None, 0.05)
+        for _ in range(40):  # over the line, into the junction
+            line.update(5.0, None, None, None, 0.05)
+        assert line.in_junction
+        end = TurnEnd(TurnEndRules())
+        end.reset()
+        end.command(RIGHT, 0.0, None, False, 0.0)
+        assert end.command(RIGHT, math.radians(80), lane(1.0), False, 0.25) == FOLLOW and end.ended
+        assert end.command(RIGHT, math.radians(80), lane(1.0), False, 0.25) == FOLLOW and not end.ended
+        if leave:
+            line.leave_junction(TurnEndRules().light_ignore_m)
+        for _ in range(30):  # 7.5 m on along the road turned into, the next bar 20 m ahead of the camera
+            line.update(5.0, None, None, None, 0.05)
+        line.update(5.0, 20.0, None, None, 0.05)
+        return line.stop_line
+
+    assert bar_after(leave=False) is None
+    assert bar_after(leave=True) == pytest.approx(20.0 - ControllerConfig().camera_to_front_m)

@@ -67,6 +67,10 @@ class StopLineTrack:
         self._odd_light = Unconfirmed()  # a stop line inferred from a light, far from the tracked one
         self.ignore_light_m = 0.0  # travel left during which lights are ignored (inside a junction)
 
+    def leave_junction(self, within_m: float) -> None:
+        """The car has left the junction (a turn is over): its light is ignored for at most ``within_m`` more."""
+        self.ignore_light_m = min(self.ignore_light_m, within_m)
+
     @property
     def in_junction(self) -> bool:
         """Whether the bumper crossed a stop line within the last ``junction_ignore_m`` metres."""

@@ -6,7 +6,9 @@ straight ahead it overturns, and the car cuts to the turn's inner side. The same
 again in the middle of a turn (after a safety driver's take-over), where the turn left to do is small. The lane
 finder tells when the turn is over: a confident lane lined up with the car. From then the command PilotNet gets
 is "follow the road" for ``keep_m`` of travel or until the route's command changes; the controller still knows
-the car is turning (its speed caps are unchanged).
+the car is turning (its speed caps are unchanged). The junction is then behind the car: its light is ignored for
+at most ``light_ignore_m`` more (``StopLineTrack.leave_junction``), so that the next junction's stop bar and light
+count from there, not from a window sized for crossing the junction straight on.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ class TurnEndRules:
     aligned_deg: float = 8.0  # a lane this near the car's heading is the road turned into
     min_confidence: float = 0.4  # ... when the lane finder is this sure of it
     keep_m: float = 15.0  # then PilotNet follows the road this far (or until the command changes)
+    light_ignore_m: float = 5.0  # ... and the junction's light is ignored at most this much farther
 
 
 class TurnEnd:
@@ -40,6 +43,7 @@ class TurnEnd:
         self._left_m = 0.0  # travel left on the road turned into before the command is given back
         self._engaged_in_turn = engaged_again  # engaged again, perhaps inside a turn: no turning to wait for
         self._first = True
+        self.ended = False  # the turn was judged over on this frame
 
     def command(self, command: int, turned_rad: float, lanes: LaneResult | None, arc_leads: bool,
                 travelled_m: float) -> int:
@@ -47,6 +51,7 @@ class TurnEnd:
         ``turned_rad``: the heading change since the car last drove along its lane; ``lanes``: the last lane fit;
         ``arc_leads``: the junction's arc steers (it did on the last frame); ``travelled_m``: since the last frame."""
         r = self.rules
+        self.ended = False
         if self._first:
             self._first = False
             self._engaged_in_turn = self._engaged_in_turn and command in (LEFT, RIGHT)
@@ -67,5 +72,6 @@ class TurnEnd:
                    and abs(lanes.heading_rad) <= math.radians(r.aligned_deg))
         if under_way and aligned:
             self._done, self._left_m, self._engaged_in_turn = command, r.keep_m, False
+            self.ended = True
             return FOLLOW
         return command
