@@ -474,3 +474,21 @@ def test_a_left_turn_waits_at_the_line_for_oncoming_traffic_until_it_has_passed(
                    dict(left=True, truck_z0=60.0, turned=-0.5)):
         run = drive(junction(**kwargs), 4.0, v0=3.0)
         assert min(run.speed) > 1.0, kwargs
+
+
+def test_a_stop_line_inferred_from_a_light_that_is_no_longer_seen_is_dropped_not_passed() -> None:
+    """A red head far off infers a stop line (no bar seen); the head then goes unseen longer than ``red_memory_s``.
+    The inferred line has nothing left to stand on: driving over where it was must not put the car in the junction,
+    or the real bar a few metres on, and its light, would be ignored."""
+    ctrl = Controller(CFG)
+    for _ in range(3):  # a red head 60 m off: the design puts the line 21 m before it
+        ctrl.step(Scene(6.0, light="red", light_distance_m=60.0), 0.0, DT)
+    assert ctrl.stop_line is not None and not ctrl.stop_line_measured
+    inferred = ctrl.stop_line
+    travelled, d = 0.0, None
+    while travelled < inferred + 10.0:  # the head unseen from here on; on past where the inferred line was
+        d = ctrl.step(Scene(6.0), 0.0, DT)
+        travelled += 6.0 * DT
+    assert d is not None and not ctrl.line.in_junction
+    ctrl.step(Scene(6.0, stop_line_m=12.0 + CAM), 0.0, DT)  # the real bar, 12 m on
+    assert ctrl.stop_line == pytest.approx(12.0) and ctrl.stop_line_measured

@@ -383,6 +383,10 @@ class Controller:
             memory = cfg.red_memory_s if self.light_state == "red" else cfg.light_memory_s
             if self._light_unseen_s > memory:
                 self.light_state, self._light_candidate, self._yellow_go = None, None, None
+                if not self.line.stop_line_measured:
+                    # A line inferred from that light has nothing left to stand on: passing it would put the car
+                    # "in the junction" short of the real one, whose bar and light it would then ignore.
+                    self.line.stop_line = None
             return
         self._light_unseen_s = 0.0
         if seen == self._light_candidate:
