@@ -205,6 +205,7 @@ KMH = 1 / 3.6  # m/s per km/h
 WEATHERS = ("dusk", "night", "noon", "overcast")  # the lighting presets (sim.render.LIGHTING_PRESETS), sorted
 # The route command's codes (the observation's "command", sim.town.Command): what each number asks for.
 COMMAND_NAMES = {0: "follow", 1: "left", 2: "right", 3: "straight"}
+COMMAND_CODES = {name: code for code, name in COMMAND_NAMES.items()}
 STEP_S = 0.05  # the simulation's time step (WorldConfig.dt_s)
 EPISODE_S = 180.0  # an episode's time limit (DriveConfig.max_time_s)
 CAMERA = CameraConfig()

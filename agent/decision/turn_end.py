@@ -17,8 +17,9 @@ import math
 from dataclasses import dataclass
 
 from towndrive.agent.perception.lanes import LaneResult
+from towndrive.sim.spec import COMMAND_CODES
 
-FOLLOW, LEFT, RIGHT = 0, 1, 2  # route commands (sim.town.Command's values, which the observation carries)
+FOLLOW, LEFT, RIGHT = (COMMAND_CODES[name] for name in ("follow", "left", "right"))  # the observation's codes
 
 
 @dataclass(frozen=True)
