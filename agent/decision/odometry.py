@@ -20,11 +20,8 @@ from towndrive.sim.spec import VEHICLE
 class Odometry:
     """The car's pose in its own episode frame (x ahead at yaw 0, y right; yaw positive to the right)."""
 
-    def __init__(self, straight_steer: float = 0.08, road_min_confidence: float = 0.25, road_clear_m: float = 8.0,
-                 approach_relax_m: float = 3.0) -> None:
+    def __init__(self, straight_steer: float = 0.08, road_min_confidence: float = 0.25, road_clear_m: float = 8.0) -> None:
         self.straight_steer = straight_steer  # below this |steer| the car drives along its lane
-        self.approach_relax_m = approach_relax_m  # ... and, a turn commanded, its heading becomes the approach
-        #                                           heading over this much travel (not while it stands)
         self.road_min_confidence = road_min_confidence  # a lane fit this sure measures the approach lane
         self.road_clear_m = road_clear_m  # ... only while the stop line is farther than this
         self.reset()
@@ -44,20 +41,15 @@ class Odometry:
 
     def advance(self, speed: float, steer: float, command: int, dt: float) -> None:
         """Integrate the heading from the speed and the steering just sent. While the car follows its lane, the
-        approach heading follows it; once it steers into a commanded turn, the approach heading stays. With a turn
-        commanded, steering straight again makes the heading the approach heading only as the car drives on
-        (``approach_relax_m``): a car that turned a little before the stop line and waits there, its wheels
-        straight, still faces its light from that angle."""
+        approach heading follows it; once it steers into a commanded turn, the approach heading stays."""
         beta = math.atan(0.5 * math.tan(steer * VEHICLE.max_steer_rad))
         self.pos += speed * dt * np.array([math.cos(self.yaw + beta), math.sin(self.yaw + beta)])
         self.turn = speed * math.sin(beta) / (VEHICLE.length_m / 2) * dt
         self.yaw += self.turn
         if self.road_yaw is not None:
             self.road_offset += speed * math.sin(self.yaw + beta - self.road_yaw) * dt
-        if command not in (1, 2):
+        if command not in (1, 2) or abs(steer) < self.straight_steer:
             self.approach_yaw = self.yaw
-        elif abs(steer) < self.straight_steer:
-            self.approach_yaw += (self.yaw - self.approach_yaw) * -math.expm1(-speed * dt / self.approach_relax_m)
 
     def measure_road(self, centre: np.ndarray | None, confidence: float, line: StopLineTrack, z0: float) -> None:
         """Keep the approach lane's heading and our offset from its centre (``centre``: the lane-centre polynomial
