@@ -20,8 +20,11 @@ from towndrive.sim.spec import VEHICLE
 class Odometry:
     """The car's pose in its own episode frame (x ahead at yaw 0, y right; yaw positive to the right)."""
 
-    def __init__(self, straight_steer: float = 0.08, road_min_confidence: float = 0.25, road_clear_m: float = 8.0) -> None:
-        self.straight_steer = straight_steer  # below this |steer| the car drives along its lane
+    def __init__(self, straight_steer: float = 0.08, road_min_confidence: float = 0.25, road_clear_m: float = 8.0,
+                 along_min_mps: float = 1.0) -> None:
+        self.straight_steer = straight_steer  # below this |steer| the car drives along its lane ...
+        self.along_min_mps = along_min_mps  # ... if it drives at all: a turn commanded, a car creeping to a stop
+        #                                     or standing keeps its approach heading whatever its wheels do
         self.road_min_confidence = road_min_confidence  # a lane fit this sure measures the approach lane
         self.road_clear_m = road_clear_m  # ... only while the stop line is farther than this
         self.reset()
@@ -41,14 +44,16 @@ class Odometry:
 
     def advance(self, speed: float, steer: float, command: int, dt: float) -> None:
         """Integrate the heading from the speed and the steering just sent. While the car follows its lane, the
-        approach heading follows it; once it steers into a commanded turn, the approach heading stays."""
+        approach heading follows it; once it steers into a commanded turn, the approach heading stays. A car that
+        turned a little before the stop line and stops there is not following its lane when its wheels come straight
+        as it stops: it still faces its light from that angle."""
         beta = math.atan(0.5 * math.tan(steer * VEHICLE.max_steer_rad))
         self.pos += speed * dt * np.array([math.cos(self.yaw + beta), math.sin(self.yaw + beta)])
         self.turn = speed * math.sin(beta) / (VEHICLE.length_m / 2) * dt
         self.yaw += self.turn
         if self.road_yaw is not None:
             self.road_offset += speed * math.sin(self.yaw + beta - self.road_yaw) * dt
-        if command not in (1, 2) or abs(steer) < self.straight_steer:
+        if command not in (1, 2) or (abs(steer) < self.straight_steer and speed >= self.along_min_mps):
             self.approach_yaw = self.yaw
 
     def measure_road(self, centre: np.ndarray | None, confidence: float, line: StopLineTrack, z0: float) -> None:
