@@ -192,7 +192,6 @@ class AgentView:
     lane_centre: np.ndarray | None
     lane_width_m: float
     blind_spot: tuple[bool, bool] = (False, False)  # a vehicle in the left, right mirror camera's zone lately
-    turn_led: bool = False  # the junction's turn arc steered
 
 
 @dataclass
@@ -506,7 +505,7 @@ class AgentDriver:
             seen = self._model_view.for_pilotnet(image) if self._model_view is not None else image
             last = self._last_view
             net_command = st.turn_end.command(command, odo.turned, last.lanes if last is not None else None,
-                                              last is not None and last.turn_led, speed * self.dt)
+                                              st.junction.arc_leads, speed * self.dt)
             pilot = float(self.net.steer(seen, 0 if held else net_command))  # held: follow the lane, do not change it
             lap("pilotnet")
         except BaseException:
@@ -571,7 +570,7 @@ class AgentDriver:
         times["total"] = (self._now() - t_start) * 1000.0
         view = AgentView(image, t, speed, command, lanes, stop, objects, tracks, light, decision, warnings,
                          centre, lanes.lane_width_m,
-                         (st.blind_spot.holding(t, "left"), st.blind_spot.holding(t, "right")), turn is not None)
+                         (st.blind_spot.holding(t, "left"), st.blind_spot.holding(t, "right")))
         self._last_view = view
         if self._threads is not None:
             self._threads.took(threads, time.perf_counter() - t_wall)

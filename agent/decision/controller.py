@@ -65,6 +65,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from towndrive.agent.decision.odometry import in_approach_frame
 from towndrive.agent.decision.signs import SignControl, SignControlRules
 from towndrive.agent.decision.stop_line_track import LIGHT_STATES, StopLineTrack
 from towndrive.agent.perception.objects import PerceivedObject
@@ -506,12 +507,10 @@ class Controller:
             return None
         w = self.road.lane_width_m
         far = -((self.signs.lanes_each_way or 2) + 0.5) * w - 1.0  # beyond the oncoming lanes' far side
-        c, s = math.cos(scene.turned_rad), math.sin(scene.turned_rad)
         for o in scene.objects:
             if o.kind == "pedestrian" or o.unconfirmed:
                 continue
-            x = o.lateral_m * c + o.distance_m * s  # in the approach lane's frame
-            z = o.distance_m * c - o.lateral_m * s
+            x, z = in_approach_frame(o.lateral_m, o.distance_m, scene.turned_rad)
             approach = o.closing_speed_mps - scene.speed_mps  # its own speed towards us
             if not far <= x <= -0.5 * w or approach < cfg.priority_min_speed_mps or abs(o.lateral_speed_mps) > approach:
                 continue

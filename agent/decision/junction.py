@@ -125,6 +125,11 @@ class JunctionGuidance:
     def placed(self) -> bool:
         return self.junction is not None
 
+    @property
+    def arc_leads(self) -> bool:
+        """Whether a turn's arc is under way (it steers the car until it hands over or the turn ends)."""
+        return self.junction is not None and self.junction[3] != 0
+
     def hold(self, command: int) -> float | None:
         """Going straight through a junction, the steer that keeps the approach lane's heading and our place
         across it; None when this does not apply."""

@@ -17,6 +17,13 @@ from towndrive.agent.decision.stop_line_track import StopLineTrack
 from towndrive.sim.spec import VEHICLE
 
 
+def in_approach_frame(x_m: float, z_m: float, turned_rad: float) -> tuple[float, float]:
+    """A point the camera sees at ``x_m`` right and ``z_m`` ahead, in the approach lane's frame (across it and along
+    it), the car having turned ``turned_rad`` (``Odometry.turned``, positive right) since it drove along that lane."""
+    c, s = math.cos(turned_rad), math.sin(turned_rad)
+    return x_m * c + z_m * s, z_m * c - x_m * s
+
+
 class Odometry:
     """The car's pose in its own episode frame (x ahead at yaw 0, y right; yaw positive to the right)."""
 

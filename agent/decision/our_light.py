@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from towndrive.agent.decision.odometry import in_approach_frame
 from towndrive.agent.decision.stop_line_track import StopLineTrack
 from towndrive.agent.perception.box_geometry import BoxGeometry
 from towndrive.agent.perception.detector import Detection
@@ -81,7 +82,6 @@ class OurLight:
         mounts = road.signal_mounts
         several = len(mounts) > 1
         measured = line.stop_line_measured and line.stop_line is not None
-        cos_t, sin_t = math.cos(turned_rad), math.sin(turned_rad)
         for d in lights:
             x0, y0, x1, y1 = d.box
             if d.score < rules.light_score_threshold or y1 - y0 < 2 or y0 <= 1.0:
@@ -94,7 +94,7 @@ class OurLight:
                 if several and abs(z_cam - size_z) > rules.light_size_agreement * size_z:
                     continue
                 x_cam = self.geometry.lateral(0.5 * (x0 + x1), z_cam)
-                lateral, z = x_cam * cos_t + z_cam * sin_t, z_cam * cos_t - x_cam * sin_t
+                lateral, z = in_approach_frame(x_cam, z_cam, turned_rad)
                 if abs(lateral - (mount.lateral_m - road.light_lateral_m)) > rules.light_max_lateral_m:
                     continue
                 if measured:

@@ -50,14 +50,15 @@ class TurnEnd:
                 travelled_m: float) -> int:
         """The command for PilotNet this frame: ``command`` (the route's), or FOLLOW once the turn is over.
         ``turned_rad``: the heading change since the car last drove along its lane; ``lanes``: the last lane fit;
-        ``arc_leads``: the junction's arc steers (it did on the last frame); ``travelled_m``: since the last frame."""
+        ``arc_leads``: the junction's arc is under way (``JunctionGuidance.arc_leads``); ``travelled_m``: since the
+        last frame."""
         r = self.rules
         self.ended = False
         if self._first:
             self._first = False
             self._engaged_in_turn = self._engaged_in_turn and command in (LEFT, RIGHT)
             return command  # (the last lane fit is from before a take-over)
-        if command not in (LEFT, RIGHT) or command != (self._done or command):
+        if command not in (LEFT, RIGHT) or (self._done is not None and command != self._done):
             self._done, self._engaged_in_turn = None, False
             return command
         if self._done is not None:

@@ -175,9 +175,8 @@ class ZebraDetector:
         pad = int(round(cfg.tilt_pad_m * be.px_per_m_z))
         a, b = max(0, r0 - pad), min(len(z), r1 + pad)
         window = bright[a:b]
-        edges = np.diff(np.r_[0, window.any(axis=0).astype(np.int8), 0])
         ends = []
-        for c0, c1 in zip(np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0], strict=True):
+        for c0, c1 in sorted(row_bands(window.any(axis=0))):  # runs of painted columns, left to right
             if not cfg.tilt_stripe_width_m[0] <= (c1 - c0) / be.px_per_m_x <= cfg.tilt_stripe_width_m[1]:
                 continue
             rows = np.nonzero(window[:, c0:c1].any(axis=1))[0]
