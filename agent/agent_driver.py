@@ -560,7 +560,10 @@ class AgentDriver:
         if net_command != command and not held and hold is None and turn is None:
             decision.reason += "; the turn is over: PilotNet follows the road turned into"
         # as measured this frame, where the car is
-        st.junction.note(stop, self._zebra_far_m, lanes.boundary_width_m, self._zebra_tilt)
+        signs = self.controller.signs
+        control = "signal" if light is not None else (signs.control or "none")
+        st.junction.note(stop, self._zebra_far_m, lanes.boundary_width_m, self._zebra_tilt, control,
+                         signs.lanes_each_way)
         odo.advance(speed, decision.steer, command, self.dt)
         lap("control")
         in_path = st.memory.note(objects, decision.in_path, st.objects.edge_only)

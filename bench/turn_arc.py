@@ -28,7 +28,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from towndrive.agent.drivers import make_driver  # noqa: E402
 from towndrive.agent.perception.stop_line import StopLine  # noqa: E402
 from towndrive.envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
-from towndrive.sim.road_priors import road_priors  # noqa: E402
+from towndrive.sim.road_priors import control_kind, road_priors, zebra_far_along  # noqa: E402
+from towndrive.sim.spec import ROAD  # noqa: E402
 from towndrive.sim.town import Command, TownConfig  # noqa: E402
 from towndrive.sim.world import World, WorldConfig, cached_town  # noqa: E402
 
@@ -37,7 +38,7 @@ OFF_ROAD = 9.0
 
 
 def drive_turn(style: str, town_seed: int, entry_index: int, command: int,
-               tilt: bool = True) -> tuple[int, int, float] | None:
+               tilt: bool = True, kind: bool = True) -> tuple[int, int, float] | None:
     """(our lanes, the cross street's, the largest outside-the-lanes distance) of one turn; None if the entry
     has no such turn."""
     config = DriveConfig(world=WorldConfig(town=TownConfig.of_style(style)), render_camera=False)
@@ -63,14 +64,18 @@ def drive_turn(style: str, town_seed: int, entry_index: int, command: int,
     camera_to_bar = BAR_AHEAD_M + controller.config.camera_to_front_m
     t = np.array([math.cos(entry.travel_heading), math.sin(entry.travel_heading)])
     zebra = next((c for c in town.crosswalks if c.node == entry.node and c.arm == entry.arm), None)
-    zebra_far = None if zebra is None else camera_to_bar + float(np.max((zebra.polygon - entry.line_center) @ t))
+    # the zebra's far edge where our lane crosses it (the detector reads it in the lane's corridor)
+    start = town.lane(connector).position(0.0, 0.0)  # our lane's centre at the bar's far edge
+    zebra_far = (None if zebra is None else
+                 camera_to_bar + ROAD.stop_bar_depth_m + zebra_far_along(zebra, start, entry.travel_heading))
     slope = None
     if zebra is not None and tilt:  # its edges' dz/dx in the approach frame (x right, z ahead)
         axis = np.asarray(zebra.end, float) - np.asarray(zebra.start, float)
         along, across = float(axis @ t), float(axis @ np.array([-t[1], t[0]]))
         slope = along / across if abs(across) > 1e-9 else None
     for _ in range(3):  # the skew is the median of a few readings
-        guidance.note(StopLine(camera_to_bar, 0.5, 0.9, 0), zebra_far, town.lane_width, slope)
+        guidance.note(StopLine(camera_to_bar, 0.5, 0.9, 0), zebra_far, town.lane_width, slope,
+                      control_kind(entry.control) if kind else None, entry.lane_count if kind else None)
     steer, worst, started = 0.0, 0.0, False
     turn_speed = controller.config.junction_turn_speed_mps
     for _ in range(400):
@@ -98,13 +103,16 @@ def main() -> None:
     ap.add_argument("--entries", type=int, default=14, help="the first N junction entries of each town")
     ap.add_argument("--command", choices=("left", "right"), default="right")
     ap.add_argument("--no-tilt", action="store_true", help="leave the zebra's slope out: square junctions assumed")
+    ap.add_argument("--no-kind", action="store_true",
+                    help="leave out what governs the arm and our road's lanes (the cross street's lane count guessed "
+                         "blind)")
     args = ap.parse_args()
     command = Command.LEFT if args.command == "left" else Command.RIGHT
     worst = []
     print("| town | entry | our lanes | cross street's | largest outside its lanes (m) |\n|---|---|---|---|---|")
     for seed in (int(s) for s in args.towns.split(",")):
         for i in range(min(args.entries, len(cached_town(TownConfig.of_style(args.style), seed).entries))):
-            row = drive_turn(args.style, seed, i, command, tilt=not args.no_tilt)
+            row = drive_turn(args.style, seed, i, command, tilt=not args.no_tilt, kind=not args.no_kind)
             if row is not None:
                 worst.append(row[2])
                 print(f"| {seed} | {i} | {row[0]} | {row[1]} | {row[2]:.2f} |", flush=True)

@@ -16,12 +16,32 @@ from functools import lru_cache
 import numpy as np
 
 from towndrive.sim.fillet_lane import FilletLane
-from towndrive.sim.spec import ROAD, RoadDesign, SignalMount
+from towndrive.sim.spec import ROAD, CrossStreetOdds, RoadDesign, SignalMount, TurnReach
 from towndrive.sim.splits import split_towns
-from towndrive.sim.town import Command, Town, TownConfig, generate_town
+from towndrive.sim.town import Command, Control, Crosswalk, Town, TownConfig, generate_town
 from towndrive.sim.town_style import CLASSIC, style_named
 
 PRIOR_TOWNS = 4  # training towns a style's priors are measured on (their junctions number in the hundreds)
+_KIND = {Control.SIGNAL: "signal", Control.STOP: "stop", Control.ALL_WAY_STOP: "stop", Control.YIELD: "yield",
+         Control.PRIORITY: "none"}
+
+
+def control_kind(control: Control) -> str:
+    """What governs a junction's arm as a driver sees it (``sim.spec.CONTROL_KINDS``): an all-way stop's signs
+    are a stop sign's."""
+    return _KIND[control]
+
+
+def zebra_far_along(crosswalk: Crosswalk, origin: np.ndarray, heading: float) -> float:
+    """How far along the line from ``origin`` at ``heading`` the crosswalk's far edge lies (where the line
+    crosses it: with a cross street that leans, not the crosswalk's farthest corner)."""
+    t = np.array([np.cos(heading), np.sin(heading)])
+    poly = np.asarray(crosswalk.polygon, float)
+    edges = [(poly[i], poly[(i + 1) % 4]) for i in range(4)]
+    long_edges = sorted(edges, key=lambda e: -float(np.hypot(*(e[1] - e[0]))))[:2]  # its edges across the road
+    p, q = max(long_edges, key=lambda e: float(((e[0] + e[1]) / 2 - origin) @ t))
+    along, _ = np.linalg.solve(np.column_stack([t, p - q]), p - origin)
+    return float(along)
 
 
 def junction_samples(town: Town) -> dict[str, list[float]]:
@@ -38,11 +58,26 @@ def junction_samples(town: Town) -> dict[str, list[float]]:
         cw = zebra_at.get((entry.node, entry.arm))
         if cw is not None:
             out["zebra"].append(float(np.min((centre - cw.polygon) @ t)))  # its far edge, to the centre
+        cross_lanes = None
         for idx, info in town.lane_info.items():
             if idx[0] != entry.edge[1] or info.kind != "connector":
                 continue
             lane = town.lane(idx)
             radius = _turn_radius(lane)
+            turns_from = 0 if info.command == Command.LEFT else entry.lane_count - 1
+            if info.command in (Command.LEFT, Command.RIGHT) and idx[2] == turns_from:
+                # the cross street's lanes each way, and where the lane turned into crosses ours beyond the zebra
+                exit_edge = (idx[1], next(iter(town.network.graph[idx[1]])))
+                cross_lanes = town.lane_count(exit_edge)
+                if cw is not None:
+                    start = lane.position(0.0, 0.0)  # our lane's centre at the bar's far edge
+                    end = lane.position(lane.length, 0.0) - start
+                    turn = float(np.arctan2(np.sin(lane.heading_at(lane.length) - entry.travel_heading),
+                                            np.cos(lane.heading_at(lane.length) - entry.travel_heading)))
+                    crossing = float(end @ t) - float(end @ right) / np.tan(turn)
+                    side = "left" if info.command == Command.LEFT else "right"
+                    out.setdefault(f"reach:{cross_lanes}:{side}", []).append(
+                        crossing - zebra_far_along(cw, start, entry.travel_heading))
             if info.command == Command.LEFT and idx[2] == 0:
                 out["left"].append(radius)
             elif info.command == Command.RIGHT and idx[2] == entry.lane_count - 1:
@@ -53,6 +88,9 @@ def junction_samples(town: Town) -> dict[str, list[float]]:
                 turn = float(np.arctan2(np.sin(lane.heading_at(lane.length) - entry.travel_heading),
                                         np.cos(lane.heading_at(lane.length) - entry.travel_heading)))
                 out["kerb_reach"].append(float(end @ t) - depth - float(end @ right) / np.tan(turn))
+        if cross_lanes is not None:
+            out.setdefault(f"odds:{control_kind(entry.control)}:{entry.lane_count}", []).append(
+                float(cross_lanes >= 2))
         if entry.approach >= 0:
             ap = town.approaches[entry.approach]
             # across the incoming lanes from their middle (positive: right), then from our lane's centre
@@ -92,13 +130,19 @@ def road_priors(style: str, towns: int = PRIOR_TOWNS) -> RoadDesign:
 
     # one mode per kind of mount (where heads hang is a kind, not a spread)
     mounts = {m: SignalMount(mean(f"{m}:beyond"), mean(f"{m}:lateral"), mean(f"{m}:height"))
-              for m in {k.split(":")[0] for k in a if ":" in k}}
+              for m in {k.split(":")[0] for k in a if k.endswith(":beyond")}}
     main = mounts.get("mast_arm")
     mast_arm = {} if main is None else {"light_beyond_stop_line_m": main.beyond_stop_line_m,
                                         "light_lateral_m": main.lateral_m, "signal_head_height_m": main.height_m}
+    # the turns beyond the zebra, by the cross street's lanes each way; the odds of a two-lane cross street by kind
+    reaches = tuple(TurnReach(n, mean(f"reach:{n}:left"), mean(f"reach:{n}:right")) for n in (1, 2)
+                    if f"reach:{n}:left" in a and f"reach:{n}:right" in a)
+    odds = tuple(CrossStreetOdds(k.split(":")[1], int(k.split(":")[2]), mean(k), len(a[k]))
+                 for k in sorted(a) if k.startswith("odds:"))
     return replace(ROAD, lane_width_m=mean("width"), lane_width_sd_m=sd("width"),
                    stop_line_setback_m=mean("setback"), stop_line_setback_sd_m=sd("setback"),
                    zebra_to_centre_m=mean("zebra"), zebra_to_centre_sd_m=sd("zebra"),
                    left_turn_radius_m=mean("left"), right_turn_radius_m=mean("right"),
                    kerb_lane_reach_m=mean("kerb_reach"), kerb_lane_reach_sd_m=sd("kerb_reach"),
+                   turn_reaches=reaches, cross_street_odds=odds,
                    **mast_arm, other_signal_mounts=tuple(mounts[m] for m in sorted(mounts) if m != "mast_arm"))

@@ -115,6 +115,49 @@ class SignalMount:
         check_number("signal mount height_m", self.height_m, 2.0, 12.0)
 
 
+# What governs a junction's arm, as a driver sees it: its light, a stop sign, a give-way sign, or nothing (its road
+# has priority). The kinds the road design's cross-street odds are kept by.
+CONTROL_KINDS = ("signal", "stop", "yield", "none")
+
+
+@dataclass(frozen=True)
+class CrossStreetOdds:
+    """How often the cross street has two lanes each way at one kind of junction as the car sees it: what governs
+    its arm (``CONTROL_KINDS``) and its own road's lanes each way. A car that stops or gives way usually enters a
+    larger street; one with priority crosses a smaller one."""
+
+    control: str
+    our_lanes: int
+    two_lane_share: float
+    junctions: int  # how many the share was measured on (to pool kinds the car could not tell apart)
+
+    def __post_init__(self) -> None:
+        if self.control not in CONTROL_KINDS:
+            raise ValueError(f"cross street odds control must be one of {', '.join(CONTROL_KINDS)}; got "
+                             f"{self.control!r}.")
+        check_number("cross street odds our_lanes", self.our_lanes, 1, 2)
+        check_number("cross street odds two_lane_share", self.two_lane_share, 0.0, 1.0)
+        check_number("cross street odds junctions", self.junctions, 1, 1_000_000)
+
+
+@dataclass(frozen=True)
+class TurnReach:
+    """Where the lane a turn goes into crosses our lane's centre line, beyond the near zebra's far edge (measured
+    along our lane), on a cross street of ``cross_lanes`` lanes each way. The zebra lies at the cross street's
+    kerb, so this leaves out how far the junction's centre is; what is left depends on the cross street's lanes
+    (a right turn goes into its kerb lane, which a single-lane street's parking strip pushes farther; a left
+    turn, beyond its centre line, into its inner lane)."""
+
+    cross_lanes: int
+    left_m: float
+    right_m: float
+
+    def __post_init__(self) -> None:
+        check_number("turn reach cross_lanes", self.cross_lanes, 1, 4)
+        check_number("turn reach left_m", self.left_m, 0.0, 60.0)
+        check_number("turn reach right_m", self.right_m, 0.0, 60.0)
+
+
 @dataclass(frozen=True)
 class RoadDesign:
     """How the default towns are built, and so what the agent assumes of a road it has not measured."""
@@ -138,6 +181,11 @@ class RoadDesign:
     # one and a half lane widths.
     kerb_lane_reach_m: float | None = None  # the stop bar's far edge to where that lane's centre line crosses ours
     kerb_lane_reach_sd_m: float = 0.0
+    # With the near zebra measured, both turns are placed from its far edge (``TurnReach``, by the cross street's
+    # lanes each way, which is not seen before the turn: expected over ``cross_street_odds``). Empty: the two priors
+    # above place them.
+    turn_reaches: tuple[TurnReach, ...] = ()
+    cross_street_odds: tuple[CrossStreetOdds, ...] = ()
     stop_bar_depth_m: float = 0.5  # the painted bar's depth along the lane
     # Where our signal head hangs: on a mast arm over the incoming lanes, across the junction. A design with
     # other mounts (posts at a corner) lists them in ``other_signal_mounts``: where heads hang is a kind, not a
@@ -184,6 +232,27 @@ class RoadDesign:
         if self.kerb_lane_reach_m is not None:
             return self.kerb_lane_reach_m
         return self.stop_line_setback_m - 1.5 * self.lane_width_m
+
+    def two_lane_share(self, control: str | None, our_lanes: int | None) -> float:
+        """How likely the cross street has two lanes each way at a junction whose arm ``control`` governs, on a
+        road of ``our_lanes`` lanes each way (None: not seen). Kinds never measured pool the nearest ones."""
+        odds: list[CrossStreetOdds] = []
+        for c, n in ((control, our_lanes), (control, None), (None, our_lanes), (None, None)):
+            odds = [o for o in self.cross_street_odds if c in (None, o.control) and n in (None, o.our_lanes)]
+            if odds:
+                break
+        junctions = sum(o.junctions for o in odds)
+        return sum(o.two_lane_share * o.junctions for o in odds) / junctions if junctions else 0.5
+
+    def turn_reach(self, left: bool, two_lane_share: float) -> float | None:
+        """The zebra's far edge to where the lane turned into crosses ours (``TurnReach``), expected over the cross
+        street's lane count (one or two lanes each way, two with ``two_lane_share``): the least squared error when
+        the count is not seen. None when the design has no reach for a count that may be."""
+        reach = {r.cross_lanes: (r.left_m if left else r.right_m) for r in self.turn_reaches}
+        weights = {1: 1.0 - two_lane_share, 2: two_lane_share}
+        if any(w > 0 and n not in reach for n, w in weights.items()):
+            return None
+        return sum(w * reach[n] for n, w in weights.items() if w > 0)
 
     @property
     def signal_mounts(self) -> tuple[SignalMount, ...]:

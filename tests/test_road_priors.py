@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -308,3 +309,112 @@ def test_the_junction_guidance_reads_the_cross_street_s_angle_from_near_zebra_re
     for _ in range(3):
         classic.note(StopLine(6.0, 0.5, 0.9, 0), None, None, math.tan(lean))
     assert classic.skew_rad == 0.0
+
+
+def _turns_beyond_zebra(style: str, seeds: tuple[int, ...]) -> list[tuple[str, int, int, bool, float, float]]:
+    """Each turn of some towns with a zebra before it: (what governs the arm, our lanes, the cross street's,
+    left?, the zebra's far edge along our lane, where the lane turned into crosses ours), from the bar's far edge."""
+    from towndrive.sim.road_priors import control_kind, zebra_far_along
+
+    out = []
+    for seed in seeds:
+        town = cached_town(TownConfig.of_style(style), seed)
+        for entry in town.entries:
+            t = np.array([math.cos(entry.travel_heading), math.sin(entry.travel_heading)])
+            right = np.array([-t[1], t[0]])
+            cw = next(c for c in town.crosswalks if (c.node, c.arm) == (entry.node, entry.arm))
+            for idx, info in town.lane_info.items():
+                left = info.command == Command.LEFT
+                if (idx[0] != entry.edge[1] or info.kind != "connector" or info.command not in (Command.LEFT, Command.RIGHT)
+                        or idx[2] != (0 if left else entry.lane_count - 1)):
+                    continue
+                lane = town.lane(idx)
+                start = lane.position(0.0, 0.0)
+                end = lane.position(lane.length, 0.0) - start
+                turn = lane.heading_at(lane.length) - entry.travel_heading
+                crossing = float(end @ t) - float(end @ right) / math.tan(math.atan2(math.sin(turn), math.cos(turn)))
+                cross = town.lane_count((idx[1], next(iter(town.network.graph[idx[1]]))))
+                out.append((control_kind(entry.control), entry.lane_count, cross, left,
+                            zebra_far_along(cw, start, entry.travel_heading), crossing))
+    return out
+
+
+def test_turns_placed_from_the_zebra_by_the_cross_street_s_lane_count_land_on_the_lane_turned_into() -> None:
+    """The zebra lies at the cross street's kerb, so the lane turned into lies a set distance beyond its far edge
+    once the cross street's lanes each way are known (``RoadDesign.turn_reaches``, within 0.9 m on validation towns;
+    the priors are measured on training towns). The count is not seen before the turn: its odds by what governs
+    the arm and our road's lanes (who stops or gives way enters a larger street) make the expected reach, which
+    misses right turns by less than the kerb lane's bar-relative prior does."""
+    for style in ("downtown", "suburb"):
+        road = road_priors(style)
+        turns = _turns_beyond_zebra(style, (4000, 4001))
+        assert len(turns) > 40, style
+        known, expected, prior = [], [], []
+        for control, ours, cross, left, zebra, crossing in turns:
+            exact = road.turn_reach(left, float(cross == 2))
+            guess = road.turn_reach(left, road.two_lane_share(control, ours))
+            assert exact is not None and guess is not None
+            known.append(abs(zebra + exact - crossing))
+            if not left:
+                expected.append(abs(zebra + guess - crossing))
+                prior.append(abs(road.kerb_lane_reach - crossing))
+        assert max(known) < 0.9 and float(np.median(known)) < 0.3, style
+        assert float(np.mean(expected)) < 0.75 * float(np.mean(prior)), style
+    assert ROAD.turn_reaches == () and ROAD.turn_reach(False, 1.0) is None  # the classic design places turns as before
+
+
+def test_the_cross_street_s_odds_pool_the_kinds_the_car_could_not_tell_apart() -> None:
+    from towndrive.sim.spec import CrossStreetOdds, RoadDesign, TurnReach
+
+    road = RoadDesign(cross_street_odds=(CrossStreetOdds("stop", 1, 0.9, 10), CrossStreetOdds("signal", 1, 0.3, 40),
+                                         CrossStreetOdds("signal", 2, 0.8, 20)),
+                      turn_reaches=(TurnReach(1, 14.0, 11.0), TurnReach(2, 15.5, 8.5)))
+    assert road.two_lane_share("stop", 1) == pytest.approx(0.9)
+    assert road.two_lane_share("signal", None) == pytest.approx((12 + 16) / 60)
+    assert road.two_lane_share("stop", 2) == pytest.approx(0.9)  # no stop on a two-lane road measured: the stops
+    assert road.two_lane_share("yield", None) == pytest.approx(37 / 70)  # nothing of the kind: every junction
+    assert road.turn_reach(False, 0.25) == pytest.approx(0.75 * 11.0 + 0.25 * 8.5)
+    assert replace(road, turn_reaches=road.turn_reaches[:1]).turn_reach(True, 0.5) is None
+    with pytest.raises(ValueError, match="control must be one of"):
+        CrossStreetOdds("roundabout", 1, 0.5, 3)
+
+
+def test_the_junction_guidance_places_a_turn_from_the_zebra_by_the_kind_of_junction_seen() -> None:
+    """``JunctionGuidance.turn_reach_m``: with the zebra measured, its far edge plus the reach expected for the
+    kind of junction (a stop sign on a single-lane road: a two-lane street ahead; a light seen once keeps the arm a
+    signal's); without a zebra, the priors as before."""
+    from types import SimpleNamespace
+
+    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
+    from towndrive.agent.perception.stop_line import StopLine
+    from towndrive.sim.spec import CrossStreetOdds, TurnReach
+
+    road = replace(road_priors("downtown"), turn_reaches=(TurnReach(1, 14.0, 11.0), TurnReach(2, 15.5, 8.5)),
+                   cross_street_odds=(CrossStreetOdds("stop", 1, 1.0, 8), CrossStreetOdds("none", 1, 0.0, 8),
+                                      CrossStreetOdds("signal", 1, 0.2, 8)))
+    line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
+                           config=SimpleNamespace(camera_to_front_m=2.0))
+    odo = SimpleNamespace(road_yaw=0.0, pos=np.zeros(2), road_offset=0.0, yaw=0.0)
+    g = JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
+    g.note(StopLine(10.0, 0.5, 0.9, 0), None, 3.2, None, "stop", 1)
+    assert g.turn_reach_m(2) == road.kerb_lane_reach  # no zebra yet
+    g.note(StopLine(9.0, 0.5, 0.9, 0), 9.0 + 0.5 + 6.0, 3.2, None, "none", 1)
+    assert g.turn_reach_m(2) == pytest.approx(6.0 + 8.5) and g.turn_reach_m(1) == pytest.approx(6.0 + 15.5)
+    g.forget()
+    g.note(StopLine(9.0, 0.5, 0.9, 0), 9.0 + 0.5 + 6.0, 3.2, None, "signal", 1)
+    g.note(StopLine(8.0, 0.5, 0.9, 0), 8.0 + 0.5 + 6.0, 3.2, None, "none", 1)  # the light out of view: still one
+    assert g.turn_reach_m(2) == pytest.approx(6.0 + 0.8 * 11.0 + 0.2 * 8.5)
+
+
+def test_a_profile_sets_the_turn_reaches_and_the_cross_street_odds() -> None:
+    from towndrive.agent.deploy.profiles import ProfileError, profile_from_dict
+
+    road = profile_from_dict({"road": {"turn_reaches": [{"cross_lanes": 2, "left_m": 15.0, "right_m": 9.0}],
+                                       "cross_street_odds": [{"control": "stop", "our_lanes": 1,
+                                                              "two_lane_share": 1.0}]}}).road
+    assert road.turn_reach(False, road.two_lane_share("stop", 1)) == 9.0
+    for bad, words in (({"turn_reaches": {"left_m": 3}}, "must be a list"),
+                       ({"cross_street_odds": [{"control": "lights"}]}, "control must be one of"),
+                       ({"turn_reaches": [{"right_m": 90}]}, "right_m")):
+        with pytest.raises(ProfileError, match=words):
+            profile_from_dict({"road": bad})

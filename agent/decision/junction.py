@@ -7,7 +7,10 @@ bar's far edge). The turn is placed by the stop bar tracked by the controller (`
 lane measured before it. How far the lane turned into lies beyond the bar is the design's setback (a prior,
 ``sim.spec.RoadDesign``), corrected by where the zebra beyond the bar ends: the zebra's far edge lies a cross
 street's half width and a kerb gap before the junction's centre, which spreads less between junctions than the
-setback does. The lane offset is the lane width the lane finder measured, where the design lets widths differ.
+setback does. The lane offset is the lane width the lane finder measured, where the design lets widths differ. With the zebra
+measured, the lane turned into is placed from its far edge instead (the zebra lies at the cross street's kerb): by
+the design's reach for the cross street's lanes each way, a count not seen before the turn, so expected over its
+odds at the kind of junction the car sees (``RoadDesign.two_lane_share``: who stops enters a larger street).
 Where the design's numbers spread, the arc still misses the lane turned into by a metre or two at its end (the
 radius and the exit lane are not measured), so it leads the turn only until the car faces the road turned into
 (``turn_handover_deg``); PilotNet, which sees that road, finishes it. An exact design's arc leads to the end.
@@ -107,6 +110,8 @@ class JunctionGuidance:
         self._zebra_m: list[float] = []  # bar's far edge to the zebra's far edge, as measured at this junction
         self._skew: list[float] = []  # the cross street's angle from square (rad, positive: its right arm leans
         #                               away from us), as measured at this junction
+        self.control: str | None = None  # what governs our arm (sim.spec.CONTROL_KINDS), as seen before the bar
+        self.our_lanes: int | None = None  # our road's lanes each way, as the lane lines told before the bar
 
     @property
     def skew_rad(self) -> float:
@@ -143,19 +148,24 @@ class JunctionGuidance:
         return float(np.clip(steer, -cfg.hold_max_steer, cfg.hold_max_steer))
 
     def note(self, stop: StopLine | None, zebra_far_m: float | None = None, lane_width_m: float | None = None,
-             zebra_tilt: float | None = None) -> None:
+             zebra_tilt: float | None = None, control: str | None = None, our_lanes: int | None = None) -> None:
         """Where the stop bar ahead lies in the odometry frame (the approach lane's centre at the bar's near edge),
         from the tracked bar and the approach lane measured before it. Only a bar seen within ``turn_bar_seen_m``
         of the camera places a turn (farther readings are a metre or so off). ``zebra_far_m``: the camera to the
         far edge of the zebra beyond the bar this frame; ``lane_width_m``: the lane width the lane finder
         measured (both correct the design's priors, module docstring); ``zebra_tilt``: the slope of the zebra's
-        edges (dz/dx in the camera's ground frame), the cross street's direction."""
+        edges (dz/dx in the camera's ground frame), the cross street's direction; ``control``: what governs our
+        arm as seen this frame (a light or a sign, "none" when neither); ``our_lanes``: our road's lanes each way
+        as last measured (both tell how likely the cross street has two lanes, ``RoadDesign.two_lane_share``)."""
         line, odo, road = self.line, self.odo, self.road
         if line.ignore_light_m > 0 or not line.stop_line_measured or line.stop_line is None or odo.road_yaw is None:
             return
         if self.junction is None and (stop is None or stop.distance_m > self.rules.turn_bar_seen_m):
             return
         if stop is not None:  # still before the bar: not yet turning
+            if control is not None and (self.control in (None, "none") or control != "none"):
+                self.control = control  # a light or a sign seen once governs the arm
+            self.our_lanes = our_lanes if our_lanes is not None else self.our_lanes
             if lane_width_m is not None and math.isfinite(lane_width_m):
                 self.lane_width_m = fused(road.lane_width_m, road.lane_width_sd_m, lane_width_m, LANE_WIDTH_SD_M)
             if zebra_far_m is not None:
@@ -171,6 +181,15 @@ class JunctionGuidance:
         right = np.array([-u[1], u[0]])
         bar = odo.pos - odo.road_offset * right + ahead * u
         self.junction = (float(bar[0]), float(bar[1]), odo.road_yaw, 0)
+
+    def turn_reach_m(self, command: int) -> float:
+        """The stop bar's far edge to where the lane turned into crosses our lane's centre line: beyond the zebra
+        measured here by the design's reach expected over the cross street's lane count, else from the priors (left
+        turns: half a lane beyond the junction's centre; right turns: the kerb lane's own prior)."""
+        beyond = self.road.turn_reach(command == 1, self.road.two_lane_share(self.control, self.our_lanes))
+        if self._zebra_m and beyond is not None:
+            return float(np.median(self._zebra_m)) + beyond
+        return self.road.kerb_lane_reach if command == 2 else self.setback_m + 0.5 * self.lane_width_m
 
     def turn_steer(self, command: int, speed: float) -> float | None:
         """Turning at a junction, the steer that pursues the turn arc from our lane to the same lane of the road we
@@ -189,8 +208,7 @@ class JunctionGuidance:
         # right turns from the kerb lane into the kerb lane (the design's reach: unlike the centre line, it does
         # not depend on the cross street's lane count). Taken from another lane, the arc still ends in a lane of
         # the road turned into: it is placed from our own lane, and its radius is the tighter one.
-        reach = (self.road.kerb_lane_reach if command == 2
-                 else self.setback_m + 0.5 * self.lane_width_m)
+        reach = self.turn_reach_m(command)
         u = np.array([math.cos(road_yaw), math.sin(road_yaw)])
         heading = odo.yaw - road_yaw
         half = VEHICLE.length_m / 2

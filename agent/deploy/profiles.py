@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any, get_type_hints
 
 from towndrive.agent.shipped import ROOT
-from towndrive.sim.spec import ROAD, RoadDesign, SignalMount
+from towndrive.sim.spec import ROAD, CrossStreetOdds, RoadDesign, SignalMount, TurnReach
 
 PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
 
@@ -292,15 +292,15 @@ def profile_from_dict(data: Any, source: str = "<dict>", default_name: str = "cp
     alerts = _build(AlertProfile, data.pop("alerts", {}), source, "alerts", AlertProfile())
     try:
         road_data = dict(_mapping(data.pop("road", {}), source, "road"))
-        mounts = road_data.pop("other_signal_mounts", None)
+        lists = {key: road_data.pop(key) for key in _ROAD_LISTS if key in road_data}
         road = _build(RoadDesign, road_data, source, "road", ROAD)
-        if mounts is not None:
-            if not isinstance(mounts, list):
-                raise ProfileError(f"{source}: road.other_signal_mounts must be a list of "
-                                   f"{{beyond_stop_line_m, lateral_m, height_m}}, not {mounts!r}.")
-            base = SignalMount(0.0, 0.0, ROAD.signal_head_height_m)
-            road = replace(road, other_signal_mounts=tuple(
-                _build(SignalMount, m, source, f"road.other_signal_mounts[{k}]", base) for k, m in enumerate(mounts)))
+        for key, items in lists.items():
+            base = _ROAD_LISTS[key]
+            if not isinstance(items, list):
+                names = ", ".join(f.name for f in fields(base))
+                raise ProfileError(f"{source}: road.{key} must be a list of {{{names}}}, not {items!r}.")
+            road = replace(road, **{key: tuple(_build(type(base), item, source, f"road.{key}[{k}]", base)
+                                               for k, item in enumerate(items))})
     except ProfileError:
         raise
     except ValueError as exc:  # a prior outside real roads' range (RoadDesign checks its own)
@@ -313,6 +313,13 @@ def profile_from_dict(data: Any, source: str = "<dict>", default_name: str = "cp
     profile.validate()
     return profile
 
+
+# The road design's lists: each item a mapping of the item's fields, the keys left out taken from these.
+_ROAD_LISTS: dict[str, Any] = {
+    "other_signal_mounts": SignalMount(0.0, 0.0, ROAD.signal_head_height_m),
+    "turn_reaches": TurnReach(1, 15.0, 10.0),
+    "cross_street_odds": CrossStreetOdds("signal", 1, 0.5, 1),
+}
 
 _CHOICES = {"backend": BACKENDS, "precision": PRECISIONS, "source": SOURCES, "stereo": STEREO_LAYOUTS}
 
