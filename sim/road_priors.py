@@ -14,8 +14,10 @@ from dataclasses import replace
 from functools import lru_cache
 
 import numpy as np
+from highway_env.road.lane import AbstractLane
 
 from towndrive.sim.fillet_lane import FilletLane
+from towndrive.sim.geometry import wrap_to_pi
 from towndrive.sim.spec import ROAD, CrossStreetOdds, RoadDesign, SignalMount, TurnReach
 from towndrive.sim.splits import split_towns
 from towndrive.sim.town import Command, Control, Crosswalk, Town, TownConfig, generate_town
@@ -42,6 +44,15 @@ def zebra_far_along(crosswalk: Crosswalk, origin: np.ndarray, heading: float) ->
     p, q = max(long_edges, key=lambda e: float(((e[0] + e[1]) / 2 - origin) @ t))
     along, _ = np.linalg.solve(np.column_stack([t, p - q]), p - origin)
     return float(along)
+
+
+def exit_crossing(lane: AbstractLane, origin: np.ndarray, heading: float) -> float:
+    """How far along the line from ``origin`` at ``heading`` the centre line of the lane a turn ``lane`` goes into,
+    continued back from the turn's end, crosses it."""
+    t = np.array([np.cos(heading), np.sin(heading)])
+    end = lane.position(lane.length, 0.0) - origin
+    turn = wrap_to_pi(lane.heading_at(lane.length) - heading)
+    return float(end @ t) - float(end @ np.array([-t[1], t[0]])) / np.tan(turn)
 
 
 def junction_samples(town: Town) -> dict[str, list[float]]:
@@ -71,23 +82,17 @@ def junction_samples(town: Town) -> dict[str, list[float]]:
                 cross_lanes = town.lane_count(exit_edge)
                 if cw is not None:
                     start = lane.position(0.0, 0.0)  # our lane's centre at the bar's far edge
-                    end = lane.position(lane.length, 0.0) - start
-                    turn = float(np.arctan2(np.sin(lane.heading_at(lane.length) - entry.travel_heading),
-                                            np.cos(lane.heading_at(lane.length) - entry.travel_heading)))
-                    crossing = float(end @ t) - float(end @ right) / np.tan(turn)
                     side = "left" if info.command == Command.LEFT else "right"
                     out.setdefault(f"reach:{cross_lanes}:{side}", []).append(
-                        crossing - zebra_far_along(cw, start, entry.travel_heading))
+                        exit_crossing(lane, start, entry.travel_heading)
+                        - zebra_far_along(cw, start, entry.travel_heading))
             if info.command == Command.LEFT and idx[2] == 0:
                 out["left"].append(radius)
             elif info.command == Command.RIGHT and idx[2] == entry.lane_count - 1:
                 out["right"].append(radius)
                 # where the lane turned into crosses the approach lane's centre line, from the bar's far edge (the
                 # agent's arc turns by the cross street's angle, measured, into that line)
-                end = lane.position(lane.length, 0.0) - entry.line_center
-                turn = float(np.arctan2(np.sin(lane.heading_at(lane.length) - entry.travel_heading),
-                                        np.cos(lane.heading_at(lane.length) - entry.travel_heading)))
-                out["kerb_reach"].append(float(end @ t) - depth - float(end @ right) / np.tan(turn))
+                out["kerb_reach"].append(exit_crossing(lane, entry.line_center, entry.travel_heading) - depth)
         if cross_lanes is not None:
             out.setdefault(f"odds:{control_kind(entry.control)}:{entry.lane_count}", []).append(
                 float(cross_lanes >= 2))

@@ -314,14 +314,12 @@ def test_the_junction_guidance_reads_the_cross_street_s_angle_from_near_zebra_re
 def _turns_beyond_zebra(style: str, seeds: tuple[int, ...]) -> list[tuple[str, int, int, bool, float, float]]:
     """Each turn of some towns with a zebra before it: (what governs the arm, our lanes, the cross street's,
     left?, the zebra's far edge along our lane, where the lane turned into crosses ours), from the bar's far edge."""
-    from towndrive.sim.road_priors import control_kind, zebra_far_along
+    from towndrive.sim.road_priors import control_kind, exit_crossing, zebra_far_along
 
     out = []
     for seed in seeds:
         town = cached_town(TownConfig.of_style(style), seed)
         for entry in town.entries:
-            t = np.array([math.cos(entry.travel_heading), math.sin(entry.travel_heading)])
-            right = np.array([-t[1], t[0]])
             cw = next(c for c in town.crosswalks if (c.node, c.arm) == (entry.node, entry.arm))
             for idx, info in town.lane_info.items():
                 left = info.command == Command.LEFT
@@ -330,12 +328,10 @@ def _turns_beyond_zebra(style: str, seeds: tuple[int, ...]) -> list[tuple[str, i
                     continue
                 lane = town.lane(idx)
                 start = lane.position(0.0, 0.0)
-                end = lane.position(lane.length, 0.0) - start
-                turn = lane.heading_at(lane.length) - entry.travel_heading
-                crossing = float(end @ t) - float(end @ right) / math.tan(math.atan2(math.sin(turn), math.cos(turn)))
                 cross = town.lane_count((idx[1], next(iter(town.network.graph[idx[1]]))))
                 out.append((control_kind(entry.control), entry.lane_count, cross, left,
-                            zebra_far_along(cw, start, entry.travel_heading), crossing))
+                            zebra_far_along(cw, start, entry.travel_heading),
+                            exit_crossing(lane, start, entry.travel_heading)))
     return out
 
 
