@@ -63,6 +63,7 @@ from towndrive.agent.decision.turn_end import TurnEnd, TurnEndRules
 from towndrive.agent.perception.box_geometry import BoxGeometry
 from towndrive.agent.perception.classes import LIGHT_CLASSES
 from towndrive.agent.perception.detector import Detection, OnnxDetector
+from towndrive.agent.perception.exit_line import ExitLine, ExitLineFinder
 from towndrive.agent.perception.lanes import LaneConfig, LaneDetector, LaneResult, lane_centre_of
 from towndrive.agent.perception.model_view import ModelView
 from towndrive.agent.perception.object_memory import MemoryRules, ObjectMemory
@@ -211,6 +212,7 @@ class Stages:
     stereo: Any = None  # agent.perception.stereo.StereoDepth with distance="stereo"
     signs: SignLocator | None = None  # the road signs addressing the car (agent.perception.signs)
     zebra: ZebraDetector | None = None  # the zebra beyond the stop bar, where the road design's setback may vary
+    exit_line: ExitLineFinder | None = None  # the road turned into, read in a turn where the design spreads
 
 
 class AgentDriver:
@@ -299,7 +301,8 @@ class AgentDriver:
             odometry=odometry, junction=junction, turn_end=TurnEnd(cfg.turn_end),
             blind_spot=BlindSpot(mirror, MirrorMount(MIRRORS.ahead_m, MIRRORS.out_m, MIRRORS.yaw_deg), cfg.blind_spot),
             stereo=stereo, signs=SignLocator(geometry, cfg.signs, cfg.road),
-            zebra=ZebraDetector(camera) if cfg.road.stop_line_setback_sd_m > 0 else None)
+            zebra=ZebraDetector(camera) if cfg.road.stop_line_setback_sd_m > 0 else None,
+            exit_line=ExitLineFinder(camera) if junction.design_spreads else None)
 
     def _setup(self, camera: CameraConfig, dt: float) -> None:
         self.camera = camera
@@ -325,6 +328,8 @@ class AgentDriver:
         self.view = self._last_view = None
         self._zebra_far_m: float | None = None  # this frame's zebra far edge (camera to it), when looked for
         self._zebra_tilt: float | None = None  # ... and the slope of its edges (the cross street's direction)
+        self._exit_expected: float | None = None  # in a turn, the direction the road turned into should run
+        self._exit_seen: ExitLine | None = None  # ... and its centre line as seen this frame
         self._frame = 0
         self._restart()
 
@@ -456,6 +461,9 @@ class AgentDriver:
             seen = self._timed("zebra", times, zebra.detect, image, lanes, stop.distance_m)
             self._zebra_far_m = None if seen is None else seen.far_m
             self._zebra_tilt = None if seen is None else seen.tilt
+        finder, expected = self.stages.exit_line, self._exit_expected
+        self._exit_seen = (None if finder is None or expected is None
+                           else self._timed("exit_line", times, finder.find, image, expected))
         return lanes, stop
 
     def _act(self, observation: dict[str, Any],
@@ -478,6 +486,7 @@ class AgentDriver:
         command = int(observation["command"])
         t = self._frame * self.dt
         run = self._frame % self.config.detect_every == 0
+        self._exit_expected = st.junction.exit_expected_rad()  # the lane finder's thread reads it
         # Two cores: the detector, then lanes and the stop line, on the worker while this thread looks in the
         # mirror and runs PilotNet (each stage's own thread times it); else all on this thread, in this order.
         threads = self._threads.now() if self._threads is not None else self.config.stage_threads
@@ -552,6 +561,7 @@ class AgentDriver:
         z_car = -self.camera.mount_forward_m
         centre = lane_centre_of(lanes, z_car)
         odo.measure_road(centre, lanes.confidence, self.controller.line, z_car)
+        st.junction.note_exit(self._exit_seen)
         hold = st.junction.hold(command)
         if st.turn_end.ended:
             self.controller.line.leave_junction(self.config.turn_end.light_ignore_m)

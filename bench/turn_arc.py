@@ -6,8 +6,10 @@ bicycle model by the agent's junction guidance alone (``agent.decision.junction`
 bar with the bar's distance given exactly and no traffic, at the turn speed, until the arc hands over to the camera
 (or the car is on the road turned into). The bar's distance, the zebra's far edge and the slope of its edges (the
 cross street's direction, ``Zebra.tilt``) are given as the detectors would report them, read from the town;
-``--no-tilt`` leaves the slope out (the arc then assumes a square junction). The figure per turn is the largest
-"outside its lanes" distance, the safety driver's measure (a take-over beyond 1 m); 9 means the car left the road.
+``--no-tilt`` leaves the slope out (the arc then assumes a square junction). In the turn the camera's frames are
+rendered and the road turned into is read from them as the agent does (``agent.perception.exit_line``); once read,
+the arc leads the whole turn; ``--no-exit`` leaves that out. The figure per turn is the largest "outside its lanes"
+distance, the safety driver's measure (a take-over beyond 1 m); 9 means the car left the road.
 
   python bench/turn_arc.py --style suburb --towns 4000,4001 --command right
 """
@@ -38,10 +40,10 @@ OFF_ROAD = 9.0
 
 
 def drive_turn(style: str, town_seed: int, entry_index: int, command: int,
-               tilt: bool = True, kind: bool = True) -> tuple[int, int, float] | None:
+               tilt: bool = True, kind: bool = True, exit_read: bool = True) -> tuple[int, int, float] | None:
     """(our lanes, the cross street's, the largest outside-the-lanes distance) of one turn; None if the entry
     has no such turn."""
-    config = DriveConfig(world=WorldConfig(town=TownConfig.of_style(style)), render_camera=False)
+    config = DriveConfig(world=WorldConfig(town=TownConfig.of_style(style)), render_camera=exit_read)
     town = cached_town(config.world.town, town_seed)
     entry = town.entries[entry_index]
     k = 0 if command == Command.LEFT else entry.lane_count - 1
@@ -59,6 +61,7 @@ def drive_turn(style: str, town_seed: int, entry_index: int, command: int,
     driver = make_driver("agent", road=road_priors(style))
     driver.reset(SimpleNamespace(config=env.config))
     guidance, odometry, controller = driver.stages.junction, driver.stages.odometry, driver.controller
+    finder = driver.stages.exit_line if exit_read else None
     controller.stop_line, controller.stop_line_measured = BAR_AHEAD_M, True
     odometry.road_yaw, odometry.road_offset = 0.0, 0.0
     camera_to_bar = BAR_AHEAD_M + controller.config.camera_to_front_m
@@ -86,8 +89,11 @@ def drive_turn(style: str, town_seed: int, entry_index: int, command: int,
         rate = controller.config.steer_rate_per_s * driver.dt
         steer = float(np.clip(target if target is not None else 0.0, steer - rate, steer + rate))
         throttle = float(np.clip(0.5 * (turn_speed - world.ego.speed), -1.0, 1.0))
-        _, _, terminated, _, _ = env.step(np.array([steer, throttle], np.float32))
+        obs, _, terminated, _, _ = env.step(np.array([steer, throttle], np.float32))
         odometry.advance(float(world.ego.speed), steer, int(world.command()), driver.dt)
+        expected = guidance.exit_expected_rad()
+        if finder is not None and expected is not None:
+            guidance.note_exit(finder.find(obs["image"], expected))
         outside = world.lane_band_offset_m()
         worst = max(worst, outside if math.isfinite(outside) else OFF_ROAD)
         if terminated:
@@ -106,13 +112,15 @@ def main() -> None:
     ap.add_argument("--no-kind", action="store_true",
                     help="leave out what governs the arm and our road's lanes (the cross street's lane count guessed "
                          "blind)")
+    ap.add_argument("--no-exit", action="store_true", help="do not read the road turned into in the turn")
     args = ap.parse_args()
     command = Command.LEFT if args.command == "left" else Command.RIGHT
     worst = []
     print("| town | entry | our lanes | cross street's | largest outside its lanes (m) |\n|---|---|---|---|---|")
     for seed in (int(s) for s in args.towns.split(",")):
         for i in range(min(args.entries, len(cached_town(TownConfig.of_style(args.style), seed).entries))):
-            row = drive_turn(args.style, seed, i, command, tilt=not args.no_tilt, kind=not args.no_kind)
+            row = drive_turn(args.style, seed, i, command, tilt=not args.no_tilt, kind=not args.no_kind,
+                             exit_read=not args.no_exit)
             if row is not None:
                 worst.append(row[2])
                 print(f"| {seed} | {i} | {row[0]} | {row[1]} | {row[2]:.2f} |", flush=True)

@@ -414,3 +414,56 @@ def test_a_profile_sets_the_turn_reaches_and_the_cross_street_odds() -> None:
                        ({"turn_reaches": [{"right_m": 90}]}, "right_m")):
         with pytest.raises(ProfileError, match=words):
             profile_from_dict({"road": bad})
+
+
+def test_the_road_turned_into_read_in_the_turn_places_its_inner_lane_and_the_arc_then_leads_to_the_end() -> None:
+    """``JunctionGuidance.note_exit``: the road turned into's centre line, seen from inside the turn, puts the lane
+    turned into half a lane to its right in the direction of travel (right turns short of it, left turns beyond it),
+    whatever the design planned; a reading far from the plan is something else; once read, the arc leads past the
+    hand-over heading."""
+    from types import SimpleNamespace
+
+    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
+    from towndrive.agent.perception.exit_line import ExitLine
+    from towndrive.agent.perception.stop_line import StopLine
+
+    road = road_priors("suburb")
+
+    def reach_read(command: int, centre_along_m: float, yaw_deg: float) -> JunctionGuidance:
+        line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
+                               config=SimpleNamespace(camera_to_front_m=2.0))
+        odo = SimpleNamespace(road_yaw=0.0, pos=np.zeros(2), road_offset=0.0, yaw=0.0)
+        g = JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
+        g.note(StopLine(8.0, 0.5, 0.9, 0))  # the bar's near edge at x = 11 in the odometry frame
+        odo.pos = np.array([11.0, 0.0])
+        assert g.turn_steer(command, 3.0) is not None and g.exit_expected_rad() is None  # not yet turned
+        side = 1.0 if command == 2 else -1.0
+        yaw = side * math.radians(yaw_deg)
+        odo.pos, odo.yaw = np.array([15.0, side * 2.0]), yaw
+        expected = g.exit_expected_rad()
+        assert expected is not None and expected == pytest.approx(side * math.pi / 2 - yaw)
+        cam = odo.pos + np.array([math.cos(yaw), math.sin(yaw)])
+        point = np.array([11.0 + centre_along_m, side * 6.0]) - cam  # on the cross street's centre line
+        seen = (float(-point[0] * math.sin(yaw) + point[1] * math.cos(yaw)),
+                float(point[0] * math.cos(yaw) + point[1] * math.sin(yaw)))
+        for _ in range(3):
+            g.note_exit(ExitLine(seen, side * math.pi / 2 - yaw, 400, 10.0))
+        return g
+
+    depth = road.stop_bar_depth_m
+    for command, planned_shift in ((2, -2.0), (1, 2.0)):
+        g0 = reach_read(command, 0.0, 40.0)  # nothing added yet: find what was planned
+        centre = g0.planned_reach_m(command) + depth + planned_shift
+        g = reach_read(command, centre, 40.0)
+        assert g.exit_measured
+        inner = centre - 0.5 * g.lane_width_m if command == 2 else centre + 0.5 * g.lane_width_m
+        assert g.turn_reach_m(command) == pytest.approx(inner - depth, abs=1e-6)
+        assert g.turn_angle_deg(command) == pytest.approx(90.0)
+        far = reach_read(command, g0.planned_reach_m(command) + depth + 9.0, 40.0)  # a line 9 m from the plan
+        assert not far.exit_measured and far.turn_reach_m(command) == far.planned_reach_m(command)
+    # read, the arc leads on past the hand-over heading; unread (the line was too far off), the camera takes over
+    planned = reach_read(2, 0.0, 40.0).planned_reach_m(2) + depth
+    read, unread = reach_read(2, planned, 40.0), reach_read(2, planned + 9.0, 40.0)
+    for g in (read, unread):
+        g.odo.pos, g.odo.yaw = np.array([17.0, 4.0]), math.radians(65.0)
+    assert read.turn_steer(2, 3.0) is not None and unread.turn_steer(2, 3.0) is None

@@ -11,9 +11,13 @@ setback does. The lane offset is the lane width the lane finder measured, where 
 measured, the lane turned into is placed from its far edge instead (the zebra lies at the cross street's kerb): by
 the design's reach for the cross street's lanes each way, a count not seen before the turn, so expected over its
 odds at the kind of junction the car sees (``RoadDesign.two_lane_share``: who stops enters a larger street).
-Where the design's numbers spread, the arc still misses the lane turned into by a metre or two at its end (the
-radius and the exit lane are not measured), so it leads the turn only until the car faces the road turned into
-(``turn_handover_deg``); PilotNet, which sees that road, finishes it. An exact design's arc leads to the end.
+Where the design's numbers spread, a turn planned so still misses the lane turned into by a metre or two when the
+cross street's lane count was guessed wrong. So once the car has turned some 20 degrees, the road turned into is read
+(``agent.perception.exit_line``): its centre line, in view from there, places its inner lane half a lane width to the
+line's right in the direction of travel, whatever the count, and the line's direction gives the turn's angle. The
+arc is re-placed on that lane and leads the whole turn. Where the road turned into is never read, the arc leads only
+until the car faces that road (``turn_handover_deg``) and PilotNet, which sees it, finishes the turn. An exact
+design's arc leads to the end.
 Where junctions are not square, the arc turns by the cross street's angle, read from the zebra beyond the bar (its
 edges run along the cross street), into the lane whose centre line crosses the approach lane's where the road
 design's reach puts it.
@@ -30,6 +34,7 @@ import numpy as np
 from towndrive.agent.decision.odometry import Odometry
 from towndrive.agent.decision.priors import fused, junction_widening_m
 from towndrive.agent.decision.stop_line_track import StopLineTrack
+from towndrive.agent.perception.exit_line import ExitLine
 from towndrive.agent.perception.stop_line import StopLine
 from towndrive.sim.spec import ROAD, VEHICLE, RoadDesign
 
@@ -83,6 +88,15 @@ class JunctionRules:
     skew_bar_max_m: float = 7.0
     skew_min_readings: int = 3
     skew_max_deg: float = 20.0
+    # The road turned into, read in the turn (``agent.perception.exit_line``): looked for while the car has turned
+    # between these (it is in view, and the arc still leads), taken as the median of the last readings once there
+    # are this many; a reading this far from the reach planned before the turn is something else.
+    exit_min_turned_deg: float = 20.0
+    exit_max_turned_deg: float = 80.0
+    exit_min_readings: int = 3
+    exit_last_readings: int = 5
+    exit_max_shift_m: float = 5.0
+    exit_leads_to_end: bool = True  # once the road turned into is measured, the arc leads the whole turn
 
 
 class JunctionGuidance:
@@ -112,6 +126,7 @@ class JunctionGuidance:
         #                               away from us), as measured at this junction
         self.control: str | None = None  # what governs our arm (sim.spec.CONTROL_KINDS), as seen before the bar
         self.our_lanes: int | None = None  # our road's lanes each way, as the lane lines told before the bar
+        self._exit: list[tuple[float, float]] = []  # (reach, turn angle in degrees) read from the road turned into
 
     @property
     def skew_rad(self) -> float:
@@ -182,14 +197,77 @@ class JunctionGuidance:
         bar = odo.pos - odo.road_offset * right + ahead * u
         self.junction = (float(bar[0]), float(bar[1]), odo.road_yaw, 0)
 
+    @property
+    def exit_measured(self) -> bool:
+        """Whether the road turned into has been read in this turn (``note_exit``)."""
+        return len(self._exit) >= self.rules.exit_min_readings
+
     def turn_reach_m(self, command: int) -> float:
-        """The stop bar's far edge to where the lane turned into crosses our lane's centre line: beyond the zebra
-        measured here by the design's reach expected over the cross street's lane count, else from the priors (left
-        turns: half a lane beyond the junction's centre; right turns: the kerb lane's own prior)."""
+        """The stop bar's far edge to where the lane turned into crosses our lane's centre line: as read in the
+        turn from the road turned into (``note_exit``), else as planned before it (``planned_reach_m``)."""
+        if self.exit_measured:
+            return float(np.median([reach for reach, _ in self._exit[-self.rules.exit_last_readings:]]))
+        return self.planned_reach_m(command)
+
+    def turn_angle_deg(self, command: int) -> float:
+        """The turn's heading change: as read from the road turned into, else from the cross street's angle read
+        from the zebra (90 degrees in a square junction)."""
+        if self.exit_measured:
+            return float(np.median([angle for _, angle in self._exit[-self.rules.exit_last_readings:]]))
+        return self.planned_angle_deg(command)
+
+    def planned_reach_m(self, command: int) -> float:
+        """The reach planned before the turn: beyond the zebra measured here by the design's reach expected over
+        the cross street's lane count, else from the priors (left turns: half a lane beyond the junction's centre;
+        right turns: the kerb lane's own prior)."""
         beyond = self.road.turn_reach(command == 1, self.road.two_lane_share(self.control, self.our_lanes))
         if self._zebra_m and beyond is not None:
             return float(np.median(self._zebra_m)) + beyond
         return self.road.kerb_lane_reach if command == 2 else self.setback_m + 0.5 * self.lane_width_m
+
+    def exit_expected_rad(self) -> float | None:
+        """While a turn's arc leads with a design that spreads and the car has turned far enough to see the road
+        turned into: the direction that road's centre line should run in the camera's ground frame (from the
+        forward axis, positive right); else None (nothing to look for)."""
+        cfg = self.rules
+        if not self.design_spreads or self.junction is None or self.junction[3] == 0:
+            return None
+        command = self.junction[3]
+        heading = self.odo.yaw - self.junction[2]
+        if not math.radians(cfg.exit_min_turned_deg) <= abs(heading) <= math.radians(cfg.exit_max_turned_deg):
+            return None
+        angle = math.radians(self.planned_angle_deg(command))
+        return (angle if command == 2 else -angle) - heading
+
+    def planned_angle_deg(self, command: int) -> float:
+        """The turn's heading change as planned before it, from the zebra's slope (90 degrees when square)."""
+        skew = math.degrees(self.skew_rad)  # a right turn is that much less than square, a left turn more
+        return 90.0 - skew if command == 2 else 90.0 + skew
+
+    def note_exit(self, line: ExitLine | None) -> None:
+        """Place the lane turned into from the road turned into's centre line seen this frame (in the camera's
+        ground frame, ``ExitLineFinder``): its inner lane lies half a lane width to the line's right in the
+        direction of travel, whatever the cross street's lane count; where that lane's centre line crosses ours is
+        the turn's reach, and its direction the turn's angle."""
+        cfg = self.rules
+        if line is None or self.junction is None or self.junction[3] == 0:
+            return
+        bx, by, road_yaw, command = self.junction
+        yaw = self.odo.yaw
+        ahead, right = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
+        seen = self.odo.pos + (self.camera_to_centre_m + line.point[1]) * ahead + line.point[0] * right
+        u = np.array([math.cos(road_yaw), math.sin(road_yaw)])
+        rel = seen - np.array([bx, by])
+        along, across = float(rel @ u), float(rel[0] * -u[1] + rel[1] * u[0])
+        runs = line.direction_rad + (yaw - road_yaw)  # in the approach frame, from its axis (positive right)
+        if abs(math.sin(runs)) < math.sin(math.radians(90.0 - cfg.skew_max_deg - 10.0)):
+            return  # nearly along our road: not a cross street
+        along -= 0.5 * self.lane_width_m * math.sin(runs)  # the inner lane's centre line
+        across += 0.5 * self.lane_width_m * math.cos(runs)
+        reach = along - across * math.cos(runs) / math.sin(runs) - self.road.stop_bar_depth_m
+        if abs(reach - self.planned_reach_m(command)) > cfg.exit_max_shift_m:
+            return
+        self._exit.append((reach, math.degrees(runs if command == 2 else -runs)))
 
     def turn_steer(self, command: int, speed: float) -> float | None:
         """Turning at a junction, the steer that pursues the turn arc from our lane to the same lane of the road we
@@ -218,13 +296,13 @@ class JunctionGuidance:
         here = np.array([float(rel @ u) - half * math.cos(heading), float(rel[0] * -u[1] + rel[1] * u[0])
                          - half * math.sin(heading)])
         radius = self.road.left_turn_radius_m if command == 1 else self.road.right_turn_radius_m
-        skew = math.degrees(self.skew_rad)  # a right turn is that much less than square, a left turn more
-        angle = round(90.0 - skew if command == 2 else 90.0 + skew, 1)
+        angle = round(self.turn_angle_deg(command), 1)
         path, arc_end = turn_path(command, round(reach, 2), self.road.stop_bar_depth_m, radius, angle_deg=angle)
         lookahead = cfg.turn_lookahead_m + cfg.turn_lookahead_s * speed
         if here[0] < self.road.stop_bar_depth_m - lookahead:  # not yet: the lookahead point is still before the arc
             return None
-        if started and self.design_spreads and abs(heading) > math.radians(cfg.turn_handover_deg):
+        leads_on = cfg.exit_leads_to_end and self.exit_measured
+        if started and self.design_spreads and not leads_on and abs(heading) > math.radians(cfg.turn_handover_deg):
             self.forget()  # facing the road turned into: the camera's steering finishes the turn
             return None
         step = float(np.hypot(*(path[1] - path[0])))

@@ -1,0 +1,93 @@
+"""The road turned into, read during a junction turn: where its centre line lies and which way it runs.
+
+Why: a junction turn's arc is placed before the turn, from the stop bar, the zebra beyond it and the road design's
+priors, but where the lane turned into lies also depends on the cross street's lane count, which the camera does
+not see before the turn (the street's far side is hidden or too far to resolve). Once the car has turned some 25
+degrees, the camera looks down the road turned into and its centre line, the yellow boundary between its two
+directions, is in view 8-25 m ahead. Where that line lies places the lane turned into whatever the count: the
+inner lane is half a lane width to its right, in the direction of travel (``junction.JunctionGuidance``).
+
+Yellow paint is found by the lane finder's own thresholds (``lanes.lane_masks``: hue, saturation and brightness
+above the local road, so it works at night as at noon) in a wide bird's-eye view, and the line is the straightest
+dense band of it within a window around the direction the junction's geometry expects. Only a line long enough to
+have a direction counts; nothing is guessed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from towndrive.agent.perception.lanes import BirdsEye, BirdsEyeConfig, ThresholdConfig, lane_masks
+from towndrive.sim.spec import CameraConfig
+
+
+@dataclass(frozen=True)
+class ExitLineConfig:
+    view: BirdsEyeConfig = field(default_factory=lambda: BirdsEyeConfig(
+        x_min_m=-20.0, x_max_m=20.0, z_min_m=3.0, z_max_m=25.0, px_per_m_x=10.0, px_per_m_z=10.0))
+    thresholds: ThresholdConfig = field(default_factory=ThresholdConfig)
+    window_deg: float = 20.0  # the line's direction is searched this far either side of the expected one
+    step_deg: float = 1.0
+    bin_m: float = 0.25  # paint is binned across the candidate direction at this spacing
+    inlier_m: float = 0.4  # paint this near the best line is its own (the double line's pair and its blur)
+    min_pixels: int = 60  # bird's-eye pixels of paint on the line (about 2 m of a double line)
+    min_length_m: float = 3.0  # the paint must span this much along the line
+
+
+@dataclass(frozen=True)
+class ExitLine:
+    """A straight centre line on the road plane, in the camera's ground frame (x right, z ahead, metres)."""
+
+    point: tuple[float, float]  # the middle of its paint
+    direction_rad: float  # the way it runs, from the camera's forward axis (positive right)
+    n_pixels: int
+    length_m: float  # how much of it was in view
+
+
+class ExitLineFinder:
+    """Finds the road turned into's centre line (module docstring) in one camera frame."""
+
+    def __init__(self, camera: CameraConfig, config: ExitLineConfig | None = None) -> None:
+        self.config = config or ExitLineConfig()
+        self.birdseye = BirdsEye(camera, self.config.view)
+
+    def find(self, rgb: np.ndarray, expected_rad: float) -> ExitLine | None:
+        """The yellow line running within ``window_deg`` of ``expected_rad`` (from the camera's forward axis,
+        positive right), or None when there is not enough of one."""
+        cfg, bev = self.config, self.birdseye
+        yellow = lane_masks(bev.warp(rgb), cfg.thresholds, cfg.view.px_per_m_x)["yellow"]
+        rows, cols = np.nonzero(yellow)
+        if len(rows) < cfg.min_pixels:
+            return None
+        x, z = bev.x_of_col[cols], bev.z_of_row[rows]
+        best: tuple[int, float, float] | None = None  # (count, angle, offset across it)
+        half = math.radians(cfg.window_deg)
+        for angle in np.arange(expected_rad - half, expected_rad + half + 1e-9, math.radians(cfg.step_deg)):
+            across = x * math.cos(angle) - z * math.sin(angle)  # signed distance from a line through the camera
+            lo = float(across.min())
+            counts = np.bincount(((across - lo) / cfg.bin_m).astype(int))
+            k = int(np.argmax(counts))
+            # the best bin with its two neighbours: a line straddling a bin edge counts whole
+            total = int(counts[max(k - 1, 0):k + 2].sum())
+            if best is None or total > best[0]:
+                best = (total, float(angle), lo + (k + 0.5) * cfg.bin_m)
+        assert best is not None
+        _, angle, offset = best
+        near = np.abs(x * math.cos(angle) - z * math.sin(angle) - offset) <= cfg.inlier_m
+        if int(near.sum()) < cfg.min_pixels:
+            return None
+        pts = np.stack([x[near], z[near]], axis=1)
+        middle = pts.mean(axis=0)
+        _, _, vt = np.linalg.svd(pts - middle, full_matrices=False)
+        ax, az = vt[0]
+        direction = math.atan2(ax, az)
+        if math.cos(direction - angle) < 0:  # the way the search ran, not its reverse
+            direction = math.atan2(-ax, -az)
+        along = (pts - middle) @ np.array([math.sin(direction), math.cos(direction)])
+        length = float(along.max() - along.min())
+        if length < cfg.min_length_m or abs(math.remainder(direction - expected_rad, 2 * math.pi)) > half:
+            return None
+        return ExitLine((float(middle[0]), float(middle[1])), direction, int(near.sum()), length)

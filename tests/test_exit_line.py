@@ -1,0 +1,83 @@
+"""The road turned into, read in a junction turn (``agent.perception.exit_line``): on rendered frames of cars part
+way through right and left turns, in daylight and in the dark, the centre line found lies on the town's and runs its
+way; nothing is reported where no such line is in view."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from towndrive.agent.perception.exit_line import ExitLineFinder
+from towndrive.envs.drive_env import DriveConfig, DriveEnv
+from towndrive.sim.town import Command, TownConfig
+from towndrive.sim.world import World, WorldConfig, cached_town
+
+POSITION_TOLERANCE_M = 0.3  # across the line, from the middle of its paint
+DIRECTION_TOLERANCE_DEG = 2.0
+
+
+def _in_turn(style: str, town_seed: int, entry_index: int, command: Command, turned_deg: float,
+             weather: str) -> tuple[np.ndarray, DriveEnv, tuple[np.ndarray, np.ndarray]]:
+    """The camera frame of a car on a junction turn's connector where it has turned ``turned_deg``, and the road
+    turned into's centre line (two points in the camera's ground frame: x right, z ahead)."""
+    cfg = DriveConfig(world=WorldConfig(town=TownConfig.of_style(style)))
+    town = cached_town(cfg.world.town, town_seed)
+    entry = town.entries[entry_index]
+    k = 0 if command == Command.LEFT else entry.lane_count - 1
+    connector = next(idx for idx, info in town.lane_info.items()
+                     if idx[0] == entry.edge[1] and idx[2] == k and info.kind == "connector" and info.command == command)
+    lane = town.lane(connector)
+    s = next(s for s in np.arange(0.0, lane.length, 0.1)
+             if abs(math.remainder(lane.heading_at(s) - lane.heading_at(0.0), 2 * math.pi)) >= math.radians(turned_deg))
+    env = DriveEnv(cfg)
+    world = World(town, cfg.world, seed=0, start=connector, start_s=float(s), spawn_traffic=False)
+    obs, _ = env.reset(seed=0, options={"world": world, "town_seed": town_seed, "weather": weather})
+    ego, cam = world.ego, cfg.camera
+    at = ego.position + cam.mount_forward_m * np.array([math.cos(ego.heading), math.sin(ego.heading)])
+    exit_lane = town.lane((connector[1], next(iter(town.network.graph[connector[1]])), 0))
+
+    def seen(s_m: float) -> np.ndarray:
+        d = exit_lane.position(s_m, -exit_lane.width_at(s_m) / 2) - at  # lane 0's left edge: the centre line
+        return np.array([-d[0] * math.sin(ego.heading) + d[1] * math.cos(ego.heading),
+                         d[0] * math.cos(ego.heading) + d[1] * math.sin(ego.heading)])
+
+    return obs["image"], env, (seen(0.0), seen(20.0))
+
+
+@pytest.mark.parametrize("style, town_seed, entry_index, command, turned_deg, weather", [
+    ("suburb", 4002, 0, Command.RIGHT, 40.0, "noon"),
+    ("suburb", 4000, 3, Command.RIGHT, 55.0, "night"),
+    ("downtown", 4001, 2, Command.LEFT, 50.0, "noon"),  # a left turn's road comes into view later
+    ("downtown", 4000, 5, Command.LEFT, 60.0, "dusk"),
+])
+def test_the_centre_line_of_the_road_turned_into(style: str, town_seed: int, entry_index: int, command: Command,
+                                                   turned_deg: float, weather: str) -> None:
+    rgb, env, (a, b) = _in_turn(style, town_seed, entry_index, command, turned_deg, weather)
+    finder = ExitLineFinder(env.config.camera)
+    env.close()
+    runs = math.atan2(b[0] - a[0], b[1] - a[1])
+    line = finder.find(rgb, runs + math.radians(8.0))  # the expectation need not be exact
+    assert line is not None
+    u = (b - a) / np.linalg.norm(b - a)
+    p = np.asarray(line.point) - a
+    assert abs(p[0] * u[1] - p[1] * u[0]) <= POSITION_TOLERANCE_M
+    assert abs(math.degrees(math.remainder(line.direction_rad - runs, 2 * math.pi))) <= DIRECTION_TOLERANCE_DEG
+    assert line.length_m >= finder.config.min_length_m
+
+
+def test_nothing_where_no_cross_street_is_in_view() -> None:
+    """On a straight street the only yellow line runs ahead: a cross street's is looked for across, and not found."""
+    cfg = DriveConfig(world=WorldConfig(town=TownConfig.of_style("suburb")))
+    town = cached_town(cfg.world.town, 4000)
+    entry = town.entries[0]
+    env = DriveEnv(cfg)
+    world = World(town, cfg.world, seed=0, start=(*entry.edge, 0), start_s=town.lane((*entry.edge, 0)).length - 60.0,
+                  spawn_traffic=False)
+    obs, _ = env.reset(seed=0, options={"world": world, "town_seed": 4000})
+    finder = ExitLineFinder(env.config.camera)
+    env.close()
+    assert finder.find(obs["image"], math.radians(90.0)) is None
+    assert finder.find(obs["image"], math.radians(-90.0)) is None
+    assert finder.find(np.zeros_like(obs["image"]), 0.0) is None
