@@ -241,6 +241,19 @@ def test_the_cli_gives_the_agent_a_style_s_priors_and_the_sign_detector_and_refu
         driver_spec(other)
 
 
+def test_the_scenario_suite_gives_each_scenario_s_agent_the_priors_of_the_town_it_happens_in() -> None:
+    """``towndrive scenario all --road-priors style``: scenarios placed in a styled town run with that style's priors,
+    the others with the command line's style."""
+    from towndrive.drive_cli import scenario_styles
+    from towndrive.envs.scenarios import SCENARIOS
+
+    groups = scenario_styles(list(SCENARIOS), "classic")
+    assert sorted(n for g in groups.values() for n in g) == sorted(SCENARIOS)
+    assert "t_junction_priority_turn" in groups["suburb"] and "red_light" in groups["classic"]
+    assert all(SCENARIOS[n].place is not None and SCENARIOS[n].place.style == style
+               for style, g in groups.items() if style != "classic" for n in g)
+
+
 def test_a_right_turn_aims_at_the_kerb_lane_whatever_the_cross_street_s_lane_count() -> None:
     """A right turn goes into the cross street's kerb lane. Aimed at the second lane beyond the centre line (the
     classic design's two lanes each way), it fell 2.3 m short on average in suburb towns, whose cross streets often

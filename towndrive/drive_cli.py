@@ -561,6 +561,17 @@ def evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def scenario_styles(names: list[str], town_style: str) -> dict[str, list[str]]:
+    """The scenarios grouped by the town style each happens in: its place's, else the command line's."""
+    from towndrive.envs.scenarios import SCENARIOS
+
+    groups: dict[str, list[str]] = {}
+    for name in names:
+        place = SCENARIOS[name].place
+        groups.setdefault(place.style if place is not None else town_style, []).append(name)
+    return groups
+
+
 def scenarios(args: argparse.Namespace) -> int:
     from towndrive.envs.scenarios import SCENARIOS, format_results, run_scenarios
 
@@ -569,8 +580,13 @@ def scenarios(args: argparse.Namespace) -> int:
     if unknown:
         raise ValueError(f"Unknown scenario {unknown[0]!r}; choose one of {', '.join(SCENARIOS)} or 'all'.")
     out = args.out or Path("out/scenarios")
-    results = run_scenarios(names, driver_spec(args), make_config(args), out, video=not args.no_video,
-                            workers=min(args.workers, len(names)), ray=args.ray)
+    results = []
+    for style, group in scenario_styles(names, args.town_style).items():
+        # each scenario's agent gets the road priors of the town style it happens in (--road-priors style)
+        spec = driver_spec(argparse.Namespace(**{**vars(args), "town_style": style}))
+        results += run_scenarios(group, spec, make_config(args), out, video=not args.no_video,
+                                 workers=min(args.workers, len(group)), ray=args.ray)
+    results.sort(key=lambda r: names.index(r.name))
     print(format_results(args.driver, results))
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps([r.__dict__ for r in results], indent=2, default=str))
