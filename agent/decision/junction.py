@@ -12,7 +12,8 @@ measured, the lane turned into is placed from its far edge instead (the zebra li
 the design's reach for the cross street's lanes each way, a count not seen before the turn, so expected over its
 odds at the kind of junction the car sees (``RoadDesign.two_lane_share``: who stops enters a larger street).
 Where the design's numbers spread, a turn planned so still misses the lane turned into by a metre or two when the
-cross street's lane count was guessed wrong. So once the car has turned some 20 degrees, the road turned into is read
+cross street's lane count was guessed wrong. So once the road turned into is in view (from 20 degrees of a right turn,
+50 of a left turn), it is read
 (``agent.perception.exit_line``): its centre line, in view from there, places its inner lane half a lane width to the
 line's right in the direction of travel, whatever the count, and the line's direction gives the turn's angle. The
 arc is re-placed on that lane and leads the whole turn. Where the road turned into is never read, the arc leads only
@@ -127,6 +128,7 @@ class JunctionGuidance:
         self.control: str | None = None  # what governs our arm (sim.spec.CONTROL_KINDS), as seen before the bar
         self.our_lanes: int | None = None  # our road's lanes each way, as the lane lines told before the bar
         self._exit: list[tuple[float, float]] = []  # (reach, turn angle in degrees) read from the road turned into
+        self._exit_fix: tuple[float, float] | None = None  # ... their medians, once there are enough readings
 
     @property
     def skew_rad(self) -> float:
@@ -200,21 +202,25 @@ class JunctionGuidance:
     @property
     def exit_measured(self) -> bool:
         """Whether the road turned into has been read in this turn (``note_exit``)."""
-        return len(self._exit) >= self.rules.exit_min_readings
+        return self._exit_fix is not None
+
+    def _in_bar_frame(self, point: np.ndarray) -> tuple[float, float]:
+        """A point of the odometry frame along the approach lane from the stop bar's near edge, and right of it."""
+        assert self.junction is not None
+        bx, by, road_yaw, _ = self.junction
+        c, s = math.cos(road_yaw), math.sin(road_yaw)
+        dx, dy = float(point[0]) - bx, float(point[1]) - by
+        return dx * c + dy * s, -dx * s + dy * c
 
     def turn_reach_m(self, command: int) -> float:
         """The stop bar's far edge to where the lane turned into crosses our lane's centre line: as read in the
         turn from the road turned into (``note_exit``), else as planned before it (``planned_reach_m``)."""
-        if self.exit_measured:
-            return float(np.median([reach for reach, _ in self._exit[-self.rules.exit_last_readings:]]))
-        return self.planned_reach_m(command)
+        return self._exit_fix[0] if self._exit_fix is not None else self.planned_reach_m(command)
 
     def turn_angle_deg(self, command: int) -> float:
         """The turn's heading change: as read from the road turned into, else from the cross street's angle read
         from the zebra (90 degrees in a square junction)."""
-        if self.exit_measured:
-            return float(np.median([angle for _, angle in self._exit[-self.rules.exit_last_readings:]]))
-        return self.planned_angle_deg(command)
+        return self._exit_fix[1] if self._exit_fix is not None else self.planned_angle_deg(command)
 
     def planned_reach_m(self, command: int) -> float:
         """The reach planned before the turn: beyond the zebra measured here by the design's reach expected over
@@ -230,7 +236,7 @@ class JunctionGuidance:
         turned into: the direction that road's centre line should run in the camera's ground frame (from the
         forward axis, positive right); else None (nothing to look for)."""
         cfg = self.rules
-        if not self.design_spreads or self.junction is None or self.junction[3] == 0:
+        if not self.design_spreads or self.junction is None or not self.arc_leads:
             return None
         command = self.junction[3]
         heading = self.odo.yaw - self.junction[2]
@@ -250,15 +256,13 @@ class JunctionGuidance:
         direction of travel, whatever the cross street's lane count; where that lane's centre line crosses ours is
         the turn's reach, and its direction the turn's angle."""
         cfg = self.rules
-        if line is None or self.junction is None or self.junction[3] == 0:
+        if line is None or self.junction is None or not self.arc_leads:
             return
-        bx, by, road_yaw, command = self.junction
+        _, _, road_yaw, command = self.junction
         yaw = self.odo.yaw
         ahead, right = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
-        seen = self.odo.pos + (self.camera_to_centre_m + line.point[1]) * ahead + line.point[0] * right
-        u = np.array([math.cos(road_yaw), math.sin(road_yaw)])
-        rel = seen - np.array([bx, by])
-        along, across = float(rel @ u), float(rel[0] * -u[1] + rel[1] * u[0])
+        along, across = self._in_bar_frame(
+            self.odo.pos + (self.camera_to_centre_m + line.point[1]) * ahead + line.point[0] * right)
         runs = line.direction_rad + (yaw - road_yaw)  # in the approach frame, from its axis (positive right)
         if abs(math.sin(runs)) < math.sin(math.radians(90.0 - cfg.skew_max_deg - 10.0)):
             return  # nearly along our road: not a cross street
@@ -268,6 +272,9 @@ class JunctionGuidance:
         if abs(reach - self.planned_reach_m(command)) > cfg.exit_max_shift_m:
             return
         self._exit.append((reach, math.degrees(runs if command == 2 else -runs)))
+        if len(self._exit) >= cfg.exit_min_readings:
+            last = np.array(self._exit[-cfg.exit_last_readings:])
+            self._exit_fix = (float(np.median(last[:, 0])), float(np.median(last[:, 1])))
 
     def turn_steer(self, command: int, speed: float) -> float | None:
         """Turning at a junction, the steer that pursues the turn arc from our lane to the same lane of the road we
@@ -275,26 +282,23 @@ class JunctionGuidance:
         cfg, odo = self.rules, self.odo
         if self.junction is None or not cfg.turn_guidance:
             return None
-        bx, by, road_yaw, started = self.junction
+        _, _, road_yaw, started = self.junction
         if started:  # a turn under way is finished, whatever the route says next (leaving the junction, the
             command = started  # command already announces the next one)
         elif command not in (1, 2):
             if self.line.ignore_light_m > 0:  # through this junction another way: its bar is behind us
                 self.forget()
             return None
-        # Left turns from the inner lane into the inner lane (half a lane beyond the cross street's centre line),
-        # right turns from the kerb lane into the kerb lane (the design's reach: unlike the centre line, it does
-        # not depend on the cross street's lane count). Taken from another lane, the arc still ends in a lane of
+        # Left turns into the inner lane, right turns into the kerb lane as planned (or the inner lane once the
+        # road turned into is read: its count is not). Taken from another lane, the arc still ends in a lane of
         # the road turned into: it is placed from our own lane, and its radius is the tighter one.
         reach = self.turn_reach_m(command)
-        u = np.array([math.cos(road_yaw), math.sin(road_yaw)])
         heading = odo.yaw - road_yaw
         half = VEHICLE.length_m / 2
-        rel = odo.pos - np.array([bx, by])
         # the rear axle, along the approach and right of it: in highway-env's bicycle model it moves along the
         # car's heading on a curve of curvature tan(delta) / length
-        here = np.array([float(rel @ u) - half * math.cos(heading), float(rel[0] * -u[1] + rel[1] * u[0])
-                         - half * math.sin(heading)])
+        along, across = self._in_bar_frame(odo.pos)
+        here = np.array([along - half * math.cos(heading), across - half * math.sin(heading)])
         radius = self.road.left_turn_radius_m if command == 1 else self.road.right_turn_radius_m
         angle = round(self.turn_angle_deg(command), 1)
         path, arc_end = turn_path(command, round(reach, 2), self.road.stop_bar_depth_m, radius, angle_deg=angle)
@@ -311,7 +315,7 @@ class JunctionGuidance:
             self.forget()
             return None
         if not started:
-            self.junction = (bx, by, road_yaw, command)
+            self.junction = (self.junction[0], self.junction[1], road_yaw, command)
         target = path[min(len(path) - 1, nearest + int(round(lookahead / step)))]
         alpha = math.atan2(target[1] - here[1], target[0] - here[0]) - heading
         alpha = math.atan2(math.sin(alpha), math.cos(alpha))

@@ -2,10 +2,11 @@
 
 Why: a junction turn's arc is placed before the turn, from the stop bar, the zebra beyond it and the road design's
 priors, but where the lane turned into lies also depends on the cross street's lane count, which the camera does
-not see before the turn (the street's far side is hidden or too far to resolve). Once the car has turned some 25
-degrees, the camera looks down the road turned into and its centre line, the yellow boundary between its two
-directions, is in view 8-25 m ahead. Where that line lies places the lane turned into whatever the count: the
-inner lane is half a lane width to its right, in the direction of travel (``junction.JunctionGuidance``).
+not see before the turn (the street's far side is hidden or too far to resolve). Once the car has turned 20 degrees
+(a right turn; a left turn's wider arc some 50), the camera looks down the road turned into and its centre line,
+the yellow boundary between its two directions, is in view 8-25 m ahead. Where that line lies places the lane
+turned into whatever the count: the inner lane is half a lane width to its right, in the direction of travel
+(``junction.JunctionGuidance``).
 
 Yellow paint is found by the lane finder's own thresholds (``lanes.lane_masks``: hue, saturation and brightness
 above the local road, so it works at night as at noon) in a wide bird's-eye view, and the line is the straightest
