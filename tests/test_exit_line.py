@@ -81,3 +81,42 @@ def test_nothing_where_no_cross_street_is_in_view() -> None:
     assert finder.find(obs["image"], math.radians(90.0)) is None
     assert finder.find(obs["image"], math.radians(-90.0)) is None
     assert finder.find(np.zeros_like(obs["image"]), 0.0) is None
+
+
+@pytest.mark.parametrize("entry_index, weather", [(1, "dusk"), (4, "night")])
+def test_going_straight_the_far_sides_centre_line_in_its_corridor(entry_index: int, weather: str) -> None:
+    """Going straight through a winding street's junction, the far side's centre line is found where the approach's,
+    carried on, says within 2 m; without that corridor, at dusk a kerb lit orange 7 m aside outvotes it."""
+    cfg = DriveConfig(world=WorldConfig(town=TownConfig.of_style("suburb")))
+    town = cached_town(cfg.world.town, 4000)
+    entry = town.entries[entry_index]
+    connector = next(idx for idx, info in town.lane_info.items() if idx[0] == entry.edge[1] and idx[2] == 0
+                     and info.kind == "connector" and info.command == Command.STRAIGHT)
+    lane = town.lane(connector)
+    env = DriveEnv(cfg)
+    world = World(town, cfg.world, seed=0, start=connector, start_s=0.6 * lane.length, spawn_traffic=False)
+    obs, _ = env.reset(seed=0, options={"world": world, "town_seed": 4000, "weather": weather})
+    env.close()
+    ego = world.ego
+    at = ego.position + cfg.camera.mount_forward_m * np.array([math.cos(ego.heading), math.sin(ego.heading)])
+    far = town.lane((connector[1], next(iter(town.network.graph[connector[1]])), 0))
+
+    def seen(s_m: float) -> np.ndarray:
+        d = far.position(s_m, -far.width_at(s_m) / 2) - at
+        return np.array([-d[0] * math.sin(ego.heading) + d[1] * math.cos(ego.heading),
+                         d[0] * math.cos(ego.heading) + d[1] * math.sin(ego.heading)])
+
+    a, b = seen(0.0), seen(20.0)
+    runs = math.atan2(b[0] - a[0], b[1] - a[1])
+    u = (b - a) / np.linalg.norm(b - a)
+    finder = ExitLineFinder(cfg.camera)
+    # the approach's centre line carried on lies within a metre of the far side's here (the street winds)
+    line = finder.find(obs["image"], 0.0, (float(a[0]) + 0.6, float(a[1]), 2.0))
+    assert line is not None
+    p = np.asarray(line.point) - a
+    assert abs(p[0] * u[1] - p[1] * u[0]) <= POSITION_TOLERANCE_M
+    assert abs(math.degrees(math.remainder(line.direction_rad - runs, 2 * math.pi))) <= DIRECTION_TOLERANCE_DEG
+    if weather == "dusk":
+        kerb = finder.find(obs["image"], 0.0)
+        q = np.asarray(kerb.point) - a if kerb is not None else np.zeros(2)
+        assert kerb is not None and abs(q[0] * u[1] - q[1] * u[0]) > 2.0

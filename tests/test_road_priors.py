@@ -480,3 +480,101 @@ def test_the_road_turned_into_read_in_the_turn_places_its_inner_lane_and_the_arc
     for g in (read, unread):
         g.odo.pos, g.odo.yaw = np.array([17.0, 4.0]), math.radians(65.0)
     assert read.turn_steer(2, 3.0) is not None and unread.turn_steer(2, 3.0) is None
+
+
+def test_a_right_turn_read_in_the_turn_goes_into_the_kerb_lane_of_as_many_lanes_as_the_centre_line_tells() -> None:
+    """``JunctionGuidance.exit_lanes``: the road turned into's centre line lies a lane farther beyond the zebra on
+    a two-lane street than on a single-lane one (less its parking strip), so a right turn goes a lane short of the
+    inner lane there, into the kerb lane the junction's connector goes to; a left turn still goes into the inner
+    lane; with no zebra measured, the odds of the kind of junction seen decide."""
+    from types import SimpleNamespace
+
+    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
+    from towndrive.agent.perception.exit_line import ExitLine
+    from towndrive.agent.perception.stop_line import StopLine
+    from towndrive.sim.spec import CrossStreetOdds, TurnReach
+
+    def read(command: int, centre_along_m: float, zebra: bool, share: float) -> JunctionGuidance:
+        road = replace(road_priors("suburb"), turn_reaches=(TurnReach(1, 14.0, 11.0), TurnReach(2, 15.5, 9.0)),
+                       cross_street_odds=(CrossStreetOdds("stop", 1, share, 8),))
+        line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
+                               config=SimpleNamespace(camera_to_front_m=2.0))
+        odo = SimpleNamespace(road_yaw=0.0, pos=np.zeros(2), road_offset=0.0, yaw=0.0)
+        g = JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
+        # the bar's near edge at x = 11 in the odometry frame, the zebra's far edge 6 m beyond the bar's far edge
+        g.note(StopLine(8.0, 0.5, 0.9, 0), 8.0 + 0.5 + 6.0 if zebra else None, 3.2, None, "stop", 1)
+        odo.pos = np.array([11.0, 0.0])
+        assert g.turn_steer(command, 3.0) is not None
+        side = 1.0 if command == 2 else -1.0
+        yaw = side * math.radians(40.0)
+        odo.pos, odo.yaw = np.array([15.0, side * 2.0]), yaw
+        cam = odo.pos + np.array([math.cos(yaw), math.sin(yaw)])
+        point = np.array([11.0 + centre_along_m, side * 6.0]) - cam  # on the cross street's centre line
+        seen = (float(-point[0] * math.sin(yaw) + point[1] * math.cos(yaw)),
+                float(point[0] * math.cos(yaw) + point[1] * math.sin(yaw)))
+        for _ in range(3):
+            g.note_exit(ExitLine(seen, side * math.pi / 2 - yaw, 400, 10.0))
+        assert g.exit_measured
+        return g
+
+    depth = ROAD.stop_bar_depth_m
+    w = read(2, 20.0, True, 0.5).lane_width_m
+    for lanes, kerb_reach in ((1, 11.0), (2, 9.0)):
+        inner = 6.0 + kerb_reach + (lanes - 1) * w  # bar's far edge to the inner lane's crossing
+        g = read(2, inner + depth + 0.5 * w, True, 0.5)
+        assert g.exit_lanes() == lanes
+        assert g.turn_reach_m(2) == pytest.approx(6.0 + kerb_reach, abs=1e-6)
+    # the same reading at a kind of junction where two-lane streets are rare, and where they are the rule:
+    # a reading midway leans to the odds
+    midway = 6.0 + 11.0 + 0.5 * (9.0 + w - 11.0)
+    assert read(2, midway + depth + 0.5 * w, True, 0.05).exit_lanes() == 1
+    assert read(2, midway + depth + 0.5 * w, True, 0.95).exit_lanes() == 2
+    # no zebra: the odds alone
+    for share, lanes in ((0.3, 1), (0.8, 2)):
+        g = read(2, 6.0 + 9.0 + w + depth + 0.5 * w, False, share)
+        assert g.exit_lanes() == lanes and g.turn_reach_m(2) == pytest.approx(g._exit_fix[0] - (lanes - 1) * w)
+    # a left turn goes into the inner lane whatever the count
+    g = read(1, 6.0 + 15.5 + depth - 0.5 * w, True, 0.95)
+    assert g.turn_reach_m(1) == pytest.approx(6.0 + 15.5, abs=1e-6)
+
+
+def test_going_straight_the_hold_keeps_to_the_far_sides_lane_once_read() -> None:
+    """``JunctionGuidance._note_far``: going straight through a junction of a winding street, the far side's centre
+    line (read as the road turned into is) places the lane the hold keeps to: half a lane width to its right, at its
+    heading; before it is read, or where a reading lies a lane or more across, the approach lane's line as before.
+    The classic design reads nothing."""
+    from types import SimpleNamespace
+
+    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
+    from towndrive.agent.perception.exit_line import ExitLine
+
+    def holding(road: object, line_x_m: float, line_deg: float) -> JunctionGuidance:
+        rules = JunctionRules()
+        line = SimpleNamespace(ignore_light_m=5.0, junction_ignore_m=5.0, stop_line_measured=True, stop_line=None,
+                               config=SimpleNamespace(camera_to_front_m=2.0))  # the bumper just past the bar
+        odo = SimpleNamespace(road_yaw=0.0, pos=np.array([10.0, 0.0]), road_offset=0.0, yaw=0.0)
+        g = JunctionGuidance(rules, line, odo, 1.0, road)  # type: ignore[arg-type]
+        assert g.hold(3) == pytest.approx(0.0)  # on the approach lane's line, on its heading
+        expected = g.exit_expected_rad()
+        if road is ROAD:
+            assert expected is None
+            return g
+        assert expected == pytest.approx(0.0)  # the far side is looked for straight ahead, along our road's centre
+        assert g.far_corridor() == pytest.approx((-0.5 * g.lane_width_m, -1.0, rules.far_max_shift_m))  # line
+        # the far side's centre line seen 15 m ahead of the camera, line_x_m across (x right), turned line_deg
+        for _ in range(3):
+            g.note_exit(ExitLine((line_x_m, 15.0), math.radians(line_deg), 300, 8.0))
+        return g
+
+    road = road_priors("suburb")
+    w = road.lane_width_m
+    g = holding(road, -0.5 * w + 0.8, 0.0)  # the far side's lane lies 0.8 m right of ours
+    assert g.far_lane == pytest.approx((26.0, 0.8, 0.0))  # 15 m ahead of the camera, 1 m ahead of the car's centre
+    assert g.hold(3) == pytest.approx(g.rules.hold_offset_gain * 0.8)  # steers right, towards it
+    g = holding(road, -0.5 * w, 3.0)  # ... running 3 degrees right of the approach
+    assert math.degrees(g.far_lane[2]) == pytest.approx(3.0)
+    g.odo.pos = np.array([g.far_lane[0], g.far_lane[1]])  # on that lane, on the approach's heading
+    assert g.hold(3) == pytest.approx(g.rules.hold_heading_gain * math.radians(3.0))  # turns onto the far side's
+    assert holding(road, -0.5 * w + 3.0, 0.0).far_lane is None  # a lane and more across: something else
+    assert holding(road, -0.5 * w, 15.0).far_lane is None  # turned too far
+    assert holding(ROAD, -0.5 * ROAD.lane_width_m + 0.8, 3.0).far_lane is None

@@ -1,9 +1,10 @@
 """Steering through a junction, where there are no lines to follow.
 
-Going straight, the car holds the approach lane's heading and its place across it (``Odometry``). Turning, it
-pursues the road design's turn from the rear axle, as the autopilot follows lanes: straight on past the stop bar,
-then an arc into the same lane of the road turned into (with no radius in the design, the quarter circle from the
-bar's far edge). The turn is placed by the stop bar tracked by the controller (``StopLineTrack``) and the approach
+Going straight, the car holds the approach lane's heading and its place across it (``Odometry``); where the design
+spreads, once the far side's centre line is read, the lane beside it instead (a winding street's far side is
+shifted). Turning, it pursues the road design's turn from the rear axle, as the autopilot follows lanes: straight on
+past the stop bar, then an arc into the same lane of the road turned into (with no radius in the design, the quarter
+circle from the bar's far edge). The turn is placed by the stop bar tracked by the controller (``StopLineTrack``) and the approach
 lane measured before it. How far the lane turned into lies beyond the bar is the design's setback (a prior,
 ``sim.spec.RoadDesign``), corrected by where the zebra beyond the bar ends: the zebra's far edge lies a cross
 street's half width and a kerb gap before the junction's centre, which spreads less between junctions than the
@@ -13,11 +14,12 @@ the design's reach for the cross street's lanes each way, a count not seen befor
 odds at the kind of junction the car sees (``RoadDesign.two_lane_share``: who stops enters a larger street).
 Where the design's numbers spread, a turn planned so still misses the lane turned into by a metre or two when the
 cross street's lane count was guessed wrong. So once the road turned into is in view (from 20 degrees of a right turn,
-50 of a left turn), it is read
-(``agent.perception.exit_line``): its centre line, in view from there, places its inner lane half a lane width to the
-line's right in the direction of travel, whatever the count, and the line's direction gives the turn's angle. The
-arc is re-placed on that lane and leads the whole turn. Where the road turned into is never read, the arc leads only
-until the car faces that road (``turn_handover_deg``) and PilotNet, which sees it, finishes the turn. An exact
+50 of a left turn), it is read (``agent.perception.exit_line``): its centre line places its inner lane half a lane
+width to the line's right in the direction of travel, whatever the count, and the line's direction gives the turn's
+angle. A left turn goes into that lane; a right turn into the kerb lane, as many lanes short of it as the line's
+distance beyond the zebra tells (``exit_lanes``). The arc is re-placed on that lane and leads the whole turn. Where
+the road turned into is never read, the arc leads only until the car faces that road (``turn_handover_deg``) and
+PilotNet, which sees it, finishes the turn. An exact
 design's arc leads to the end.
 Where junctions are not square, the arc turns by the cross street's angle, read from the zebra beyond the bar (its
 edges run along the cross street), into the lane whose centre line crosses the approach lane's where the road
@@ -68,6 +70,7 @@ def turn_path(command: int, reach_m: float, bar_depth_m: float = ROAD.stop_bar_d
 
 
 ZEBRA_SD_M = 0.4  # spread of one junction's zebra readings (a band's edge at 5-15 m, a row of the view or two)
+EXIT_SD_M = 0.4  # spread of the road turned into's reach as read in the turn (bench/turn_arc.py, single-lane streets)
 LANE_WIDTH_SD_M = 0.15  # spread of the lane finder's width once both lines were seen
 
 
@@ -98,6 +101,12 @@ class JunctionRules:
     exit_last_readings: int = 5
     exit_max_shift_m: float = 5.0
     exit_leads_to_end: bool = True  # once the road turned into is measured, the arc leads the whole turn
+    # Going straight, the far side's centre line, read as the road turned into is: once read (the median of the
+    # last readings, at least ``exit_min_readings``), the hold keeps to the lane beside it instead of the approach
+    # lane's line, which a junction of a winding street shifts and bends. A reading farther across than this from
+    # the approach lane's line, or turned more than this from its heading, is something else.
+    far_max_shift_m: float = 2.0
+    far_max_turn_deg: float = 10.0
 
 
 class JunctionGuidance:
@@ -115,6 +124,8 @@ class JunctionGuidance:
     def reset(self) -> None:
         self.setback_m = self.road.stop_line_setback_m  # the design's setback, corrected by the zebra
         self.lane_width_m = self.road.lane_width_m  # the design's lane width, corrected by the lane finder
+        self._holding = False  # the straight hold applied on the last frame
+        self._far: list[tuple[float, float, float]] = []  # going straight: the far side's lane (a point, heading)
         self.forget()
 
     def forget(self) -> None:
@@ -159,10 +170,28 @@ class JunctionGuidance:
         # the configured hold is for the classic design; a wider junction (a longer setback) is held longer
         hold_m = cfg.junction_hold_m + junction_widening_m(self.setback_m)
         inside = line.ignore_light_m > line.junction_ignore_m - hold_m
-        if command != 3 or not inside or odo.road_yaw is None:
+        self._holding = command == 3 and inside and odo.road_yaw is not None
+        if not self._holding:
+            self._far = []
             return None
-        steer = -(cfg.hold_heading_gain * (odo.yaw - odo.road_yaw) + cfg.hold_offset_gain * odo.road_offset)
+        assert odo.road_yaw is not None
+        heading, offset = odo.yaw - odo.road_yaw, odo.road_offset
+        far = self.far_lane
+        if far is not None:  # the far side's lane, read: keep to it
+            x, y, yaw = far
+            heading = math.remainder(odo.yaw - yaw, 2 * math.pi)
+            offset = float((odo.pos[0] - x) * -math.sin(yaw) + (odo.pos[1] - y) * math.cos(yaw))
+        steer = -(cfg.hold_heading_gain * heading + cfg.hold_offset_gain * offset)
         return float(np.clip(steer, -cfg.hold_max_steer, cfg.hold_max_steer))
+
+    @property
+    def far_lane(self) -> tuple[float, float, float] | None:
+        """Going straight through a junction, the far side's lane as read (a point on its centre line in the
+        odometry frame, and its heading), once there are enough readings; else None."""
+        cfg = self.rules
+        if len(self._far) < cfg.exit_min_readings:
+            return None
+        return tuple(float(v) for v in np.median(np.array(self._far[-cfg.exit_last_readings:]), axis=0))  # type: ignore[return-value]
 
     def note(self, stop: StopLine | None, zebra_far_m: float | None = None, lane_width_m: float | None = None,
              zebra_tilt: float | None = None, control: str | None = None, our_lanes: int | None = None) -> None:
@@ -214,8 +243,33 @@ class JunctionGuidance:
 
     def turn_reach_m(self, command: int) -> float:
         """The stop bar's far edge to where the lane turned into crosses our lane's centre line: as read in the
-        turn from the road turned into (``note_exit``), else as planned before it (``planned_reach_m``)."""
-        return self._exit_fix[0] if self._exit_fix is not None else self.planned_reach_m(command)
+        turn from the road turned into (``note_exit``; a right turn goes into its kerb lane, as many lanes short of
+        the inner one as ``exit_lanes`` tells), else as planned before it (``planned_reach_m``)."""
+        if self._exit_fix is None:
+            return self.planned_reach_m(command)
+        inner = self._exit_fix[0]
+        return inner - (self.exit_lanes() - 1) * self.lane_width_m if command == 2 else inner
+
+    def exit_lanes(self) -> int:
+        """The road turned into's lanes each way, as its centre line read in the turn tells (1 before it is read):
+        the zebra lies at the cross street's near kerb, so the centre line lies farther beyond it on a two-lane
+        street (two lanes) than on a single-lane one (a lane and a parking strip). The count whose design reach
+        (``RoadDesign.turn_reaches``, the kerb lane's plus the lanes between) is likeliest, weighed by the odds of
+        the kind of junction seen; with no zebra measured, the likelier count by those odds alone."""
+        if self._exit_fix is None or not self.road.turn_reaches:
+            return 1
+        share = float(np.clip(self.road.two_lane_share(self.control, self.our_lanes), 0.01, 0.99))
+        beyond = self._exit_fix[0] - float(np.median(self._zebra_m)) if self._zebra_m else None
+        sd = math.hypot(EXIT_SD_M, ZEBRA_SD_M)
+
+        def log_odds(n: int, right_m: float) -> float:
+            prior = math.log(share if n == 2 else 1.0 - share)
+            if beyond is None:
+                return prior
+            return prior - 0.5 * ((beyond - right_m - (n - 1) * self.lane_width_m) / sd) ** 2
+
+        counts = [r for r in self.road.turn_reaches if r.cross_lanes in (1, 2)]  # the odds are of one or two
+        return max(counts, key=lambda r: log_odds(r.cross_lanes, r.right_m)).cross_lanes if counts else 1
 
     def turn_angle_deg(self, command: int) -> float:
         """The turn's heading change: as read from the road turned into, else from the cross street's angle read
@@ -234,8 +288,11 @@ class JunctionGuidance:
     def exit_expected_rad(self) -> float | None:
         """While a turn's arc leads with a design that spreads and the car has turned far enough to see the road
         turned into: the direction that road's centre line should run in the camera's ground frame (from the
-        forward axis, positive right); else None (nothing to look for)."""
+        forward axis, positive right); going straight under the hold, the far side's, along the approach lane; else
+        None (nothing to look for)."""
         cfg = self.rules
+        if self.design_spreads and self._holding and not self.arc_leads and self.odo.road_yaw is not None:
+            return self.odo.road_yaw - self.odo.yaw  # going straight: the far side runs on as the approach did
         if not self.design_spreads or self.junction is None or not self.arc_leads:
             return None
         command = self.junction[3]
@@ -244,6 +301,20 @@ class JunctionGuidance:
             return None
         angle = math.radians(self.planned_angle_deg(command))
         return (angle if command == 2 else -angle) - heading
+
+    def far_corridor(self) -> tuple[float, float, float] | None:
+        """Going straight under the hold with a design that spreads: where the far side's centre line should lie
+        in the camera's ground frame (a point on the approach road's centre line carried on, half a lane left of
+        our lane, and how far across a reading may be, ``far_max_shift_m``); else None."""
+        odo = self.odo
+        if not (self.design_spreads and self._holding and not self.arc_leads and odo.road_yaw is not None):
+            return None
+        across = np.array([-math.sin(odo.road_yaw), math.cos(odo.road_yaw)])
+        centre = odo.pos - (odo.road_offset + 0.5 * self.lane_width_m) * across
+        yaw = odo.yaw
+        d = centre - (odo.pos + self.camera_to_centre_m * np.array([math.cos(yaw), math.sin(yaw)]))
+        return (float(d[0] * -math.sin(yaw) + d[1] * math.cos(yaw)), float(d[0] * math.cos(yaw) + d[1] * math.sin(yaw)),
+                self.rules.far_max_shift_m)
 
     def planned_angle_deg(self, command: int) -> float:
         """The turn's heading change as planned before it, from the zebra's slope (90 degrees when square)."""
@@ -256,6 +327,9 @@ class JunctionGuidance:
         direction of travel, whatever the cross street's lane count; where that lane's centre line crosses ours is
         the turn's reach, and its direction the turn's angle."""
         cfg = self.rules
+        if line is not None and self._holding and not self.arc_leads:
+            self._note_far(line)
+            return
         if line is None or self.junction is None or not self.arc_leads:
             return
         _, _, road_yaw, command = self.junction
@@ -276,6 +350,26 @@ class JunctionGuidance:
             last = np.array(self._exit[-cfg.exit_last_readings:])
             self._exit_fix = (float(np.median(last[:, 0])), float(np.median(last[:, 1])))
 
+    def _note_far(self, line: ExitLine) -> None:
+        """Going straight, the far side's centre line seen this frame: our lane lies half a lane width to its right
+        (the agent keeps to the inner lane), where the approach lane's line, carried on, would be give or take a
+        winding street's shift."""
+        odo, cfg = self.odo, self.rules
+        assert odo.road_yaw is not None
+        yaw = odo.yaw
+        ahead, right = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
+        runs = yaw + line.direction_rad  # in the odometry frame
+        if abs(math.remainder(runs - odo.road_yaw, 2 * math.pi)) > math.radians(cfg.far_max_turn_deg):
+            return
+        point = (odo.pos + (self.camera_to_centre_m + line.point[1]) * ahead + line.point[0] * right
+                 + 0.5 * self.lane_width_m * np.array([-math.sin(runs), math.cos(runs)]))
+        # across the approach lane's line: the car is road_offset right of it
+        across_road = np.array([-math.sin(odo.road_yaw), math.cos(odo.road_yaw)])
+        shift = float((point - odo.pos) @ across_road) + odo.road_offset
+        if abs(shift) > cfg.far_max_shift_m:
+            return
+        self._far.append((float(point[0]), float(point[1]), runs))
+
     def turn_steer(self, command: int, speed: float) -> float | None:
         """Turning at a junction, the steer that pursues the turn arc from our lane to the same lane of the road we
         turn into; None when this does not apply."""
@@ -289,9 +383,9 @@ class JunctionGuidance:
             if self.line.ignore_light_m > 0:  # through this junction another way: its bar is behind us
                 self.forget()
             return None
-        # Left turns into the inner lane, right turns into the kerb lane as planned (or the inner lane once the
-        # road turned into is read: its count is not). Taken from another lane, the arc still ends in a lane of
-        # the road turned into: it is placed from our own lane, and its radius is the tighter one.
+        # Left turns into the inner lane, right turns into the kerb lane (as planned, or as the road turned into
+        # tells once read). Taken from another lane, the arc still ends in a lane of the road turned into: it is
+        # placed from our own lane, and its radius is the tighter one.
         reach = self.turn_reach_m(command)
         heading = odo.yaw - road_yaw
         half = VEHICLE.length_m / 2

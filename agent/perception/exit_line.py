@@ -55,15 +55,22 @@ class ExitLineFinder:
         self.config = config or ExitLineConfig()
         self.birdseye = BirdsEye(camera, self.config.view)
 
-    def find(self, rgb: np.ndarray, expected_rad: float) -> ExitLine | None:
+    def find(self, rgb: np.ndarray, expected_rad: float,
+             corridor: tuple[float, float, float] | None = None) -> ExitLine | None:
         """The yellow line running within ``window_deg`` of ``expected_rad`` (from the camera's forward axis,
-        positive right), or None when there is not enough of one."""
+        positive right), or None when there is not enough of one. ``corridor`` (x, z, half width in metres): only
+        paint within the half width of the line through (x, z) in the expected direction is looked at (where the
+        line is expected to lie, so that nothing beside it, a kerb lit orange at dusk, outvotes it)."""
         cfg, bev = self.config, self.birdseye
         yellow = lane_masks(bev.warp(rgb), cfg.thresholds, cfg.view.px_per_m_x)["yellow"]
         rows, cols = np.nonzero(yellow)
-        if len(rows) < cfg.min_pixels:
-            return None
         x, z = bev.x_of_col[cols], bev.z_of_row[rows]
+        if corridor is not None:
+            cx, cz, half_width = corridor
+            keep = np.abs((x - cx) * math.cos(expected_rad) - (z - cz) * math.sin(expected_rad)) <= half_width
+            x, z = x[keep], z[keep]
+        if len(x) < cfg.min_pixels:
+            return None
         best: tuple[int, float, float] | None = None  # (count, angle, offset across it)
         half = math.radians(cfg.window_deg)
         for angle in np.arange(expected_rad - half, expected_rad + half + 1e-9, math.radians(cfg.step_deg)):
