@@ -429,6 +429,24 @@ def test_a_profile_sets_the_turn_reaches_and_the_cross_street_odds() -> None:
             profile_from_dict({"road": bad})
 
 
+def see_cross_centre_line(g: object, command: int, centre_along_m: float, yaw_deg: float) -> None:
+    """Turn the car ``yaw_deg`` into a junction turn (the bar's near edge at x = 11 of the odometry frame) and give
+    the guidance three readings of the cross street's centre line, which crosses our lane ``centre_along_m``
+    beyond the bar's near edge, as the camera sees it (x right, z ahead)."""
+    from towndrive.agent.perception.exit_line import ExitLine
+
+    side = 1.0 if command == 2 else -1.0
+    yaw = side * math.radians(yaw_deg)
+    odo = g.odo  # type: ignore[attr-defined]
+    odo.pos, odo.yaw = np.array([15.0, side * 2.0]), yaw
+    cam = odo.pos + np.array([math.cos(yaw), math.sin(yaw)])
+    point = np.array([11.0 + centre_along_m, side * 6.0]) - cam  # on the cross street's centre line
+    seen = (float(-point[0] * math.sin(yaw) + point[1] * math.cos(yaw)),
+            float(point[0] * math.cos(yaw) + point[1] * math.sin(yaw)))
+    for _ in range(3):
+        g.note_exit(ExitLine(seen, side * math.pi / 2 - yaw, 400, 10.0))  # type: ignore[attr-defined]
+
+
 def test_the_road_turned_into_read_in_the_turn_places_its_inner_lane_and_the_arc_then_leads_to_the_end() -> None:
     """``JunctionGuidance.note_exit``: the road turned into's centre line, seen from inside the turn, puts the lane
     turned into half a lane to its right in the direction of travel (right turns short of it, left turns beyond it),
@@ -437,7 +455,6 @@ def test_the_road_turned_into_read_in_the_turn_places_its_inner_lane_and_the_arc
     from types import SimpleNamespace
 
     from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
-    from towndrive.agent.perception.exit_line import ExitLine
     from towndrive.agent.perception.stop_line import StopLine
 
     road = road_priors("suburb")
@@ -450,17 +467,10 @@ def test_the_road_turned_into_read_in_the_turn_places_its_inner_lane_and_the_arc
         g.note(StopLine(8.0, 0.5, 0.9, 0))  # the bar's near edge at x = 11 in the odometry frame
         odo.pos = np.array([11.0, 0.0])
         assert g.turn_steer(command, 3.0) is not None and g.exit_expected_rad() is None  # not yet turned
-        side = 1.0 if command == 2 else -1.0
-        yaw = side * math.radians(yaw_deg)
-        odo.pos, odo.yaw = np.array([15.0, side * 2.0]), yaw
+        see_cross_centre_line(g, command, centre_along_m, yaw_deg)
         expected = g.exit_expected_rad()
-        assert expected is not None and expected == pytest.approx(side * math.pi / 2 - yaw)
-        cam = odo.pos + np.array([math.cos(yaw), math.sin(yaw)])
-        point = np.array([11.0 + centre_along_m, side * 6.0]) - cam  # on the cross street's centre line
-        seen = (float(-point[0] * math.sin(yaw) + point[1] * math.cos(yaw)),
-                float(point[0] * math.cos(yaw) + point[1] * math.sin(yaw)))
-        for _ in range(3):
-            g.note_exit(ExitLine(seen, side * math.pi / 2 - yaw, 400, 10.0))
+        side = 1.0 if command == 2 else -1.0
+        assert expected is not None and expected == pytest.approx(side * math.pi / 2 - odo.yaw)
         return g
 
     depth = road.stop_bar_depth_m
@@ -490,7 +500,6 @@ def test_a_right_turn_read_in_the_turn_goes_into_the_kerb_lane_of_as_many_lanes_
     from types import SimpleNamespace
 
     from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
-    from towndrive.agent.perception.exit_line import ExitLine
     from towndrive.agent.perception.stop_line import StopLine
     from towndrive.sim.spec import CrossStreetOdds, TurnReach
 
@@ -505,15 +514,7 @@ def test_a_right_turn_read_in_the_turn_goes_into_the_kerb_lane_of_as_many_lanes_
         g.note(StopLine(8.0, 0.5, 0.9, 0), 8.0 + 0.5 + 6.0 if zebra else None, 3.2, None, "stop", 1)
         odo.pos = np.array([11.0, 0.0])
         assert g.turn_steer(command, 3.0) is not None
-        side = 1.0 if command == 2 else -1.0
-        yaw = side * math.radians(40.0)
-        odo.pos, odo.yaw = np.array([15.0, side * 2.0]), yaw
-        cam = odo.pos + np.array([math.cos(yaw), math.sin(yaw)])
-        point = np.array([11.0 + centre_along_m, side * 6.0]) - cam  # on the cross street's centre line
-        seen = (float(-point[0] * math.sin(yaw) + point[1] * math.cos(yaw)),
-                float(point[0] * math.cos(yaw) + point[1] * math.sin(yaw)))
-        for _ in range(3):
-            g.note_exit(ExitLine(seen, side * math.pi / 2 - yaw, 400, 10.0))
+        see_cross_centre_line(g, command, centre_along_m, 40.0)
         assert g.exit_measured
         return g
 
