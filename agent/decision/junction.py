@@ -4,8 +4,8 @@ Going straight, the car holds the approach lane's heading and its place across i
 spreads, once the far side's centre line is read, the lane beside it instead (a winding street's far side is
 shifted). Turning, it pursues the road design's turn from the rear axle, as the autopilot follows lanes: straight on
 past the stop bar, then an arc into the same lane of the road turned into (with no radius in the design, the quarter
-circle from the bar's far edge). The turn is placed by the stop bar tracked by the controller (``StopLineTrack``) and the approach
-lane measured before it. How far the lane turned into lies beyond the bar is the design's setback (a prior,
+circle from the bar's far edge). The turn is placed by the stop bar tracked by the controller (``StopLineTrack``)
+and the approach lane measured before it. How far the lane turned into lies beyond the bar is the design's setback (a prior,
 ``sim.spec.RoadDesign``), corrected by where the zebra beyond the bar ends: the zebra's far edge lies a cross
 street's half width and a kerb gap before the junction's centre, which spreads less between junctions than the
 setback does. The lane offset is the lane width the lane finder measured, where the design lets widths differ. With the zebra
@@ -19,8 +19,7 @@ width to the line's right in the direction of travel, whatever the count, and th
 angle. A left turn goes into that lane; a right turn into the kerb lane, as many lanes short of it as the line's
 distance beyond the zebra tells (``exit_lanes``). The arc is re-placed on that lane and leads the whole turn. Where
 the road turned into is never read, the arc leads only until the car faces that road (``turn_handover_deg``) and
-PilotNet, which sees it, finishes the turn. An exact
-design's arc leads to the end.
+PilotNet, which sees it, finishes the turn. An exact design's arc leads to the end.
 Where junctions are not square, the arc turns by the cross street's angle, read from the zebra beyond the bar (its
 edges run along the cross street), into the lane whose centre line crosses the approach lane's where the road
 design's reach puts it.
@@ -67,6 +66,11 @@ def turn_path(command: int, reach_m: float, bar_depth_m: float = ROAD.stop_bar_d
     path = np.concatenate([approach, arc, exit_])
     path.setflags(write=False)
     return path, (len(approach) + len(arc)) * step_m
+
+
+def _right_of(yaw: float) -> np.ndarray:
+    """The unit vector to the right of a heading (the odometry frame's y points right of its x)."""
+    return np.array([-math.sin(yaw), math.cos(yaw)])
 
 
 ZEBRA_SD_M = 0.4  # spread of one junction's zebra readings (a band's edge at 5-15 m, a row of the view or two)
@@ -188,10 +192,14 @@ class JunctionGuidance:
     def far_lane(self) -> tuple[float, float, float] | None:
         """Going straight through a junction, the far side's lane as read (a point on its centre line in the
         odometry frame, and its heading), once there are enough readings; else None."""
+        return self._settled(self._far)  # type: ignore[return-value]
+
+    def _settled(self, readings: list[tuple[float, ...]]) -> tuple[float, ...] | None:
+        """The median of the last ``exit_last_readings`` readings, once there are ``exit_min_readings``."""
         cfg = self.rules
-        if len(self._far) < cfg.exit_min_readings:
+        if len(readings) < cfg.exit_min_readings:
             return None
-        return tuple(float(v) for v in np.median(np.array(self._far[-cfg.exit_last_readings:]), axis=0))  # type: ignore[return-value]
+        return tuple(float(v) for v in np.median(np.array(readings[-cfg.exit_last_readings:]), axis=0))
 
     def note(self, stop: StopLine | None, zebra_far_m: float | None = None, lane_width_m: float | None = None,
              zebra_tilt: float | None = None, control: str | None = None, our_lanes: int | None = None) -> None:
@@ -291,7 +299,8 @@ class JunctionGuidance:
         forward axis, positive right); going straight under the hold, the far side's, along the approach lane; else
         None (nothing to look for)."""
         cfg = self.rules
-        if self.design_spreads and self._holding and not self.arc_leads and self.odo.road_yaw is not None:
+        if self._reads_far_side:
+            assert self.odo.road_yaw is not None
             return self.odo.road_yaw - self.odo.yaw  # going straight: the far side runs on as the approach did
         if not self.design_spreads or self.junction is None or not self.arc_leads:
             return None
@@ -307,14 +316,20 @@ class JunctionGuidance:
         in the camera's ground frame (a point on the approach road's centre line carried on, half a lane left of
         our lane, and how far across a reading may be, ``far_max_shift_m``); else None."""
         odo = self.odo
-        if not (self.design_spreads and self._holding and not self.arc_leads and odo.road_yaw is not None):
+        if not self._reads_far_side:
             return None
-        across = np.array([-math.sin(odo.road_yaw), math.cos(odo.road_yaw)])
-        centre = odo.pos - (odo.road_offset + 0.5 * self.lane_width_m) * across
+        assert odo.road_yaw is not None
+        centre = odo.pos - (odo.road_offset + 0.5 * self.lane_width_m) * _right_of(odo.road_yaw)
         yaw = odo.yaw
         d = centre - (odo.pos + self.camera_to_centre_m * np.array([math.cos(yaw), math.sin(yaw)]))
         return (float(d[0] * -math.sin(yaw) + d[1] * math.cos(yaw)), float(d[0] * math.cos(yaw) + d[1] * math.sin(yaw)),
                 self.rules.far_max_shift_m)
+
+    @property
+    def _reads_far_side(self) -> bool:
+        """Whether the far side's centre line is looked for: going straight under the hold (last frame's), with a
+        design that spreads."""
+        return self.design_spreads and self._holding and not self.arc_leads and self.odo.road_yaw is not None
 
     def planned_angle_deg(self, command: int) -> float:
         """The turn's heading change as planned before it, from the zebra's slope (90 degrees when square)."""
@@ -334,9 +349,7 @@ class JunctionGuidance:
             return
         _, _, road_yaw, command = self.junction
         yaw = self.odo.yaw
-        ahead, right = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
-        along, across = self._in_bar_frame(
-            self.odo.pos + (self.camera_to_centre_m + line.point[1]) * ahead + line.point[0] * right)
+        along, across = self._in_bar_frame(self._seen_at(line))
         runs = line.direction_rad + (yaw - road_yaw)  # in the approach frame, from its axis (positive right)
         if abs(math.sin(runs)) < math.sin(math.radians(90.0 - cfg.skew_max_deg - 10.0)):
             return  # nearly along our road: not a cross street
@@ -346,9 +359,16 @@ class JunctionGuidance:
         if abs(reach - self.planned_reach_m(command)) > cfg.exit_max_shift_m:
             return
         self._exit.append((reach, math.degrees(runs if command == 2 else -runs)))
-        if len(self._exit) >= cfg.exit_min_readings:
-            last = np.array(self._exit[-cfg.exit_last_readings:])
-            self._exit_fix = (float(np.median(last[:, 0])), float(np.median(last[:, 1])))
+        fix = self._settled(self._exit)
+        if fix is not None:
+            self._exit_fix = (fix[0], fix[1])
+
+    def _seen_at(self, line: ExitLine) -> np.ndarray:
+        """Where a line seen this frame lies (its paint's middle, in the camera's ground frame) in the odometry
+        frame."""
+        yaw = self.odo.yaw
+        ahead, right = np.array([math.cos(yaw), math.sin(yaw)]), _right_of(yaw)
+        return self.odo.pos + (self.camera_to_centre_m + line.point[1]) * ahead + line.point[0] * right
 
     def _note_far(self, line: ExitLine) -> None:
         """Going straight, the far side's centre line seen this frame: our lane lies half a lane width to its right
@@ -356,16 +376,12 @@ class JunctionGuidance:
         winding street's shift."""
         odo, cfg = self.odo, self.rules
         assert odo.road_yaw is not None
-        yaw = odo.yaw
-        ahead, right = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
-        runs = yaw + line.direction_rad  # in the odometry frame
+        runs = odo.yaw + line.direction_rad  # in the odometry frame
         if abs(math.remainder(runs - odo.road_yaw, 2 * math.pi)) > math.radians(cfg.far_max_turn_deg):
             return
-        point = (odo.pos + (self.camera_to_centre_m + line.point[1]) * ahead + line.point[0] * right
-                 + 0.5 * self.lane_width_m * np.array([-math.sin(runs), math.cos(runs)]))
+        point = self._seen_at(line) + 0.5 * self.lane_width_m * _right_of(runs)
         # across the approach lane's line: the car is road_offset right of it
-        across_road = np.array([-math.sin(odo.road_yaw), math.cos(odo.road_yaw)])
-        shift = float((point - odo.pos) @ across_road) + odo.road_offset
+        shift = float((point - odo.pos) @ _right_of(odo.road_yaw)) + odo.road_offset
         if abs(shift) > cfg.far_max_shift_m:
             return
         self._far.append((float(point[0]), float(point[1]), runs))
