@@ -73,6 +73,12 @@ def _right_of(yaw: float) -> np.ndarray:
     return np.array([-math.sin(yaw), math.cos(yaw)])
 
 
+def _across_along(d: np.ndarray, yaw: float) -> tuple[float, float]:
+    """A displacement of the odometry frame to the right of a heading and along it."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return float(d[0] * -s + d[1] * c), float(d[0] * c + d[1] * s)
+
+
 ZEBRA_SD_M = 0.4  # spread of one junction's zebra readings (a band's edge at 5-15 m, a row of the view or two)
 EXIT_SD_M = 0.4  # spread of the road turned into's reach as read in the turn (bench/turn_arc.py, single-lane streets)
 LANE_WIDTH_SD_M = 0.15  # spread of the lane finder's width once both lines were seen
@@ -184,7 +190,7 @@ class JunctionGuidance:
         if far is not None:  # the far side's lane, read: keep to it
             x, y, yaw = far
             heading = math.remainder(odo.yaw - yaw, 2 * math.pi)
-            offset = float((odo.pos[0] - x) * -math.sin(yaw) + (odo.pos[1] - y) * math.cos(yaw))
+            offset, _ = _across_along(odo.pos - np.array([x, y]), yaw)
         steer = -(cfg.hold_heading_gain * heading + cfg.hold_offset_gain * offset)
         return float(np.clip(steer, -cfg.hold_max_steer, cfg.hold_max_steer))
 
@@ -322,8 +328,7 @@ class JunctionGuidance:
         centre = odo.pos - (odo.road_offset + 0.5 * self.lane_width_m) * _right_of(odo.road_yaw)
         yaw = odo.yaw
         d = centre - (odo.pos + self.camera_to_centre_m * np.array([math.cos(yaw), math.sin(yaw)]))
-        return (float(d[0] * -math.sin(yaw) + d[1] * math.cos(yaw)), float(d[0] * math.cos(yaw) + d[1] * math.sin(yaw)),
-                self.rules.far_max_shift_m)
+        return (*_across_along(d, yaw), self.rules.far_max_shift_m)
 
     @property
     def _reads_far_side(self) -> bool:
@@ -342,7 +347,7 @@ class JunctionGuidance:
         direction of travel, whatever the cross street's lane count; where that lane's centre line crosses ours is
         the turn's reach, and its direction the turn's angle."""
         cfg = self.rules
-        if line is not None and self._holding and not self.arc_leads:
+        if line is not None and self._reads_far_side:
             self._note_far(line)
             return
         if line is None or self.junction is None or not self.arc_leads:
