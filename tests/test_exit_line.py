@@ -67,6 +67,21 @@ def test_the_centre_line_of_the_road_turned_into(style: str, town_seed: int, ent
     assert line.length_m >= finder.config.min_length_m
 
 
+@pytest.mark.parametrize("turned_deg", [30.0, 40.0])
+def test_at_dusk_a_zebra_lit_orange_is_not_taken_for_the_centre_line(turned_deg: float) -> None:
+    """Early in a left turn at dusk the zebras across the junction, lit orange, line up into a band denser than the
+    centre line, 12-20 m from it; paint as dense beside the band as on it makes it a patch: nothing, or the line."""
+    rgb, env, (a, b) = _in_turn("suburb", 4000, 5, Command.LEFT, turned_deg, "dusk")
+    finder = ExitLineFinder(env.config.camera)
+    env.close()
+    runs = math.atan2(b[0] - a[0], b[1] - a[1])
+    line = finder.find(rgb, runs + math.radians(8.0))
+    if line is not None:
+        u = (b - a) / np.linalg.norm(b - a)
+        p = np.asarray(line.point) - a
+        assert abs(p[0] * u[1] - p[1] * u[0]) <= POSITION_TOLERANCE_M
+
+
 def test_nothing_where_no_cross_street_is_in_view() -> None:
     """On a straight street the only yellow line runs ahead: a cross street's is looked for across, and not found."""
     cfg = DriveConfig(world=WorldConfig(town=TownConfig.of_style("suburb")))

@@ -11,7 +11,10 @@ turned into whatever the count: the inner lane is half a lane width to its right
 Yellow paint is found by the lane finder's own thresholds (``lanes.lane_masks``: hue, saturation and brightness
 above the local road, so it works at night as at noon) in a wide bird's-eye view, and the line is the straightest
 dense band of it within a window around the direction the junction's geometry expects. Only a line long enough to
-have a direction counts; nothing is guessed.
+have a direction counts, and only one with road on both sides: at dusk the low sun lights white paint orange, and a
+zebra's stripes (side by side, a metre apart) line up into a band as dense as the centre line; the centre line has
+no paint of its colour within a metre or so beside it, a zebra has as much as on the band itself. Nothing is
+guessed.
 """
 
 from __future__ import annotations
@@ -36,6 +39,9 @@ class ExitLineConfig:
     inlier_m: float = 0.4  # paint this near the best line is its own (the double line's pair and its blur)
     min_pixels: int = 60  # bird's-eye pixels of paint on the line (about 2 m of a double line)
     min_length_m: float = 3.0  # the paint must span this much along the line
+    # paint beside the line (from ``inlier_m`` to this far across it, along its span) ...
+    side_m: float = 1.5
+    side_max_share: float = 0.5  # ... at most this share of the line's own: else it is a patch (a zebra), not a line
 
 
 @dataclass(frozen=True)
@@ -84,9 +90,15 @@ class ExitLineFinder:
                 best = (total, float(angle), lo + (k + 0.5) * cfg.bin_m)
         assert best is not None
         _, angle, offset = best
-        near = np.abs(x * math.cos(angle) - z * math.sin(angle) - offset) <= cfg.inlier_m
+        across = np.abs(x * math.cos(angle) - z * math.sin(angle) - offset)
+        near = across <= cfg.inlier_m
         if int(near.sum()) < cfg.min_pixels:
             return None
+        along_all = x * math.sin(angle) + z * math.cos(angle)
+        first, last = float(along_all[near].min()), float(along_all[near].max())
+        beside = (across > cfg.inlier_m) & (across <= cfg.side_m) & (along_all >= first) & (along_all <= last)
+        if int(beside.sum()) > cfg.side_max_share * int(near.sum()):
+            return None  # a patch of paint, not a line with road on both sides
         pts = np.stack([x[near], z[near]], axis=1)
         middle = pts.mean(axis=0)
         _, _, vt = np.linalg.svd(pts - middle, full_matrices=False)
