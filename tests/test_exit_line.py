@@ -46,6 +46,13 @@ def _in_turn(style: str, town_seed: int, entry_index: int, command: Command, tur
     return obs["image"], env, (seen(0.0), seen(20.0))
 
 
+def _off_line_m(point: tuple[float, float], a: np.ndarray, b: np.ndarray) -> float:
+    """How far a point lies across the line through ``a`` and ``b`` (the camera's ground frame)."""
+    u = (b - a) / np.linalg.norm(b - a)
+    p = np.asarray(point) - a
+    return abs(float(p[0] * u[1] - p[1] * u[0]))
+
+
 @pytest.mark.parametrize("style, town_seed, entry_index, command, turned_deg, weather", [
     ("suburb", 4002, 0, Command.RIGHT, 40.0, "noon"),
     ("suburb", 4000, 3, Command.RIGHT, 55.0, "night"),
@@ -60,9 +67,7 @@ def test_the_centre_line_of_the_road_turned_into(style: str, town_seed: int, ent
     runs = math.atan2(b[0] - a[0], b[1] - a[1])
     line = finder.find(rgb, runs + math.radians(8.0))  # the expectation need not be exact
     assert line is not None
-    u = (b - a) / np.linalg.norm(b - a)
-    p = np.asarray(line.point) - a
-    assert abs(p[0] * u[1] - p[1] * u[0]) <= POSITION_TOLERANCE_M
+    assert _off_line_m(line.point, a, b) <= POSITION_TOLERANCE_M
     assert abs(math.degrees(math.remainder(line.direction_rad - runs, 2 * math.pi))) <= DIRECTION_TOLERANCE_DEG
     assert line.length_m >= finder.config.min_length_m
 
@@ -77,9 +82,7 @@ def test_at_dusk_a_zebra_lit_orange_is_not_taken_for_the_centre_line(turned_deg:
     runs = math.atan2(b[0] - a[0], b[1] - a[1])
     line = finder.find(rgb, runs + math.radians(8.0))
     if line is not None:
-        u = (b - a) / np.linalg.norm(b - a)
-        p = np.asarray(line.point) - a
-        assert abs(p[0] * u[1] - p[1] * u[0]) <= POSITION_TOLERANCE_M
+        assert _off_line_m(line.point, a, b) <= POSITION_TOLERANCE_M
 
 
 def test_nothing_where_no_cross_street_is_in_view() -> None:
@@ -123,15 +126,12 @@ def test_going_straight_the_far_sides_centre_line_in_its_corridor(entry_index: i
 
     a, b = seen(0.0), seen(20.0)
     runs = math.atan2(b[0] - a[0], b[1] - a[1])
-    u = (b - a) / np.linalg.norm(b - a)
     finder = ExitLineFinder(cfg.camera)
     # the approach's centre line carried on lies within a metre of the far side's here (the street winds)
     line = finder.find(obs["image"], 0.0, (float(a[0]) + 0.6, float(a[1]), 2.0))
     assert line is not None
-    p = np.asarray(line.point) - a
-    assert abs(p[0] * u[1] - p[1] * u[0]) <= POSITION_TOLERANCE_M
+    assert _off_line_m(line.point, a, b) <= POSITION_TOLERANCE_M
     assert abs(math.degrees(math.remainder(line.direction_rad - runs, 2 * math.pi))) <= DIRECTION_TOLERANCE_DEG
     if weather == "dusk":
         kerb = finder.find(obs["image"], 0.0)
-        q = np.asarray(kerb.point) - a if kerb is not None else np.zeros(2)
-        assert kerb is not None and abs(q[0] * u[1] - q[1] * u[0]) > 2.0
+        assert kerb is not None and _off_line_m(kerb.point, a, b) > 2.0

@@ -90,13 +90,13 @@ class ExitLineFinder:
                 best = (total, float(angle), lo + (k + 0.5) * cfg.bin_m)
         assert best is not None
         _, angle, offset = best
-        across = np.abs(x * math.cos(angle) - z * math.sin(angle) - offset)
-        near = across <= cfg.inlier_m
+        apart = np.abs(x * math.cos(angle) - z * math.sin(angle) - offset)  # each pixel's distance from the line
+        near = apart <= cfg.inlier_m
         if int(near.sum()) < cfg.min_pixels:
             return None
         along_all = x * math.sin(angle) + z * math.cos(angle)
         first, last = float(along_all[near].min()), float(along_all[near].max())
-        beside = (across > cfg.inlier_m) & (across <= cfg.side_m) & (along_all >= first) & (along_all <= last)
+        beside = (apart > cfg.inlier_m) & (apart <= cfg.side_m) & (along_all >= first) & (along_all <= last)
         if int(beside.sum()) > cfg.side_max_share * int(near.sum()):
             return None  # a patch of paint, not a line with road on both sides
         pts = np.stack([x[near], z[near]], axis=1)
