@@ -18,7 +18,10 @@ Figures per style and weather:
 - far-edge error: median and 90th percentile of |detected - true| far edge (m) over those detections;
 - false detections: a zebra reported where the truth has none within 7 m past the line (the ray misses the
   painted area, e.g. on a bend), and, separately, a zebra reported on a road whose junction line is more
-  than 35 m ahead (``open road``), where nothing should be seen (frames inside junctions are not scored).
+  than 35 m ahead (``open road``), where nothing should be seen (frames inside junctions are not scored);
+- the stop line in the same frames (it gates the zebra and places the junction): read within 0.5 m of the
+  true line, read at the zebra's near edge instead (within ``ZEBRA_EDGE_M`` of it, and more than 0.5 m from
+  the line), read elsewhere, or not read; by the kind of line (a stop bar, a give-way line of teeth).
 """
 
 from __future__ import annotations
@@ -41,7 +44,7 @@ from towndrive.agent.perception.zebra import ZebraDetector  # noqa: E402
 from towndrive.envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
 from towndrive.envs.perception_truth import zebra_truth  # noqa: E402
 from towndrive.sim.splits import split_towns  # noqa: E402
-from towndrive.sim.town import TownConfig  # noqa: E402
+from towndrive.sim.town import Control, TownConfig  # noqa: E402
 from towndrive.sim.world import WorldConfig  # noqa: E402
 
 STYLES = ("classic", "downtown", "suburb")
@@ -49,6 +52,8 @@ WEATHERS = ("noon", "dusk", "night")
 BAR_WINDOW_M = (3.0, 20.0)  # scored frames: the car's own line this far ahead of the camera
 AFTER_BAR_M = 7.0  # a true zebra starts at most this far past the line
 OPEN_ROAD_M = 35.0  # on a road whose line is farther than this no zebra is in view (the view ends at 30 m)
+LINE_OK_M = 0.5  # a stop line read this near the true one is right
+ZEBRA_EDGE_M = 0.8  # ... read this near the zebra's near edge (and not right) is the zebra taken for the line
 
 
 class ZebraTally:
@@ -84,6 +89,38 @@ class ZebraTally:
                 f"false {self.false}/{self.absent} (no zebra past the line), {self.open_false}/{self.open_frames} (open road)")
 
 
+class LineTally:
+    """The stop line's readings of one style and weather, by the kind of line (module docstring)."""
+
+    def __init__(self) -> None:
+        self.counts: dict[str, dict[str, int]] = {}
+
+    def add(self, stop, truth, kind: str) -> None:
+        if not BAR_WINDOW_M[0] <= truth.bar_m <= BAR_WINDOW_M[1]:
+            return
+        if stop is None:
+            outcome = "none"
+        elif abs(stop.distance_m - truth.bar_m) <= LINE_OK_M:
+            outcome = "right"
+        elif math.isfinite(truth.near_m) and abs(stop.distance_m - truth.near_m) <= ZEBRA_EDGE_M:
+            outcome = "zebra"
+        else:
+            outcome = "other"
+        tally = self.counts.setdefault(kind, {"right": 0, "zebra": 0, "other": 0, "none": 0})
+        tally[outcome] += 1
+
+    def row(self) -> str:
+        return "  ".join(f"{kind}: right {c['right']}, zebra {c['zebra']}, other {c['other']}, none {c['none']}"
+                         for kind, c in sorted(self.counts.items()))
+
+
+def _line_kind(world) -> str:
+    entry = world.town.entry_for_edge(world.ego_lane[0][:2]) if world.ego_lane is not None else None
+    if entry is None:
+        return "none"
+    return "give-way" if entry.control == Control.YIELD else "bar" if entry.control != Control.PRIORITY else "none"
+
+
 def run(styles: list[str], weathers: list[str], towns: int, frames: int, spacing_m: float, seed: int) -> None:
     total = ZebraTally()
     costs: list[float] = []
@@ -93,7 +130,7 @@ def run(styles: list[str], weathers: list[str], towns: int, frames: int, spacing
         cam = env.config.camera
         lanes_d, stop_d, zebra_d = LaneDetector(cam), StopLineDetector(cam), ZebraDetector(cam)
         for weather in weathers:
-            tally = ZebraTally()
+            tally, lines = ZebraTally(), LineTally()
             t0 = time.perf_counter()
             for k, town_seed in enumerate(split_towns("validation", towns)):
                 obs, _ = env.reset(seed=seed + k, options={"town_seed": town_seed, "weather": weather})
@@ -121,7 +158,9 @@ def run(styles: list[str], weathers: list[str], towns: int, frames: int, spacing
                     truth = zebra_truth(world, cam)
                     tally.add(det, truth)
                     total.add(det, truth)
+                    lines.add(stop, truth, _line_kind(world))
             print(f"{style:9s} {weather:6s} {tally.row()}  [{time.perf_counter() - t0:.0f} s]", flush=True)
+            print(f"{'':16s} stop line: {lines.row()}", flush=True)
         env.close()
     print(f"{'all':16s} {total.row()}")
     c = np.array(costs) * 1e3
