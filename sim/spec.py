@@ -244,15 +244,20 @@ class RoadDesign:
         junctions = sum(o.junctions for o in odds)
         return sum(o.two_lane_share * o.junctions for o in odds) / junctions if junctions else 0.5
 
-    def turn_reach(self, left: bool, two_lane_share: float) -> float | None:
+    def turn_reach(self, left: bool, two_lane_share: float, within_m: float | None = None) -> float | None:
         """The zebra's far edge to where the lane turned into crosses ours (``TurnReach``), expected over the cross
         street's lane count (one or two lanes each way, two with ``two_lane_share``): the least squared error when
-        the count is not seen. None when the design has no reach for a count that may be."""
+        the count is not seen. With ``within_m``, moved (where that can be) to within it of every count that may
+        be: a turn that misses its lane by more leaves it, whichever count is the likelier, so both are kept in
+        reach rather than the likelier one closer. None when the design has no reach for a count that may be."""
         reach = {r.cross_lanes: (r.left_m if left else r.right_m) for r in self.turn_reaches}
         weights = {1: 1.0 - two_lane_share, 2: two_lane_share}
         if any(w > 0 and n not in reach for n, w in weights.items()):
             return None
-        return sum(w * reach[n] for n, w in weights.items() if w > 0)
+        expected = sum(w * reach[n] for n, w in weights.items() if w > 0)
+        may_be = [reach[n] for n, w in weights.items() if w > 0]
+        lo, hi = max(may_be) - (within_m or 0.0), min(may_be) + (within_m or 0.0)
+        return expected if within_m is None or lo > hi else min(max(expected, lo), hi)
 
     @property
     def signal_mounts(self) -> tuple[SignalMount, ...]:

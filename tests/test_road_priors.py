@@ -388,6 +388,34 @@ def test_the_cross_street_s_odds_pool_the_kinds_the_car_could_not_tell_apart() -
         CrossStreetOdds("roundabout", 1, 0.5, 3)
 
 
+def test_an_unseen_lane_count_is_hedged_to_keep_both_lanes_within_the_car_s_room() -> None:
+    """The expected reach bets on the likelier count; where both may be and their lanes lie within twice the car's
+    room in its lane, it is moved to within that room of each (a threshold, not a squared error, is what a lane
+    keeps), and left alone where one count is certain or the two lie too far apart."""
+    from types import SimpleNamespace
+
+    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
+    from towndrive.agent.perception.stop_line import StopLine
+    from towndrive.sim.spec import VEHICLE, CrossStreetOdds, TurnReach
+
+    road = replace(road_priors("suburb"), turn_reaches=(TurnReach(1, 14.3, 11.1), TurnReach(2, 15.5, 9.0)),
+                   cross_street_odds=(CrossStreetOdds("signal", 2, 0.8, 30), CrossStreetOdds("none", 2, 0.0, 30)),
+                   lane_width_m=3.2)
+    room = (3.2 - VEHICLE.width_m) / 2
+    assert road.turn_reach(True, 0.8) == pytest.approx(0.2 * 14.3 + 0.8 * 15.5)  # the least squared error
+    hedged = road.turn_reach(True, 0.8, within_m=room)
+    assert hedged == pytest.approx(14.3 + room) and 15.5 - hedged <= room + 1e-9
+    assert road.turn_reach(True, 0.0, within_m=room) == 14.3  # one count can be: no hedge
+    assert road.turn_reach(False, 0.8, within_m=room) == pytest.approx(0.2 * 11.1 + 0.8 * 9.0)  # 2.1 m apart
+    line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
+                           config=SimpleNamespace(camera_to_front_m=2.0))
+    odo = SimpleNamespace(road_yaw=0.0, pos=np.zeros(2), road_offset=0.0, yaw=0.0)
+    g = JunctionGuidance(JunctionRules(), line, odo, 1.0, replace(road, lane_width_sd_m=0.0))
+    g.note(StopLine(9.0, 0.5, 0.9, 0), 9.0 + 0.5 + 6.0, None, None, "signal", 2)
+    assert g.lane_room_m == pytest.approx(room)
+    assert g.turn_reach_m(1) == pytest.approx(6.0 + 14.3 + room)
+
+
 def test_the_junction_guidance_places_a_turn_from_the_zebra_by_the_kind_of_junction_seen() -> None:
     """``JunctionGuidance.turn_reach_m``: with the zebra measured, its far edge plus the reach expected for the
     kind of junction (a stop sign on a single-lane road: a two-lane street ahead; a light seen once keeps the arm a

@@ -290,11 +290,19 @@ class JunctionGuidance:
         from the zebra (90 degrees in a square junction)."""
         return self._exit_fix[1] if self._exit_fix is not None else self.planned_angle_deg(command)
 
+    @property
+    def lane_room_m(self) -> float:
+        """How far the car's centre may be off its lane's centre with the car still inside the lane."""
+        return max(0.0, (self.lane_width_m - VEHICLE.width_m) / 2)
+
     def planned_reach_m(self, command: int) -> float:
         """The reach planned before the turn: beyond the zebra measured here by the design's reach expected over
-        the cross street's lane count, else from the priors (left turns: half a lane beyond the junction's centre;
-        right turns: the kerb lane's own prior)."""
-        beyond = self.road.turn_reach(command == 1, self.road.two_lane_share(self.control, self.our_lanes))
+        the cross street's lane count, kept where it can be within ``lane_room_m`` of each count's lane (either
+        count may be, and a turn that leaves its lane is no better for having been the likelier guess), else from
+        the priors (left turns: half a lane beyond the junction's centre; right turns: the kerb lane's own
+        prior)."""
+        beyond = self.road.turn_reach(command == 1, self.road.two_lane_share(self.control, self.our_lanes),
+                                      within_m=self.lane_room_m)
         if self._zebra_m and beyond is not None:
             return float(np.median(self._zebra_m)) + beyond
         return self.road.kerb_lane_reach if command == 2 else self.setback_m + 0.5 * self.lane_width_m
