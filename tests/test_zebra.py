@@ -107,34 +107,3 @@ def test_the_zebra_s_edges_tell_the_cross_street_s_direction(style: str, entry_i
     assert abs(zebra.tilt - truth) <= 0.05, (zebra.tilt, truth)
     if style != "classic":
         assert abs(truth) > 0.1  # the case is one that leans
-
-
-def _stop_line(rgb: np.ndarray, env: DriveEnv):
-    cam = env.config.camera
-    return StopLineDetector(cam).detect(rgb, LaneDetector(cam).detect(rgb))
-
-
-@pytest.mark.parametrize("before_end_m", [8.0, 10.0])
-def test_a_give_way_line_is_read_at_its_teeth(before_end_m: float) -> None:
-    """A give-way line (a row of teeth, no solid bar) is the line a car yields at: read where it is, not at the
-    zebra beyond it (suburb town 4000's entry 7 gives way; the zebra's near edge is 4.5 m farther)."""
-    rgb, env = _frame("suburb", 4000, 7, before_end_m)
-    assert env.world is not None
-    truth = zebra_truth(env.world, env.config.camera)
-    line = _stop_line(rgb, env)
-    env.close()
-    assert truth.near_m - truth.bar_m > 3.0
-    assert line is not None and abs(line.distance_m - truth.bar_m) < 0.5
-
-
-@pytest.mark.parametrize("entry_index, before_end_m", [(4, 12.0), (5, 10.0)])
-def test_a_zebra_s_paint_is_not_taken_for_a_stop_bar(entry_index: int, before_end_m: float) -> None:
-    """Where a priority road meets a junction no line is painted; the zebra's stripes, blurred together over a
-    few rows, once passed for a bar inside the zebra. A bar has road on both sides."""
-    rgb, env = _frame("suburb", 4000, entry_index, before_end_m)
-    assert env.world is not None
-    truth = zebra_truth(env.world, env.config.camera)
-    line = _stop_line(rgb, env)
-    env.close()
-    assert truth.near_m < 14.0  # the zebra is in view, near enough to be read
-    assert line is None

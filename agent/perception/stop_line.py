@@ -4,10 +4,7 @@ A stop bar is a band about half a metre deep that spans the whole lane. Bright p
 camera image with a vertical top-hat (``bar_kernel_rows`` image rows: longer than the bar is tall at 3 m,
 so the bar survives at every distance), then warped into the bird's-eye view, where a row is a
 stop-line row when most of the lane corridor is bright in it. Zebra stripes (half the width painted),
-dashes and lane lines (narrow) fail that fill test; a zebra's near end, where its stripes blur together, can
-pass it, as can a stretch of its middle, but a bar has road on both sides and a zebra goes on being painted.
-Where no bar is found, a give-way line (a row of teeth) is looked for: a shallow band with a fifth to a half of
-the corridor painted in separate pieces, road on both sides. Far away a bar is less than one image row tall, so the
+dashes and lane lines (narrow) fail that fill test. Far away a bar is less than one image row tall, so the
 depth a band may have grows with the distance (one image row spans ``z^2 / (f h)`` metres of road).
 The corridor is the detected lane (so the opposite direction's stop bar, across the centre line, is
 ignored); with ``require_lane`` (the default) there is no stop line without a lane, which keeps zebra
@@ -46,17 +43,6 @@ class StopLineConfig:
     beyond_lane_m: float = 6.0  # the bar may lie at most this far past the end of the detected lane lines
     own_lane_margin_m: float = 0.6  # a left line this far right of the camera, or a right line this far left of
     #                                 it, bounds another lane (see detect), not the corridor of our bar
-    # A bar has road on both sides (towns leave at least a metre before the zebra): a band whose corridor is
-    # painted this much (a zebra's half) over this stretch beyond its far edge, or before its near edge, is part
-    # of a zebra.
-    road_beyond_m: tuple[float, float] = (0.2, 0.8)
-    painted_beyond_fill: float = 0.35
-    # A give-way line is a row of teeth (triangles pointing away, their bases on the line): a shallow band painted
-    # over a fifth to a half of the corridor in separate pieces, with road on both sides; looked for where no
-    # bar is found.
-    give_way_fill: tuple[float, float] = (0.15, 0.6)
-    give_way_min_runs: int = 2
-    give_way_depth_m: tuple[float, float] = (0.2, 0.9)
 
 
 @dataclass
@@ -165,22 +151,11 @@ class StopLineDetector:
         width = inside.sum(axis=1)
         fill = np.where(width > 0, (bright & inside).sum(axis=1) / np.maximum(width, 1), 0.0)
         rows = fill >= cfg.min_fill
-        found = self._bar(rows, fill, z, lo, hi, lf - bg, lane_end)
-        if found is not None:
-            return found
-        runs = (np.diff((bright & inside).astype(np.int8), axis=1) == 1).sum(axis=1)
-        teeth = (fill >= cfg.give_way_fill[0]) & (fill < cfg.give_way_fill[1]) & (runs >= cfg.give_way_min_runs)
-        return self._give_way(teeth, fill, z, lane_end)
-
-    def _bar(self, rows: np.ndarray, fill: np.ndarray, z: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-             contrast: np.ndarray, lane_end: float) -> StopLine | None:
-        """The nearest band of bar rows that is a bar: deep as a bar, near enough, road on both sides."""
-        cfg, h = self.config, len(z)
         for r0, r1 in row_bands(rows):
             depth_m = (r1 - r0) / cfg.birdseye.px_per_m_z
             # Far away the band is one image row smeared over a metre or more of bird's-eye rows, so its
             # lower edge is biased near; its fill-weighted centre is not. Near edge = centre - half the depth.
-            centre = self._centre_z(contrast, float(np.average(z[r0:r1], weights=fill[r0:r1])), float(z[r0]),
+            centre = self._centre_z(lf - bg, float(np.average(z[r0:r1], weights=fill[r0:r1])), float(z[r0]),
                                     float(z[r1 - 1]), float(np.median(lo[r0:r1])), float(np.median(hi[r0:r1])))
             near = centre - min(depth_m, cfg.nominal_depth_m) / 2
             row_span_m = near ** 2 / (self.camera.focal_px * self.camera.mount_height_m)  # road per image row
@@ -190,36 +165,8 @@ class StopLineDetector:
                 continue
             if r1 >= h - 1:  # touching the near edge of the view: the bar may continue below it
                 continue
-            if self._painted_beside(fill, z, float(z[r0]), float(z[r1 - 1])):
-                continue  # paint goes on beyond it or before it: a zebra's end or middle, not a bar
             return StopLine(near, depth_m, float(fill[r0:r1].mean()), int(r1 - 1))
         return None
-
-    def _give_way(self, teeth: np.ndarray, fill: np.ndarray, z: np.ndarray, lane_end: float) -> StopLine | None:
-        """The nearest give-way line (a band of teeth rows, ``StopLineConfig.give_way_fill``): its near edge is
-        the teeth's bases."""
-        cfg, h = self.config, len(z)
-        for r0, r1 in row_bands(teeth):
-            depth_m = (r1 - r0) / cfg.birdseye.px_per_m_z
-            near = float(z[r1 - 1])
-            # (no allowance for far rows smeared deeper: a far zebra, one band of half-filled rows, would pass)
-            if not cfg.give_way_depth_m[0] <= depth_m + 0.05 <= cfg.give_way_depth_m[1]:
-                continue
-            if r1 >= h - 1 or near > min(cfg.max_distance_m, lane_end + cfg.beyond_lane_m):
-                continue
-            if self._painted_beside(fill, z, float(z[r0]), near):
-                continue
-            return StopLine(near, depth_m, float(fill[r0:r1].mean()), int(r1 - 1))
-        return None
-
-    def _painted_beside(self, fill: np.ndarray, z: np.ndarray, z_far: float, z_near: float) -> bool:
-        """Whether the corridor is painted like a zebra just beyond a band or just before it (a bar has road on
-        both sides: towns leave at least a metre between it and the zebra)."""
-        lo, hi = self.config.road_beyond_m
-        for side in ((z > z_far + lo) & (z <= z_far + hi), (z < z_near - lo) & (z >= z_near - hi)):
-            if side.any() and float(fill[side].mean()) >= self.config.painted_beyond_fill:
-                return True
-        return False
 
     def _centre_z(self, contrast: np.ndarray, fallback_z: float, z_far: float, z_near: float, x_lo: float,
                   x_hi: float) -> float:
