@@ -39,13 +39,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from towndrive.agent.drivers import make_driver  # noqa: E402
 from towndrive.agent.perception.lanes import LaneDetector  # noqa: E402
-from towndrive.agent.perception.stop_line import StopLineDetector  # noqa: E402
+from towndrive.agent.perception.stop_line import StopLine, StopLineDetector  # noqa: E402
 from towndrive.agent.perception.zebra import ZebraDetector  # noqa: E402
 from towndrive.envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
-from towndrive.envs.perception_truth import zebra_truth  # noqa: E402
+from towndrive.envs.perception_truth import ZebraTruth, zebra_truth  # noqa: E402
 from towndrive.sim.splits import split_towns  # noqa: E402
 from towndrive.sim.town import Control, TownConfig  # noqa: E402
-from towndrive.sim.world import WorldConfig  # noqa: E402
+from towndrive.sim.world import World, WorldConfig  # noqa: E402
 
 STYLES = ("classic", "downtown", "suburb")
 WEATHERS = ("noon", "dusk", "night")
@@ -95,7 +95,7 @@ class LineTally:
     def __init__(self) -> None:
         self.counts: dict[str, dict[str, int]] = {}
 
-    def add(self, stop, truth, kind: str) -> None:
+    def add(self, stop: StopLine | None, truth: ZebraTruth, kind: str) -> None:
         if not BAR_WINDOW_M[0] <= truth.bar_m <= BAR_WINDOW_M[1]:
             return
         if stop is None:
@@ -114,11 +114,12 @@ class LineTally:
                          for kind, c in sorted(self.counts.items()))
 
 
-def _line_kind(world) -> str:
+def _line_kind(world: World) -> str:
+    """What the town paints where the car's road enters its junction: a bar, a give-way line, or no line."""
     entry = world.town.entry_for_edge(world.ego_lane[0][:2]) if world.ego_lane is not None else None
-    if entry is None:
-        return "none"
-    return "give-way" if entry.control == Control.YIELD else "bar" if entry.control != Control.PRIORITY else "none"
+    if entry is None or entry.control == Control.PRIORITY:
+        return "no line"
+    return "give-way" if entry.control == Control.YIELD else "bar"
 
 
 def run(styles: list[str], weathers: list[str], towns: int, frames: int, spacing_m: float, seed: int) -> None:

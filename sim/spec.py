@@ -254,10 +254,12 @@ class RoadDesign:
         weights = {1: 1.0 - two_lane_share, 2: two_lane_share}
         if any(w > 0 and n not in reach for n, w in weights.items()):
             return None
-        expected = sum(w * reach[n] for n, w in weights.items() if w > 0)
-        may_be = [reach[n] for n, w in weights.items() if w > 0]
-        lo, hi = max(may_be) - (within_m or 0.0), min(may_be) + (within_m or 0.0)
-        return expected if within_m is None or lo > hi else min(max(expected, lo), hi)
+        may_be = {n: reach[n] for n, w in weights.items() if w > 0}
+        expected = sum(weights[n] * r for n, r in may_be.items())
+        if within_m is None:
+            return expected
+        lo, hi = max(may_be.values()) - within_m, min(may_be.values()) + within_m
+        return expected if lo > hi else min(max(expected, lo), hi)
 
     @property
     def signal_mounts(self) -> tuple[SignalMount, ...]:
