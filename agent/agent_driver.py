@@ -284,8 +284,10 @@ class AgentDriver:
             stereo = StereoDepth(camera)
         odometry = Odometry(cfg.straight_steer, cfg.road_min_confidence, cfg.road_clear_m)
         junction = JunctionGuidance(JunctionRules(
-            cfg.junction_hold_m, cfg.hold_heading_gain, cfg.hold_offset_gain, cfg.hold_max_steer, cfg.turn_guidance,
-            cfg.turn_lookahead_m, cfg.turn_lookahead_s, cfg.turn_bar_seen_m, cfg.turn_handover_deg),
+            junction_hold_m=cfg.junction_hold_m, hold_heading_gain=cfg.hold_heading_gain,
+            hold_offset_gain=cfg.hold_offset_gain, hold_max_steer=cfg.hold_max_steer, turn_guidance=cfg.turn_guidance,
+            turn_lookahead_m=cfg.turn_lookahead_m, turn_lookahead_s=cfg.turn_lookahead_s,
+            turn_bar_seen_m=cfg.turn_bar_seen_m, turn_handover_deg=cfg.turn_handover_deg),
             self.controller.line, odometry, camera.mount_forward_m, cfg.road)
         mirror = BoxGeometry(self._mirror_camera, cfg.row_sigma_px, cfg.prior_sigma)
         return Stages(

@@ -89,8 +89,9 @@ def drive_turn(style: str, town_seed: int, entry_index: int, command: int,
         rate = controller.config.steer_rate_per_s * driver.dt
         steer = float(np.clip(target if target is not None else 0.0, steer - rate, steer + rate))
         throttle = float(np.clip(0.5 * (turn_speed - world.ego.speed), -1.0, 1.0))
+        speed = float(world.ego.speed)  # the speed the step moves the car at (the agent's observation)
         obs, _, terminated, _, _ = env.step(np.array([steer, throttle], np.float32))
-        odometry.advance(float(world.ego.speed), steer, int(world.command()), driver.dt)
+        odometry.advance(speed, steer, int(world.command()), driver.dt)
         expected = guidance.exit_expected_rad()
         if finder is not None and expected is not None:
             guidance.note_exit(finder.find(obs["image"], expected))

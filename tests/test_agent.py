@@ -454,6 +454,35 @@ def test_turn_path_is_the_towns_quarter_circle_into_the_same_lane() -> None:
         assert path[-1][0] == pytest.approx(0.5 + radius) and side * path[-1][1] > radius + 25.0  # ... and follows it
 
 
+def test_the_turn_keeps_the_cars_centre_on_the_arc() -> None:
+    """The junction guidance steers the bicycle model's centre (the point the safety driver measures) along the
+    turn arc: pursuing the arc with the rear axle put the centre 0.19 m outside a 13.75 m arc."""
+    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
+    from towndrive.agent.decision.odometry import Odometry
+    from towndrive.agent.perception.stop_line import StopLine
+    from towndrive.sim.spec import ROAD
+
+    line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
+                           config=SimpleNamespace(camera_to_front_m=1.3))
+    odo = Odometry()
+    odo.road_yaw, odo.road_offset = 0.0, 0.0
+    g = JunctionGuidance(JunctionRules(), line, odo, 1.0, ROAD)
+    g.note(StopLine(9.3, 0.5, 0.9, 0))  # the bar's near edge 10.3 m ahead of the car's centre
+    radius = g.turn_reach_m(1)  # the classic quarter circle from the bar's far edge, turning left (y < 0)
+    centre = np.array([ROAD.stop_bar_depth_m, -radius])
+    steer, worst = 0.0, 0.0
+    for _ in range(400):
+        target = g.turn_steer(1, 3.0)
+        steer = float(np.clip(target if target is not None else 0.0, steer - 0.075, steer + 0.075))  # rate limit
+        odo.advance(3.0, steer, 1, 0.05)  # the world's bicycle model, exactly
+        if g.junction is None:  # out of the turn
+            break
+        d = np.array(g._in_bar_frame(odo.pos)) - centre
+        if d[0] > 0.0 and d[1] > 0.0:  # beside the arc
+            worst = max(worst, abs(float(np.hypot(*d)) - radius))
+    assert 0.0 < worst < 0.06, worst
+
+
 @needs_models
 @pytest.mark.parametrize("command", [1, 2])
 def test_a_commanded_turn_follows_the_junctions_arc_into_the_same_lane(command: int) -> None:
@@ -491,8 +520,9 @@ def test_a_commanded_turn_follows_the_junctions_arc_into_the_same_lane(command: 
         rate = ctl.config.steer_rate_per_s * driver.dt  # the controller's steering-rate limit
         steer = float(np.clip(target if target is not None else 0.0, steer - rate, steer + rate))
         throttle = float(np.clip(0.5 * (3.0 - world.ego.speed), -1.0, 1.0))
+        speed = float(world.ego.speed)  # the speed the step moves the car at (the agent's observation)
         _, _, terminated, _, info = env.step(np.array([steer, throttle], np.float32))
-        driver.stages.odometry.advance(float(world.ego.speed), steer, int(world.command()), driver.dt)
+        driver.stages.odometry.advance(speed, steer, int(world.command()), driver.dt)
         worst = max(worst, info["lane_band_offset_m"])
         assert not terminated and not info["infractions"], info["infractions"]
         if world.ego_lane is not None and world.ego_lane[0][:2] == goal and world.ego_lane[1] > 8.0:

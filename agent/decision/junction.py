@@ -2,9 +2,10 @@
 
 Going straight, the car holds the approach lane's heading and its place across it (``Odometry``); where the design
 spreads, once the far side's centre line is read, the lane beside it instead (a winding street's far side is
-shifted). Turning, it pursues the road design's turn from the rear axle, as the autopilot follows lanes: straight on
-past the stop bar, then an arc into the same lane of the road turned into (with no radius in the design, the quarter
-circle from the bar's far edge). The turn is placed by the stop bar tracked by the controller (``StopLineTrack``)
+shifted). Turning, it steers its centre, the point whose distance from the lane the safety driver judges, along the
+road design's turn (a rear axle pursuing the arc would put the centre outside it by a quarter of the wheelbase
+squared over the arc's diameter, 0.2 m on a 12 m arc): straight on past the stop bar, then an arc into the same
+lane of the road turned into (with no radius in the design, the quarter circle from the bar's far edge). The turn is placed by the stop bar tracked by the controller (``StopLineTrack``)
 and the approach lane measured before it. How far the lane turned into lies beyond the bar is the design's setback (a prior,
 ``sim.spec.RoadDesign``), corrected by where the zebra beyond the bar ends: the zebra's far edge lies a cross
 street's half width and a kerb gap before the junction's centre, which spreads less between junctions than the
@@ -91,8 +92,9 @@ class JunctionRules:
     hold_offset_gain: float = 0.3  # steer per metre of dead-reckoned offset from the approach lane's centre
     hold_max_steer: float = 0.3
     turn_guidance: bool = True  # commanded turns inside a junction follow the turn arc
-    turn_lookahead_m: float = 3.5  # pure pursuit of the arc from the rear axle: lookahead = this + s x speed
+    turn_lookahead_m: float = 3.5  # the arc takes over with the rear axle this + s x speed before the bar's far edge
     turn_lookahead_s: float = 0.4
+    turn_offset_gain: float = 0.5  # the car's centre heads back onto the arc at atan(this x its offset in metres)
     turn_bar_seen_m: float = 12.0  # a turn is placed only by a stop bar seen this near
     # With a design whose numbers spread, the arc (dead-reckoned from priors) leads the turn only this far; the
     # camera's steering finishes it, facing the road turned into. An exact design's arc leads to the end.
@@ -400,8 +402,8 @@ class JunctionGuidance:
         self._far.append((float(point[0]), float(point[1]), runs))
 
     def turn_steer(self, command: int, speed: float) -> float | None:
-        """Turning at a junction, the steer that pursues the turn arc from our lane to the same lane of the road we
-        turn into; None when this does not apply."""
+        """Turning at a junction, the steer that keeps the car's centre on the turn arc from our lane to the same
+        lane of the road we turn into; None when this does not apply."""
         cfg, odo = self.rules, self.odo
         if self.junction is None or not cfg.turn_guidance:
             return None
@@ -439,9 +441,20 @@ class JunctionGuidance:
             return None
         if not started:
             self.junction = (self.junction[0], self.junction[1], road_yaw, command)
-        target = path[min(len(path) - 1, nearest + int(round(lookahead / step)))]
-        alpha = math.atan2(target[1] - here[1], target[0] - here[0]) - heading
-        alpha = math.atan2(math.sin(alpha), math.cos(alpha))
-        # Pure pursuit: the arc from the rear axle through the target has curvature 2 sin(alpha) / lookahead.
-        delta = math.atan(2.0 * VEHICLE.length_m * math.sin(alpha) / lookahead)
+        delta = self._centre_on_path(path, np.array([along, across]), heading)
         return float(np.clip(delta / VEHICLE.max_steer_rad, -1.0, 1.0))
+
+    def _centre_on_path(self, path: np.ndarray, centre: np.ndarray, heading: float) -> float:
+        """The wheel angle that keeps the car's centre on ``path``. In the bicycle model the centre moves at the
+        slip angle beta off the heading, tan(beta) = tan(delta) / 2, so the wheels set its direction of travel at
+        once: along the path where it is nearest, turned back towards it by the centre's offset from it. On an arc
+        the heading then lags the path's by beta and the rear axle runs inside the arc; pursuing the arc with the
+        rear axle instead puts the centre outside it by (length / 2)^2 / (2 x radius)."""
+        i = min(len(path) - 2, int(np.argmin(np.sum((path - centre) ** 2, axis=1))))
+        d = path[i + 1] - path[i]
+        tangent = math.atan2(d[1], d[0])
+        offset = float((centre - path[i]) @ _right_of(tangent))  # right of the path
+        course = tangent - math.atan(self.rules.turn_offset_gain * offset)
+        beta = math.remainder(course - heading, 2 * math.pi)
+        most = math.atan(math.tan(VEHICLE.max_steer_rad) / 2)
+        return math.atan(2.0 * math.tan(float(np.clip(beta, -most, most))))
