@@ -5,9 +5,10 @@ spreads, once the far side's centre line is read, the lane beside it instead (a 
 shifted). Turning, it steers its centre, the point whose distance from the lane the safety driver judges, along the
 road design's turn (a rear axle pursuing the arc would put the centre outside it by a quarter of the wheelbase
 squared over the arc's diameter, 0.2 m on a 12 m arc): straight on past the stop bar, then an arc into the same
-lane of the road turned into (with no radius in the design, the quarter circle from the bar's far edge). The turn is placed by the stop bar tracked by the controller (``StopLineTrack``)
-and the approach lane measured before it. How far the lane turned into lies beyond the bar is the design's setback (a prior,
-``sim.spec.RoadDesign``), corrected by where the zebra beyond the bar ends: the zebra's far edge lies a cross
+lane of the road turned into (with no radius in the design, the quarter circle from the bar's far edge). The turn
+is placed by the stop bar tracked by the controller (``StopLineTrack``) and the approach lane measured before it.
+How far the lane turned into lies beyond the bar is the design's setback (a prior, ``sim.spec.RoadDesign``),
+corrected by where the zebra beyond the bar ends: the zebra's far edge lies a cross
 street's half width and a kerb gap before the junction's centre, which spreads less between junctions than the
 setback does. The lane offset is the lane width the lane finder measured, where the design lets widths differ. With the zebra
 measured, the lane turned into is placed from its far edge instead (the zebra lies at the cross street's kerb): by
