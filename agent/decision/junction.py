@@ -81,6 +81,7 @@ def _across_along(d: np.ndarray, yaw: float) -> tuple[float, float]:
     return float(d[0] * -s + d[1] * c), float(d[0] * c + d[1] * s)
 
 
+MAX_SLIP_RAD = math.atan(math.tan(VEHICLE.max_steer_rad) / 2)  # the bicycle model's centre at full lock
 ZEBRA_SD_M = 0.4  # spread of one junction's zebra readings (a band's edge at 5-15 m, a row of the view or two)
 EXIT_SD_M = 0.4  # spread of the road turned into's reach as read in the turn (bench/turn_arc.py, single-lane streets)
 LANE_WIDTH_SD_M = 0.15  # spread of the lane finder's width once both lines were seen
@@ -457,5 +458,4 @@ class JunctionGuidance:
         offset = float((centre - path[i]) @ _right_of(tangent))  # right of the path
         course = tangent - math.atan(self.rules.turn_offset_gain * offset)
         beta = math.remainder(course - heading, 2 * math.pi)
-        most = math.atan(math.tan(VEHICLE.max_steer_rad) / 2)
-        return math.atan(2.0 * math.tan(float(np.clip(beta, -most, most))))
+        return math.atan(2.0 * math.tan(float(np.clip(beta, -MAX_SLIP_RAD, MAX_SLIP_RAD))))
