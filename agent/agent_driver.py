@@ -58,7 +58,7 @@ from towndrive.agent.decision.controller import Controller, ControllerConfig, De
 from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
 from towndrive.agent.decision.odometry import Odometry
 from towndrive.agent.decision.our_light import LightRules, LightSeen, OurLight
-from towndrive.agent.decision.signs import lanes_each_way
+from towndrive.agent.decision.signs import lanes_each_way, lanes_to_kerb
 from towndrive.agent.decision.turn_end import TurnEnd, TurnEndRules
 from towndrive.agent.perception.box_geometry import BoxGeometry
 from towndrive.agent.perception.classes import LIGHT_CLASSES
@@ -354,6 +354,7 @@ class AgentDriver:
             stage.reset()
         self._lights: list[Detection] = []
         self._signs: list[SignSeen] = []
+        self._lanes_to_kerb: int | None = None  # as the line on our right last told, read clear of a stop bar
 
     # Stage shortcuts kept for overlays, profiles and tests.
     lanes = property(lambda self: self.stages.lanes)
@@ -576,8 +577,11 @@ class AgentDriver:
         # as measured this frame, where the car is
         signs = self.controller.signs
         control = "signal" if light is not None else (signs.control or "none")
+        bar, kerb = self.controller.line.stop_line, lanes_to_kerb(lanes)
+        if kerb is not None and (bar is None or bar > st.lanes.config.markings.coverage_z_max_m):
+            self._lanes_to_kerb = kerb  # a line's style is read over that far: nearer, the bar cuts it short
         st.junction.note(stop, self._zebra_far_m, lanes.boundary_width_m, self._zebra_tilt, control,
-                         signs.lanes_each_way)
+                         signs.lanes_each_way, self._lanes_to_kerb)
         odo.advance(speed, decision.steer, command, self.dt)
         lap("control")
         in_path = st.memory.note(objects, decision.in_path, st.objects.edge_only)

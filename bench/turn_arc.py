@@ -40,13 +40,18 @@ OFF_ROAD = 9.0
 
 
 def drive_turn(style: str, town_seed: int, entry_index: int, command: int,
-               tilt: bool = True, kind: bool = True, exit_read: bool = True) -> tuple[int, int, float] | None:
-    """(our lanes, the cross street's, the largest outside-the-lanes distance) of one turn; None if the entry
-    has no such turn."""
+               tilt: bool = True, kind: bool = True, exit_read: bool = True,
+               inner: bool = False) -> tuple[int, int, float] | None:
+    """(our lanes, the cross street's, the largest outside-the-lanes distance) of one turn, from the lane a driver
+    keeps to for it (left turns the inner lane, right turns the kerb lane) or, with ``inner``, from the inner lane
+    (a right turn whose lane change was held); None if the entry has no such turn (or, with ``inner``, no lane but
+    the kerb lane)."""
     config = DriveConfig(world=WorldConfig(town=TownConfig.of_style(style)), render_camera=exit_read)
     town = cached_town(config.world.town, town_seed)
     entry = town.entries[entry_index]
-    k = 0 if command == Command.LEFT else entry.lane_count - 1
+    k = 0 if command == Command.LEFT or inner else entry.lane_count - 1
+    if inner and entry.lane_count < 2:
+        return None
     connector = next((idx for idx, info in town.lane_info.items() if idx[0] == entry.edge[1] and idx[2] == k
                       and info.kind == "connector" and info.command == command), None)
     if connector is None:
@@ -78,7 +83,8 @@ def drive_turn(style: str, town_seed: int, entry_index: int, command: int,
         slope = along / across if abs(across) > 1e-9 else None
     for _ in range(3):  # the skew is the median of a few readings
         guidance.note(StopLine(camera_to_bar, 0.5, 0.9, 0), zebra_far, town.lane_width, slope,
-                      control_kind(entry.control) if kind else None, entry.lane_count if kind else None)
+                      control_kind(entry.control) if kind else None, entry.lane_count if kind else None,
+                      entry.lane_count - 1 - k)
     steer, worst, started = 0.0, 0.0, False
     turn_speed = controller.config.junction_turn_speed_mps
     for _ in range(400):
@@ -114,6 +120,9 @@ def main() -> None:
                     help="leave out what governs the arm and our road's lanes (the cross street's lane count guessed "
                          "blind)")
     ap.add_argument("--no-exit", action="store_true", help="do not read the road turned into in the turn")
+    ap.add_argument("--inner", action="store_true",
+                    help="start each turn from the inner lane of a two-lane road (a right turn whose lane change was "
+                         "held); roads of one lane are left out")
     args = ap.parse_args()
     command = Command.LEFT if args.command == "left" else Command.RIGHT
     worst = []
@@ -121,12 +130,13 @@ def main() -> None:
     for seed in (int(s) for s in args.towns.split(",")):
         for i in range(min(args.entries, len(cached_town(TownConfig.of_style(args.style), seed).entries))):
             row = drive_turn(args.style, seed, i, command, tilt=not args.no_tilt, kind=not args.no_kind,
-                             exit_read=not args.no_exit)
+                             exit_read=not args.no_exit, inner=args.inner)
             if row is not None:
                 worst.append(row[2])
                 print(f"| {seed} | {i} | {row[0]} | {row[1]} | {row[2]:.2f} |", flush=True)
     over = sum(w > 1.0 for w in worst)
-    print(f"\n{args.style}, {args.command} turns: {len(worst)}; more than 1 m outside their lanes: {over}; "
+    lane = " from the inner lane" if args.inner else ""
+    print(f"\n{args.style}, {args.command} turns{lane}: {len(worst)}; more than 1 m outside their lanes: {over}; "
           f"off the road: {sum(w >= OFF_ROAD for w in worst)}")
 
 

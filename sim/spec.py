@@ -244,13 +244,17 @@ class RoadDesign:
         junctions = sum(o.junctions for o in odds)
         return sum(o.two_lane_share * o.junctions for o in odds) / junctions if junctions else 0.5
 
-    def turn_reach(self, left: bool, two_lane_share: float, within_m: float | None = None) -> float | None:
+    def turn_reach(self, left: bool, two_lane_share: float, within_m: float | None = None,
+                   lanes_to_kerb: int = 0) -> float | None:
         """The zebra's far edge to where the lane turned into crosses ours (``TurnReach``), expected over the cross
         street's lane count (one or two lanes each way, two with ``two_lane_share``): the least squared error when
         the count is not seen. With ``within_m``, moved (where that can be) to within it of every count that may
         be: a turn that misses its lane by more leaves it, whichever count is the likelier, so both are kept in
-        reach rather than the likelier one closer. None when the design has no reach for a count that may be."""
-        reach = {r.cross_lanes: (r.left_m if left else r.right_m) for r in self.turn_reaches}
+        reach rather than the likelier one closer. None when the design has no reach for a count that may be.
+        A right turn from ``lanes_to_kerb`` lanes off our kerb ends as many off the cross street's, as far as it
+        has lanes (``sim/town.py``'s connectors keep a right turn's lane counted from the kerb)."""
+        reach = {r.cross_lanes: (r.left_m if left else r.right_m + min(lanes_to_kerb, r.cross_lanes - 1)
+                                 * self.lane_width_m) for r in self.turn_reaches}
         weights = {1: 1.0 - two_lane_share, 2: two_lane_share}
         if any(w > 0 and n not in reach for n, w in weights.items()):
             return None

@@ -567,6 +567,66 @@ def test_a_right_turn_read_in_the_turn_goes_into_the_kerb_lane_of_as_many_lanes_
     assert g.turn_reach_m(1) == pytest.approx(6.0 + 15.5, abs=1e-6)
 
 
+def test_a_right_turn_from_the_inner_lane_of_two_goes_into_the_inner_lane_whatever_the_cross_streets_count() -> None:
+    """``JunctionGuidance.kerb_side_lanes``: a right turn keeps its lane counted from the kerb (the town's
+    connectors do), so from the inner lane of two it ends in the inner lane of the road turned into, one lane or
+    two: the centre line read in the turn places it, whatever count ``exit_lanes`` guesses, and the plan before
+    the read is kept within the car's room of both counts' inner lanes. From the kerb lane, the kerb lane."""
+    from types import SimpleNamespace
+
+    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
+    from towndrive.agent.perception.stop_line import StopLine
+    from towndrive.sim.spec import CrossStreetOdds, TurnReach
+
+    road = replace(road_priors("downtown"), turn_reaches=(TurnReach(1, 14.4, 10.8), TurnReach(2, 15.7, 8.6)),
+                   cross_street_odds=(CrossStreetOdds("stop", 2, 0.99, 8),), lane_width_m=3.5, lane_width_sd_m=0.0)
+
+    def read(lanes_to_kerb: int, centre_along_m: float | None) -> JunctionGuidance:
+        line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
+                               config=SimpleNamespace(camera_to_front_m=2.0))
+        odo = SimpleNamespace(road_yaw=0.0, pos=np.zeros(2), road_offset=0.0, yaw=0.0)
+        g = JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
+        g.note(StopLine(8.0, 0.5, 0.9, 0), 8.0 + 0.5 + 6.0, 3.5, None, "stop", 2, lanes_to_kerb)
+        odo.pos = np.array([11.0, 0.0])
+        assert g.turn_steer(2, 3.0) is not None
+        if centre_along_m is not None:
+            see_cross_centre_line(g, 2, centre_along_m, 40.0)
+            assert g.exit_measured
+        return g
+
+    depth, w = road.stop_bar_depth_m, 3.5
+    room = read(1, None).lane_room_m
+    inner = {1: 6.0 + 10.8, 2: 6.0 + 8.6 + w}  # the bar's far edge to each count's inner lane
+    planned = read(1, None).planned_reach_m(2)
+    assert all(abs(planned - reach) <= room + 1e-9 for reach in inner.values())
+    for lanes, reach in inner.items():
+        g = read(1, reach + depth + 0.5 * w)
+        assert g.exit_lanes() == 2  # the odds say two lanes; the inner lane is the same lane either way
+        assert g.turn_reach_m(2) == pytest.approx(reach, abs=1e-6)
+    # from the kerb lane, the kerb lane of as many lanes as the odds and the reading say
+    assert read(0, None).planned_reach_m(2) == pytest.approx(6.0 + 0.01 * 10.8 + 0.99 * 8.6)
+    assert read(0, inner[2] + depth + 0.5 * w).turn_reach_m(2) == pytest.approx(6.0 + 8.6, abs=1e-6)
+
+
+def test_the_line_on_our_right_tells_how_many_lanes_lie_between_ours_and_the_kerb() -> None:
+    from types import SimpleNamespace
+
+    from towndrive.agent.decision.signs import lanes_to_kerb
+    from towndrive.agent.perception.lanes import LaneLine
+
+    def result(right: LaneLine | None) -> SimpleNamespace:
+        return SimpleNamespace(detected=right is not None, left=None, right=right)
+
+    def line(color: str, style: str) -> LaneLine:
+        return LaneLine(np.zeros(3), (4.0, 20.0), 0.9, 300, color, style, 0.5)
+
+    assert lanes_to_kerb(result(line("white", "solid"))) == 0
+    assert lanes_to_kerb(result(line("white", "dashed"))) == 1
+    assert lanes_to_kerb(result(line("white", "unknown"))) is None
+    assert lanes_to_kerb(result(line("yellow", "solid"))) is None
+    assert lanes_to_kerb(result(None)) is None and lanes_to_kerb(None) is None
+
+
 def test_going_straight_the_hold_keeps_to_the_far_sides_lane_once_read() -> None:
     """``JunctionGuidance._note_far``: going straight through a junction of a winding street, the far side's centre
     line (read as the road turned into is) places the lane the hold keeps to: half a lane width to its right, at its

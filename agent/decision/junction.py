@@ -152,6 +152,7 @@ class JunctionGuidance:
         #                               away from us), as measured at this junction
         self.control: str | None = None  # what governs our arm (sim.spec.CONTROL_KINDS), as seen before the bar
         self.our_lanes: int | None = None  # our road's lanes each way, as the lane lines told before the bar
+        self.lanes_to_kerb = 0  # lanes between ours and the kerb, as the lane lines told before the bar
         self._exit: list[tuple[float, float]] = []  # (reach, turn angle in degrees) read from the road turned into
         self._exit_fix: tuple[float, float] | None = None  # ... their medians, once there are enough readings
 
@@ -212,7 +213,8 @@ class JunctionGuidance:
         return tuple(float(v) for v in np.median(np.array(readings[-cfg.exit_last_readings:]), axis=0))
 
     def note(self, stop: StopLine | None, zebra_far_m: float | None = None, lane_width_m: float | None = None,
-             zebra_tilt: float | None = None, control: str | None = None, our_lanes: int | None = None) -> None:
+             zebra_tilt: float | None = None, control: str | None = None, our_lanes: int | None = None,
+             lanes_to_kerb: int | None = None) -> None:
         """Where the stop bar ahead lies in the odometry frame (the approach lane's centre at the bar's near edge),
         from the tracked bar and the approach lane measured before it. Only a bar seen within ``turn_bar_seen_m``
         of the camera places a turn (farther readings are a metre or so off). ``zebra_far_m``: the camera to the
@@ -220,7 +222,9 @@ class JunctionGuidance:
         measured (both correct the design's priors, module docstring); ``zebra_tilt``: the slope of the zebra's
         edges (dz/dx in the camera's ground frame), the cross street's direction; ``control``: what governs our
         arm as seen this frame (a light or a sign, "none" when neither); ``our_lanes``: our road's lanes each way
-        as last measured (both tell how likely the cross street has two lanes, ``RoadDesign.two_lane_share``)."""
+        as last measured (both tell how likely the cross street has two lanes, ``RoadDesign.two_lane_share``);
+        ``lanes_to_kerb``: lanes between ours and the kerb as the line on our right tells (which lane of the cross
+        street a right turn goes into, ``kerb_side_lanes``)."""
         line, odo, road = self.line, self.odo, self.road
         if line.ignore_light_m > 0 or not line.stop_line_measured or line.stop_line is None or odo.road_yaw is None:
             return
@@ -230,6 +234,7 @@ class JunctionGuidance:
             if control is not None and (self.control in (None, "none") or control != "none"):
                 self.control = control  # a light or a sign seen once governs the arm
             self.our_lanes = our_lanes if our_lanes is not None else self.our_lanes
+            self.lanes_to_kerb = lanes_to_kerb if lanes_to_kerb is not None else self.lanes_to_kerb
             if lane_width_m is not None and math.isfinite(lane_width_m):
                 self.lane_width_m = fused(road.lane_width_m, road.lane_width_sd_m, lane_width_m, LANE_WIDTH_SD_M)
             if zebra_far_m is not None:
@@ -262,11 +267,21 @@ class JunctionGuidance:
     def turn_reach_m(self, command: int) -> float:
         """The stop bar's far edge to where the lane turned into crosses our lane's centre line: as read in the
         turn from the road turned into (``note_exit``; a right turn goes into its kerb lane, as many lanes short of
-        the inner one as ``exit_lanes`` tells), else as planned before it (``planned_reach_m``)."""
+        the inner one as ``exit_lanes`` tells, less ``kerb_side_lanes``), else as planned before it
+        (``planned_reach_m``)."""
         if self._exit_fix is None:
             return self.planned_reach_m(command)
         inner = self._exit_fix[0]
-        return inner - (self.exit_lanes() - 1) * self.lane_width_m if command == 2 else inner
+        if command != 2:
+            return inner
+        lanes = self.exit_lanes()
+        return inner - (lanes - 1 - self.kerb_side_lanes(lanes)) * self.lane_width_m
+
+    def kerb_side_lanes(self, exit_lanes: int) -> int:
+        """How many lanes from the kerb a right turn ends, on a road turned into of ``exit_lanes`` lanes each way:
+        as many as ours lies from our kerb (a right turn keeps its lane: from the inner lane of two it goes into
+        the inner lane, whatever the cross street's count), as far as that road has lanes."""
+        return min(self.lanes_to_kerb, exit_lanes - 1)
 
     def exit_lanes(self) -> int:
         """The road turned into's lanes each way, as its centre line read in the turn tells (1 before it is read):
@@ -306,10 +321,12 @@ class JunctionGuidance:
         the priors (left turns: half a lane beyond the junction's centre; right turns: the kerb lane's own
         prior)."""
         beyond = self.road.turn_reach(command == 1, self.road.two_lane_share(self.control, self.our_lanes),
-                                      within_m=self.lane_room_m)
+                                      within_m=self.lane_room_m, lanes_to_kerb=self.lanes_to_kerb)
         if self._zebra_m and beyond is not None:
             return float(np.median(self._zebra_m)) + beyond
-        return self.road.kerb_lane_reach if command == 2 else self.setback_m + 0.5 * self.lane_width_m
+        if command == 2:
+            return self.road.kerb_lane_reach + self.lanes_to_kerb * self.lane_width_m
+        return self.setback_m + 0.5 * self.lane_width_m
 
     def exit_expected_rad(self) -> float | None:
         """While a turn's arc leads with a design that spreads and the car has turned far enough to see the road
@@ -427,6 +444,8 @@ class JunctionGuidance:
         along, across = self._in_bar_frame(odo.pos)
         here = np.array([along - half * math.cos(heading), across - half * math.sin(heading)])
         radius = self.road.left_turn_radius_m if command == 1 else self.road.right_turn_radius_m
+        if command == 2 and radius is not None:  # the design's is the kerb lane's: a lane farther out, a lane wider
+            radius += self.lanes_to_kerb * self.lane_width_m
         angle = round(self.turn_angle_deg(command), 1)
         path, arc_end = turn_path(command, round(reach, 2), self.road.stop_bar_depth_m, radius, angle_deg=angle)
         lookahead = cfg.turn_lookahead_m + cfg.turn_lookahead_s * speed

@@ -47,6 +47,15 @@ def lanes_each_way(lanes: LaneResult | None) -> int | None:
     return None
 
 
+def lanes_to_kerb(lanes: LaneResult | None) -> int | None:
+    """How many lanes lie between the car's lane and the kerb, from the line on its right: 0 when it is the road's
+    solid white edge line, 1 when a dashed white line (another lane of ours beyond it); None when not told."""
+    right = lanes.right if lanes is not None and lanes.detected else None
+    if right is None or right.color != "white":
+        return None
+    return 0 if right.style == "solid" else 1 if right.style == "dashed" else None
+
+
 class SignControl:
     """The signs' state across frames (module docstring)."""
 

@@ -201,6 +201,8 @@ class MarkingSpec:
     coverage_z_max_m: float = 18.0  # look no farther: beyond, one image row smears over a dash gap
     coverage_min_span_m: float = 6.0  # at least two thirds of a dash period must be in view
     solid_min_coverage: float = 0.65  # between a dashed line's third (a little more, smeared) and a solid one's all
+    dashed_min_coverage: float = 0.15  # less paint than a dashed line's leaves its pattern untold (a line cut
+    #                                    short by a stop bar a few metres ahead: "unknown", not "dashed")
     style_memory: float = 0.6  # weight of the previous frames' coverage of the same line
 
     def boundary_beyond_m(self, color: str, style: str) -> float:
@@ -518,7 +520,8 @@ class LaneDetector:
             else:
                 cov = float("nan")
             self._coverage[k] = (x_car, cov) if math.isfinite(cov) else None
-            style = "unknown" if not math.isfinite(cov) else ("solid" if cov >= spec.solid_min_coverage else "dashed")
+            style = ("unknown" if not math.isfinite(cov) or cov < spec.dashed_min_coverage
+                     else "solid" if cov >= spec.solid_min_coverage else "dashed")
             out.append(LaneLine(line.coeffs, line.z_range_m, line.confidence, line.n_pixels, line.color, style, cov))
         return out[0], out[1]
 
