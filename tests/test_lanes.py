@@ -244,3 +244,27 @@ def test_lane_centre_from_one_line_with_the_car_turned() -> None:
         edge = LaneLine(np.array([0.0, b, c]), (3.0, 20.0), 1.0, 500, "white", "solid", 1.0)
         _, offset = det._lane_centre(None, edge)
         assert abs(offset - car_offset_m) < 0.01
+
+
+def test_a_line_with_less_paint_than_a_dashed_ones_is_unknown_not_dashed() -> None:
+    """A line cut short by a stop bar a few metres ahead shows a few rows of paint: its pattern is not told
+    (``MarkingSpec.dashed_min_coverage``), where the rule "solid or else dashed" called it dashed (a kerb lane
+    then read as having a lane beyond it). A third of the rows painted is still dashed."""
+    from towndrive.agent.perception.lanes import LaneLine
+
+    def style_with_paint(z_painted: tuple[float, float]) -> tuple[str, float]:
+        det = LaneDetector(CAM)
+        be, bcfg = det.birdseye, det.config.birdseye
+        w, h = be.size
+        binary = np.zeros((h, w), np.uint8)
+        col = int(round((1.75 - bcfg.x_min_m) * bcfg.px_per_m_x))
+        rows = (be.z_of_row >= z_painted[0]) & (be.z_of_row <= z_painted[1])
+        binary[rows, col - 1:col + 2] = 255
+        line = LaneLine(np.array([0.0, 0.0, 1.75]), (3.0, 18.0), 0.9, 300, "white")
+        _, right = det._classify(None, line, binary)
+        assert right is not None
+        return right.style, right.coverage
+
+    style, coverage = style_with_paint((5.0, 5.8))
+    assert style == "unknown" and coverage < LaneDetector(CAM).config.markings.dashed_min_coverage
+    assert style_with_paint((5.0, 8.0))[0] == "dashed" and style_with_paint((3.0, 18.0))[0] == "solid"

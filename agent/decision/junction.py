@@ -19,9 +19,11 @@ cross street's lane count was guessed wrong. So once the road turned into is in 
 50 of a left turn), it is read (``agent.perception.exit_line``): its centre line places its inner lane half a lane
 width to the line's right in the direction of travel, whatever the count, and the line's direction gives the turn's
 angle. A left turn goes into that lane; a right turn into the kerb lane, as many lanes short of it as the line's
-distance beyond the zebra tells (``exit_lanes``). The arc is re-placed on that lane and leads the whole turn. Where
-the road turned into is never read, the arc leads only until the car faces that road (``turn_handover_deg``) and
-PilotNet, which sees it, finishes the turn. An exact design's arc leads to the end.
+distance beyond the zebra tells (``exit_lanes``). A right turn keeps its lane counted from the kerb, as the town's
+connectors do (``kerb_side_lanes``): from the inner lane of two (a lane change before the turn held) it goes into
+the inner lane, whatever the count, on an arc a lane wider than the kerb lane's. The arc is re-placed on that lane
+and leads the whole turn. Where the road turned into is never read, the arc leads only until the car faces that road
+(``turn_handover_deg``) and PilotNet, which sees it, finishes the turn. An exact design's arc leads to the end.
 Where junctions are not square, the arc turns by the cross street's angle, read from the zebra beyond the bar (its
 edges run along the cross street), into the lane whose centre line crosses the approach lane's where the road
 design's reach puts it.
