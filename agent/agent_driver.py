@@ -577,9 +577,7 @@ class AgentDriver:
         # as measured this frame, where the car is
         signs = self.controller.signs
         control = "signal" if light is not None else (signs.control or "none")
-        bar, kerb = self.controller.line.stop_line, lanes_to_kerb(lanes)
-        if kerb is not None and (bar is None or bar > st.lanes.config.markings.coverage_z_max_m):
-            self._lanes_to_kerb = kerb  # a line's style is read over that far: nearer, the bar cuts it short
+        self._note_lanes_to_kerb(lanes)
         st.junction.note(stop, self._zebra_far_m, lanes.boundary_width_m, self._zebra_tilt, control,
                          signs.lanes_each_way, self._lanes_to_kerb)
         odo.advance(speed, decision.steer, command, self.dt)
@@ -596,6 +594,20 @@ class AgentDriver:
         if self._threads is not None:
             self._threads.took(threads, time.perf_counter() - t_wall)
         return decision.action(), view, times
+
+    def _note_lanes_to_kerb(self, lanes: LaneResult) -> None:
+        """Remember how many lanes lie between ours and the kerb (``lanes_to_kerb``) as the line on our right tells,
+        read only with the tracked stop bar farther than ``coverage_z_max_m``: a line's style is read from its
+        paint that far ahead, and a bar nearer cuts the line short. Forgotten inside a junction: the road left
+        behind is not the road ahead."""
+        line = self.controller.line
+        if line.in_junction:
+            self._lanes_to_kerb = None
+            return
+        kerb = lanes_to_kerb(lanes)
+        if kerb is not None and (line.stop_line is None
+                                 or line.stop_line > self.stages.lanes.config.markings.coverage_z_max_m):
+            self._lanes_to_kerb = kerb
 
     def _decide(self, speed: float, command: int, pilot: float, hold: float | None, turn: float | None,
                 held: str | None, objects: list[PerceivedObject], light: LightSeen | None, stop: StopLine | None,

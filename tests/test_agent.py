@@ -626,3 +626,36 @@ def test_a_person_seen_whole_in_the_turn_s_sweep_holds_the_car_as_long_as_they_s
     trace = _stand_in_a_left_turn(driver, lambda n: [Detection(whole, ped, 0.8)], 30.0)
     assert all(v < 0.1 for v, _ in trace[40:])
     assert "pedestrian" in trace[-1][1] and "creeping" not in trace[-1][1]
+
+
+@needs_models
+def test_the_lanes_to_the_kerb_are_read_clear_of_a_stop_bar_and_forgotten_in_a_junction() -> None:
+    """The line on our right tells how many lanes lie between ours and the kerb (a right turn keeps that count);
+    its style is read from its paint ``coverage_z_max_m`` ahead, so with the stop bar nearer (the bar cuts it
+    short: a kerb lane's edge line read as a dashed divider) the last reading holds, and inside a junction it is
+    forgotten (the road left behind is not the one ahead)."""
+    from towndrive.agent.drivers import make_driver
+    from towndrive.agent.perception.lanes import LaneLine
+    from towndrive.envs.drive_env import DriveConfig
+
+    driver = make_driver("agent")
+    driver.reset(SimpleNamespace(config=DriveConfig()))
+    line = driver.controller.line
+    reach = driver.stages.lanes.config.markings.coverage_z_max_m
+
+    def seen(style: str) -> SimpleNamespace:
+        return SimpleNamespace(detected=True, left=None,
+                               right=LaneLine(np.zeros(3), (3.0, 18.0), 0.9, 300, "white", style, 0.5))
+
+    line.stop_line = None
+    driver._note_lanes_to_kerb(seen("solid"))
+    assert driver._lanes_to_kerb == 0
+    line.stop_line = reach - 10.0  # the bar cuts the edge line short: it reads as dashed
+    driver._note_lanes_to_kerb(seen("dashed"))
+    assert driver._lanes_to_kerb == 0
+    line.stop_line = reach + 10.0
+    driver._note_lanes_to_kerb(seen("dashed"))
+    assert driver._lanes_to_kerb == 1
+    line.stop_line, line.ignore_light_m = None, 10.0  # past the bar, in the junction
+    driver._note_lanes_to_kerb(seen("solid"))
+    assert driver._lanes_to_kerb is None

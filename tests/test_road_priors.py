@@ -599,7 +599,7 @@ def test_a_right_turn_from_the_inner_lane_of_two_goes_into_the_inner_lane_whatev
     inner = {1: 6.0 + 10.8, 2: 6.0 + 8.6 + w}  # the bar's far edge to each count's inner lane
     planned = read(1, None).planned_reach_m(2)
     assert all(abs(planned - reach) <= room + 1e-9 for reach in inner.values())
-    for lanes, reach in inner.items():
+    for reach in inner.values():
         g = read(1, reach + depth + 0.5 * w)
         assert g.exit_lanes() == 2  # the odds say two lanes; the inner lane is the same lane either way
         assert g.turn_reach_m(2) == pytest.approx(reach, abs=1e-6)
