@@ -49,9 +49,9 @@ def drive_turn(style: str, town_seed: int, entry_index: int, command: int,
     config = DriveConfig(world=WorldConfig(town=TownConfig.of_style(style)), render_camera=exit_read)
     town = cached_town(config.world.town, town_seed)
     entry = town.entries[entry_index]
-    k = 0 if command == Command.LEFT or inner else entry.lane_count - 1
     if inner and entry.lane_count < 2:
         return None
+    k = 0 if command == Command.LEFT or inner else entry.lane_count - 1
     connector = next((idx for idx, info in town.lane_info.items() if idx[0] == entry.edge[1] and idx[2] == k
                       and info.kind == "connector" and info.command == command), None)
     if connector is None:

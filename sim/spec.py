@@ -140,6 +140,13 @@ class CrossStreetOdds:
         check_number("cross street odds junctions", self.junctions, 1, 1_000_000)
 
 
+def right_turn_lanes_from_kerb(lanes_to_kerb: int, cross_lanes: int) -> int:
+    """How many lanes off the cross street's kerb a right turn ends, from ``lanes_to_kerb`` lanes off ours: as many,
+    as far as the cross street has lanes (``sim/town.py``'s connectors keep a right turn's lane counted from the
+    kerb; from the inner lane of two, the inner lane, one lane each way or two)."""
+    return min(lanes_to_kerb, cross_lanes - 1)
+
+
 @dataclass(frozen=True)
 class TurnReach:
     """Where the lane a turn goes into crosses our lane's centre line, beyond the near zebra's far edge (measured
@@ -251,10 +258,10 @@ class RoadDesign:
         the count is not seen. With ``within_m``, moved (where that can be) to within it of every count that may
         be: a turn that misses its lane by more leaves it, whichever count is the likelier, so both are kept in
         reach rather than the likelier one closer. None when the design has no reach for a count that may be.
-        A right turn from ``lanes_to_kerb`` lanes off our kerb ends as many off the cross street's, as far as it
-        has lanes (``sim/town.py``'s connectors keep a right turn's lane counted from the kerb)."""
-        reach = {r.cross_lanes: (r.left_m if left else r.right_m + min(lanes_to_kerb, r.cross_lanes - 1)
-                                 * self.lane_width_m) for r in self.turn_reaches}
+        A right turn from ``lanes_to_kerb`` lanes off our kerb ends ``right_turn_lanes_from_kerb`` off the cross
+        street's."""
+        reach = {r.cross_lanes: (r.left_m if left else r.right_m + right_turn_lanes_from_kerb(
+            lanes_to_kerb, r.cross_lanes) * self.lane_width_m) for r in self.turn_reaches}
         weights = {1: 1.0 - two_lane_share, 2: two_lane_share}
         if any(w > 0 and n not in reach for n, w in weights.items()):
             return None

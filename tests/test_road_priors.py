@@ -568,10 +568,11 @@ def test_a_right_turn_read_in_the_turn_goes_into_the_kerb_lane_of_as_many_lanes_
 
 
 def test_a_right_turn_from_the_inner_lane_of_two_goes_into_the_inner_lane_whatever_the_cross_streets_count() -> None:
-    """``JunctionGuidance.kerb_side_lanes``: a right turn keeps its lane counted from the kerb (the town's
-    connectors do), so from the inner lane of two it ends in the inner lane of the road turned into, one lane or
-    two: the centre line read in the turn places it, whatever count ``exit_lanes`` guesses, and the plan before
-    the read is kept within the car's room of both counts' inner lanes. From the kerb lane, the kerb lane."""
+    """``sim.spec.right_turn_lanes_from_kerb`` in ``JunctionGuidance``: a right turn keeps its lane counted from the
+    kerb (the town's connectors do), so from the inner lane of two it ends in the inner lane of the road turned
+    into, one lane or two: the centre line read in the turn places it, whatever count ``exit_lanes`` guesses, and
+    the plan before the read is kept within the car's room of both counts' inner lanes. From the kerb lane, the
+    kerb lane."""
     from types import SimpleNamespace
 
     from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules

@@ -20,10 +20,11 @@ cross street's lane count was guessed wrong. So once the road turned into is in 
 width to the line's right in the direction of travel, whatever the count, and the line's direction gives the turn's
 angle. A left turn goes into that lane; a right turn into the kerb lane, as many lanes short of it as the line's
 distance beyond the zebra tells (``exit_lanes``). A right turn keeps its lane counted from the kerb, as the town's
-connectors do (``kerb_side_lanes``): from the inner lane of two (a lane change before the turn held) it goes into
-the inner lane, whatever the count, on an arc a lane wider than the kerb lane's. The arc is re-placed on that lane
-and leads the whole turn. Where the road turned into is never read, the arc leads only until the car faces that road
-(``turn_handover_deg``) and PilotNet, which sees it, finishes the turn. An exact design's arc leads to the end.
+connectors do (``sim.spec.right_turn_lanes_from_kerb``): from the inner lane of two (a lane change before the turn
+held) it goes into the inner lane, whatever the count, on an arc a lane wider than the kerb lane's. The arc is
+re-placed on that lane and leads the whole turn. Where the road turned into is never read, the arc leads only until
+the car faces that road (``turn_handover_deg``) and PilotNet, which sees it, finishes the turn. An exact design's
+arc leads to the end.
 Where junctions are not square, the arc turns by the cross street's angle, read from the zebra beyond the bar (its
 edges run along the cross street), into the lane whose centre line crosses the approach lane's where the road
 design's reach puts it.
@@ -42,7 +43,7 @@ from towndrive.agent.decision.priors import fused, junction_widening_m
 from towndrive.agent.decision.stop_line_track import StopLineTrack
 from towndrive.agent.perception.exit_line import ExitLine
 from towndrive.agent.perception.stop_line import StopLine
-from towndrive.sim.spec import ROAD, VEHICLE, RoadDesign
+from towndrive.sim.spec import ROAD, VEHICLE, RoadDesign, right_turn_lanes_from_kerb
 
 
 @lru_cache(maxsize=64)
@@ -226,7 +227,7 @@ class JunctionGuidance:
         arm as seen this frame (a light or a sign, "none" when neither); ``our_lanes``: our road's lanes each way
         as last measured (both tell how likely the cross street has two lanes, ``RoadDesign.two_lane_share``);
         ``lanes_to_kerb``: lanes between ours and the kerb as the line on our right tells (which lane of the cross
-        street a right turn goes into, ``kerb_side_lanes``)."""
+        street a right turn goes into, ``right_turn_lanes_from_kerb``)."""
         line, odo, road = self.line, self.odo, self.road
         if line.ignore_light_m > 0 or not line.stop_line_measured or line.stop_line is None or odo.road_yaw is None:
             return
@@ -269,7 +270,7 @@ class JunctionGuidance:
     def turn_reach_m(self, command: int) -> float:
         """The stop bar's far edge to where the lane turned into crosses our lane's centre line: as read in the
         turn from the road turned into (``note_exit``; a right turn goes into its kerb lane, as many lanes short of
-        the inner one as ``exit_lanes`` tells, less ``kerb_side_lanes``), else as planned before it
+        the inner one as ``exit_lanes`` tells, less ``right_turn_lanes_from_kerb``), else as planned before it
         (``planned_reach_m``)."""
         if self._exit_fix is None:
             return self.planned_reach_m(command)
@@ -277,13 +278,7 @@ class JunctionGuidance:
         if command != 2:
             return inner
         lanes = self.exit_lanes()
-        return inner - (lanes - 1 - self.kerb_side_lanes(lanes)) * self.lane_width_m
-
-    def kerb_side_lanes(self, exit_lanes: int) -> int:
-        """How many lanes from the kerb a right turn ends, on a road turned into of ``exit_lanes`` lanes each way:
-        as many as ours lies from our kerb (a right turn keeps its lane: from the inner lane of two it goes into
-        the inner lane, whatever the cross street's count), as far as that road has lanes."""
-        return min(self.lanes_to_kerb, exit_lanes - 1)
+        return inner - (lanes - 1 - right_turn_lanes_from_kerb(self.lanes_to_kerb, lanes)) * self.lane_width_m
 
     def exit_lanes(self) -> int:
         """The road turned into's lanes each way, as its centre line read in the turn tells (1 before it is read):
