@@ -58,7 +58,7 @@ from towndrive.agent.decision.controller import Controller, ControllerConfig, De
 from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
 from towndrive.agent.decision.odometry import Odometry
 from towndrive.agent.decision.our_light import LightRules, LightSeen, OurLight
-from towndrive.agent.decision.signs import lanes_each_way, lanes_to_kerb
+from towndrive.agent.decision.signs import KerbLanes, lanes_each_way, lanes_to_kerb
 from towndrive.agent.decision.turn_end import TurnEnd, TurnEndRules
 from towndrive.agent.perception.box_geometry import BoxGeometry
 from towndrive.agent.perception.classes import LIGHT_CLASSES
@@ -354,7 +354,7 @@ class AgentDriver:
             stage.reset()
         self._lights: list[Detection] = []
         self._signs: list[SignSeen] = []
-        self._lanes_to_kerb: int | None = None  # as the line on our right last told, read clear of a stop bar
+        self._kerb_lanes = KerbLanes(lane_width_m=self.config.road.lane_width_m)  # read clear of a stop bar
 
     # Stage shortcuts kept for overlays, profiles and tests.
     lanes = property(lambda self: self.stages.lanes)
@@ -579,7 +579,7 @@ class AgentDriver:
         control = "signal" if light is not None else (signs.control or "none")
         self._note_lanes_to_kerb(lanes)
         st.junction.note(stop, self._zebra_far_m, lanes.boundary_width_m, self._zebra_tilt, control,
-                         signs.lanes_each_way, self._lanes_to_kerb)
+                         signs.lanes_each_way, self._kerb_lanes.count)
         odo.advance(speed, decision.steer, command, self.dt)
         lap("control")
         in_path = st.memory.note(objects, decision.in_path, st.objects.edge_only)
@@ -598,16 +598,22 @@ class AgentDriver:
     def _note_lanes_to_kerb(self, lanes: LaneResult) -> None:
         """Remember how many lanes lie between ours and the kerb (``lanes_to_kerb``) as the line on our right tells,
         read only with the tracked stop bar farther than ``coverage_z_max_m``: a line's style is read from its
-        paint that far ahead, and a bar nearer cuts the line short. Forgotten inside a junction: the road left
-        behind is not the road ahead."""
-        line = self.controller.line
+        paint that far ahead, and a bar nearer cuts the line short. Kept while the car is still in the lane it was
+        read in (``KerbLanes``); forgotten inside a junction: the road left behind is not the road ahead."""
+        line, odo = self.controller.line, self.stages.odometry
         if line.in_junction:
-            self._lanes_to_kerb = None
+            self._kerb_lanes.forget()
             return
         kerb = lanes_to_kerb(lanes)
-        if kerb is not None and (line.stop_line is None
-                                 or line.stop_line > self.stages.lanes.config.markings.coverage_z_max_m):
-            self._lanes_to_kerb = kerb
+        if kerb is not None and line.stop_line is not None \
+                and line.stop_line <= self.stages.lanes.config.markings.coverage_z_max_m:
+            kerb = None
+        self._kerb_lanes.note(kerb, (float(odo.pos[0]), float(odo.pos[1])),
+                              odo.road_yaw if odo.road_yaw is not None else odo.yaw)
+
+    @property
+    def _lanes_to_kerb(self) -> int | None:
+        return self._kerb_lanes.count
 
     def _decide(self, speed: float, command: int, pilot: float, hold: float | None, turn: float | None,
                 held: str | None, objects: list[PerceivedObject], light: LightSeen | None, stop: StopLine | None,

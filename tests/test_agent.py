@@ -632,8 +632,9 @@ def test_a_person_seen_whole_in_the_turn_s_sweep_holds_the_car_as_long_as_they_s
 def test_the_lanes_to_the_kerb_are_read_clear_of_a_stop_bar_and_forgotten_in_a_junction() -> None:
     """The line on our right tells how many lanes lie between ours and the kerb (a right turn keeps that count);
     its style is read from its paint ``coverage_z_max_m`` ahead, so with the stop bar nearer (the bar cuts it
-    short: a kerb lane's edge line read as a dashed divider) the last reading holds, and inside a junction it is
-    forgotten (the road left behind is not the one ahead)."""
+    short: a kerb lane's edge line read as a dashed divider) the last reading holds; it is forgotten when the car
+    has moved sideways into another lane since, and inside a junction (the road left behind is not the one
+    ahead)."""
     from towndrive.agent.drivers import make_driver
     from towndrive.agent.perception.lanes import LaneLine
     from towndrive.envs.drive_env import DriveConfig
@@ -656,6 +657,11 @@ def test_the_lanes_to_the_kerb_are_read_clear_of_a_stop_bar_and_forgotten_in_a_j
     line.stop_line = reach + 10.0
     driver._note_lanes_to_kerb(seen("dashed"))
     assert driver._lanes_to_kerb == 1
+    odo = driver.stages.odometry
+    odo.pos = odo.pos + np.array([5.0, 2.0])  # the car changed lanes, and read no line on its right since
+    driver._note_lanes_to_kerb(SimpleNamespace(detected=True, left=None, right=None))
+    assert driver._lanes_to_kerb is None
+    driver._note_lanes_to_kerb(seen("dashed"))
     line.stop_line, line.ignore_light_m = None, 10.0  # past the bar, in the junction
     driver._note_lanes_to_kerb(seen("solid"))
     assert driver._lanes_to_kerb is None

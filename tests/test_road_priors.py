@@ -628,6 +628,29 @@ def test_the_line_on_our_right_tells_how_many_lanes_lie_between_ours_and_the_ker
     assert lanes_to_kerb(result(None)) is None and lanes_to_kerb(None) is None
 
 
+def test_the_lanes_to_the_kerb_describe_the_lane_they_were_read_in() -> None:
+    """``KerbLanes``: a reading of the line on our right is kept while the car drives on in its lane, and forgotten
+    once it has moved half a lane sideways (its own lane change into the kerb lane, with no line read there) or
+    travelled ``forget_after_m`` without a fresh reading; a fresh reading starts afresh from where it was taken."""
+    import math
+
+    from towndrive.agent.decision.signs import KerbLanes
+
+    heading = math.radians(30.0)
+    along, across = np.array([math.cos(heading), math.sin(heading)]), np.array([-math.sin(heading), math.cos(heading)])
+    kerb = KerbLanes(forget_after_m=25.0, lane_width_m=3.5)
+    start = np.array([10.0, -4.0])
+    assert kerb.note(1, tuple(start), heading) == 1
+    assert kerb.note(None, tuple(start + 20.0 * along + 1.0 * across), heading) == 1  # drifting within its lane
+    assert kerb.note(None, tuple(start + 20.0 * along + 2.0 * across), heading) is None  # a lane change
+    assert kerb.note(0, tuple(start + 22.0 * along + 3.5 * across), heading) == 0  # read afresh in the new lane
+    assert kerb.note(None, tuple(start + 46.0 * along + 3.5 * across), heading) == 0
+    assert kerb.note(None, tuple(start + 48.0 * along + 3.5 * across), heading) is None  # too far since
+    kerb.note(1, (0.0, 0.0), 0.0)
+    kerb.forget()
+    assert kerb.count is None
+
+
 def test_going_straight_the_hold_keeps_to_the_far_sides_lane_once_read() -> None:
     """``JunctionGuidance._note_far``: going straight through a junction of a winding street, the far side's centre
     line (read as the road turned into is) places the lane the hold keeps to: half a lane width to its right, at its

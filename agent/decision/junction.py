@@ -226,8 +226,9 @@ class JunctionGuidance:
         edges (dz/dx in the camera's ground frame), the cross street's direction; ``control``: what governs our
         arm as seen this frame (a light or a sign, "none" when neither); ``our_lanes``: our road's lanes each way
         as last measured (both tell how likely the cross street has two lanes, ``RoadDesign.two_lane_share``);
-        ``lanes_to_kerb``: lanes between ours and the kerb as the line on our right tells (which lane of the cross
-        street a right turn goes into, ``right_turn_lanes_from_kerb``)."""
+        ``lanes_to_kerb``: lanes between ours and the kerb as the line on our right told while the car was in the
+        lane it drives in now (which lane of the cross street a right turn goes into,
+        ``right_turn_lanes_from_kerb``); None when not known: the kerb lane, as a right turn is made from."""
         line, odo, road = self.line, self.odo, self.road
         if line.ignore_light_m > 0 or not line.stop_line_measured or line.stop_line is None or odo.road_yaw is None:
             return
@@ -237,7 +238,7 @@ class JunctionGuidance:
             if control is not None and (self.control in (None, "none") or control != "none"):
                 self.control = control  # a light or a sign seen once governs the arm
             self.our_lanes = our_lanes if our_lanes is not None else self.our_lanes
-            self.lanes_to_kerb = lanes_to_kerb if lanes_to_kerb is not None else self.lanes_to_kerb
+            self.lanes_to_kerb = lanes_to_kerb if lanes_to_kerb is not None else 0  # not known: the kerb lane
             if lane_width_m is not None and math.isfinite(lane_width_m):
                 self.lane_width_m = fused(road.lane_width_m, road.lane_width_sd_m, lane_width_m, LANE_WIDTH_SD_M)
             if zebra_far_m is not None:

@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from towndrive.agent.perception.lanes import LaneResult
@@ -54,6 +55,38 @@ def lanes_to_kerb(lanes: LaneResult | None) -> int | None:
     if right is None or right.color != "white":
         return None
     return 0 if right.style == "solid" else 1 if right.style == "dashed" else None
+
+
+class KerbLanes:
+    """The lanes between ours and the kerb (``lanes_to_kerb``) as last read, kept only while they still describe the
+    car's lane: a reading tells about the lane it was taken in, so it is forgotten once the car has moved sideways
+    half a lane since (its own lane change, which may happen where no line on its right is read again) or has
+    travelled ``forget_after_m`` without a fresh one (a lane change missed by dead reckoning, a road that changed)."""
+
+    def __init__(self, forget_after_m: float = 25.0, lane_width_m: float = ROAD.lane_width_m) -> None:
+        self.forget_after_m = forget_after_m
+        self.shift_m = 0.5 * lane_width_m
+        self.reset()
+
+    def reset(self) -> None:
+        self.count: int | None = None
+        self._at = (0.0, 0.0)  # dead-reckoned position of the last reading
+        self._heading = 0.0  # and the heading of the lane it was taken in
+
+    def note(self, reading: int | None, pos: tuple[float, float], heading_rad: float) -> int | None:
+        """Keep a fresh ``reading`` taken at ``pos`` in a lane heading ``heading_rad`` (the odometry's frame), or
+        judge the one kept from the car's travel since; returns the count kept."""
+        if reading is not None:
+            self.count, self._at, self._heading = reading, (float(pos[0]), float(pos[1])), heading_rad
+        elif self.count is not None:
+            dx, dy = pos[0] - self._at[0], pos[1] - self._at[1]
+            across = -dx * math.sin(self._heading) + dy * math.cos(self._heading)
+            if math.hypot(dx, dy) > self.forget_after_m or abs(across) > self.shift_m:
+                self.count = None
+        return self.count
+
+    def forget(self) -> None:
+        self.count = None
 
 
 class SignControl:
