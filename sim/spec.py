@@ -140,6 +140,23 @@ class CrossStreetOdds:
         check_number("cross street odds junctions", self.junctions, 1, 1_000_000)
 
 
+def hedged_reach(options: list[tuple[float, float, float, float]], within_m: float | None) -> float:
+    """A turn's reach over the cross street's lane counts that may be, each given as (weight, the reach of the lane
+    the turn goes into on that count, and the nearest and farthest reach of that count's lanes in our direction):
+    the weighted mean (the least squared error), moved where it can be to within ``within_m`` of every count's lanes.
+    A turn that ends among the lanes of its direction, whichever they are, stays on the road; one that misses them
+    by more leaves it, however likely the count it was aimed at. So a right turn whose cross street may have one
+    lane keeps near that lane's place, which on two lanes is the inner one, rather than aiming at a kerb lane that
+    is off the road if the count was guessed wrong."""
+    total = sum(w for w, *_ in options)
+    expected = sum(w * target for w, target, *_ in options) / total
+    if within_m is None:
+        return expected
+    lo = max(near for w, _, near, _ in options if w > 0) - within_m
+    hi = min(far for w, _, _, far in options if w > 0) + within_m
+    return expected if lo > hi else min(max(expected, lo), hi)
+
+
 def right_turn_lanes_from_kerb(lanes_to_kerb: int, cross_lanes: int) -> int:
     """How many lanes off the cross street's kerb a right turn ends, from ``lanes_to_kerb`` lanes off ours: as many,
     as far as the cross street has lanes (``sim/town.py``'s connectors keep a right turn's lane counted from the
@@ -254,23 +271,21 @@ class RoadDesign:
     def turn_reach(self, left: bool, two_lane_share: float, within_m: float | None = None,
                    lanes_to_kerb: int = 0) -> float | None:
         """The zebra's far edge to where the lane turned into crosses ours (``TurnReach``), expected over the cross
-        street's lane count (one or two lanes each way, two with ``two_lane_share``): the least squared error when
-        the count is not seen. With ``within_m``, moved (where that can be) to within it of every count that may
-        be: a turn that misses its lane by more leaves it, whichever count is the likelier, so both are kept in
-        reach rather than the likelier one closer. None when the design has no reach for a count that may be.
-        A right turn from ``lanes_to_kerb`` lanes off our kerb ends ``right_turn_lanes_from_kerb`` off the cross
-        street's."""
-        reach = {r.cross_lanes: (r.left_m if left else r.right_m + right_turn_lanes_from_kerb(
-            lanes_to_kerb, r.cross_lanes) * self.lane_width_m) for r in self.turn_reaches}
+        street's lane count (one or two lanes each way, two with ``two_lane_share``), and with ``within_m`` kept
+        within it of every count's lanes where it can be (``hedged_reach``). None when the design has no reach for
+        a count that may be. A left turn goes into the inner lane; a right turn from ``lanes_to_kerb`` lanes off our
+        kerb ends ``right_turn_lanes_from_kerb`` off the cross street's."""
+        reaches = {r.cross_lanes: r for r in self.turn_reaches}
         weights = {1: 1.0 - two_lane_share, 2: two_lane_share}
-        if any(w > 0 and n not in reach for n, w in weights.items()):
+        if any(w > 0 and n not in reaches for n, w in weights.items()):
             return None
-        may_be = {n: reach[n] for n, w in weights.items() if w > 0}
-        expected = sum(weights[n] * r for n, r in may_be.items())
-        if within_m is None:
-            return expected
-        lo, hi = max(may_be.values()) - within_m, min(may_be.values()) + within_m
-        return expected if lo > hi else min(max(expected, lo), hi)
+        options = []
+        for n, w in weights.items():
+            if w > 0:
+                near = reaches[n].left_m if left else reaches[n].right_m  # the inner lane, the kerb lane
+                lanes = 0 if left else right_turn_lanes_from_kerb(lanes_to_kerb, n)
+                options.append((w, near + lanes * self.lane_width_m, near, near + (n - 1) * self.lane_width_m))
+        return hedged_reach(options, within_m)
 
     @property
     def signal_mounts(self) -> tuple[SignalMount, ...]:

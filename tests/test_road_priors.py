@@ -389,9 +389,10 @@ def test_the_cross_street_s_odds_pool_the_kinds_the_car_could_not_tell_apart() -
 
 
 def test_an_unseen_lane_count_is_hedged_to_keep_both_lanes_within_the_car_s_room() -> None:
-    """The expected reach bets on the likelier count; where both may be and their lanes lie within twice the car's
-    room in its lane, it is moved to within that room of each (a threshold, not a squared error, is what a lane
-    keeps), and left alone where one count is certain or the two lie too far apart."""
+    """The expected reach bets on the likelier count; where both may be, it is moved to within the car's room in
+    its lane of each count's lanes in its direction (a threshold, not a squared error, is what a lane keeps): a left
+    turn between the two counts' inner lanes, a right turn near the single lane's place, the inner lane of two
+    (aiming at the two-lane kerb lane puts it off the road on one lane). Left alone where one count is certain."""
     from types import SimpleNamespace
 
     from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
@@ -406,7 +407,9 @@ def test_an_unseen_lane_count_is_hedged_to_keep_both_lanes_within_the_car_s_room
     hedged = road.turn_reach(True, 0.8, within_m=room)
     assert hedged == pytest.approx(14.3 + room) and 15.5 - hedged <= room + 1e-9
     assert road.turn_reach(True, 0.0, within_m=room) == 14.3  # one count can be: no hedge
-    assert road.turn_reach(False, 0.8, within_m=room) == pytest.approx(0.2 * 11.1 + 0.8 * 9.0)  # 2.1 m apart
+    assert road.turn_reach(False, 0.8) == pytest.approx(0.2 * 11.1 + 0.8 * 9.0)
+    assert road.turn_reach(False, 0.8, within_m=room) == pytest.approx(11.1 - room)  # inside the two lanes' band
+    assert road.turn_reach(False, 1.0, within_m=room) == pytest.approx(9.0)  # two lanes certain: the kerb lane
     line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
                            config=SimpleNamespace(camera_to_front_m=2.0))
     odo = SimpleNamespace(road_yaw=0.0, pos=np.zeros(2), road_offset=0.0, yaw=0.0)
@@ -508,7 +511,10 @@ def test_the_road_turned_into_read_in_the_turn_places_its_inner_lane_and_the_arc
         g = reach_read(command, centre, 40.0)
         assert g.exit_measured
         inner = centre - 0.5 * g.lane_width_m if command == 2 else centre + 0.5 * g.lane_width_m
-        assert g.turn_reach_m(command) == pytest.approx(inner - depth, abs=1e-6)
+        if command == 1:
+            assert g.turn_reach_m(command) == pytest.approx(inner - depth, abs=1e-6)
+        else:  # toward the kerb lane where two lanes may be, within the car's room of the inner lane
+            assert inner - depth - g.lane_room_m - 1e-9 <= g.turn_reach_m(command) <= inner - depth + 1e-9
         assert g.turn_angle_deg(command) == pytest.approx(90.0)
         far = reach_read(command, g0.planned_reach_m(command) + depth + 9.0, 40.0)  # a line 9 m from the plan
         assert not far.exit_measured and far.turn_reach_m(command) == far.planned_reach_m(command)
@@ -520,11 +526,13 @@ def test_the_road_turned_into_read_in_the_turn_places_its_inner_lane_and_the_arc
     assert read.turn_steer(2, 3.0) is not None and unread.turn_steer(2, 3.0) is None
 
 
-def test_a_right_turn_read_in_the_turn_goes_into_the_kerb_lane_of_as_many_lanes_as_the_centre_line_tells() -> None:
-    """``JunctionGuidance.exit_lanes``: the road turned into's centre line lies a lane farther beyond the zebra on
-    a two-lane street than on a single-lane one (less its parking strip), so a right turn goes a lane short of the
-    inner lane there, into the kerb lane the junction's connector goes to; a left turn still goes into the inner
-    lane; with no zebra measured, the odds of the kind of junction seen decide."""
+def test_a_right_turn_read_in_the_turn_keeps_within_reach_of_every_count_the_centre_line_leaves() -> None:
+    """``JunctionGuidance.exit_odds``: the road turned into's centre line lies a lane farther beyond the zebra on
+    a two-lane street than on a single-lane one (less its parking strip), so the reading tells the likelier count
+    (with no zebra measured, the odds of the kind of junction seen alone). A right turn leans toward the kerb lane
+    as far as two lanes are likely, but no farther than the car's room from the single lane's place (the inner lane
+    of two): aimed at the kerb lane of two, it leaves the road if the street has one. A left turn goes into the
+    inner lane."""
     from types import SimpleNamespace
 
     from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
@@ -551,8 +559,11 @@ def test_a_right_turn_read_in_the_turn_goes_into_the_kerb_lane_of_as_many_lanes_
     for lanes, kerb_reach in ((1, 11.0), (2, 9.0)):
         inner = 6.0 + kerb_reach + (lanes - 1) * w  # bar's far edge to the inner lane's crossing
         g = read(2, inner + depth + 0.5 * w, True, 0.5)
-        assert g.exit_lanes() == lanes
-        assert g.turn_reach_m(2) == pytest.approx(6.0 + kerb_reach, abs=1e-6)
+        odds = g.exit_odds()
+        assert g.exit_lanes() == lanes and odds[lanes] > 0.9 and sum(odds.values()) == pytest.approx(1.0)
+        room = g.lane_room_m
+        assert g.turn_reach_m(2) == pytest.approx(inner - min(room, odds[2] * w), abs=1e-6)
+    assert g.turn_reach_m(2) == pytest.approx(inner - room)  # two lanes likely: as far as one lane's place lets
     # the same reading at a kind of junction where two-lane streets are rare, and where they are the rule:
     # a reading midway leans to the odds
     midway = 6.0 + 11.0 + 0.5 * (9.0 + w - 11.0)
@@ -561,7 +572,8 @@ def test_a_right_turn_read_in_the_turn_goes_into_the_kerb_lane_of_as_many_lanes_
     # no zebra: the odds alone
     for share, lanes in ((0.3, 1), (0.8, 2)):
         g = read(2, 6.0 + 9.0 + w + depth + 0.5 * w, False, share)
-        assert g.exit_lanes() == lanes and g.turn_reach_m(2) == pytest.approx(g._exit_fix[0] - (lanes - 1) * w)
+        assert g.exit_lanes() == lanes
+        assert g.turn_reach_m(2) == pytest.approx(g._exit_fix[0] - min(g.lane_room_m, share * w))
     # a left turn goes into the inner lane whatever the count
     g = read(1, 6.0 + 15.5 + depth - 0.5 * w, True, 0.95)
     assert g.turn_reach_m(1) == pytest.approx(6.0 + 15.5, abs=1e-6)
@@ -604,9 +616,10 @@ def test_a_right_turn_from_the_inner_lane_of_two_goes_into_the_inner_lane_whatev
         g = read(1, reach + depth + 0.5 * w)
         assert g.exit_lanes() == 2  # the odds say two lanes; the inner lane is the same lane either way
         assert g.turn_reach_m(2) == pytest.approx(reach, abs=1e-6)
-    # from the kerb lane, the kerb lane of as many lanes as the odds and the reading say
-    assert read(0, None).planned_reach_m(2) == pytest.approx(6.0 + 0.01 * 10.8 + 0.99 * 8.6)
-    assert read(0, inner[2] + depth + 0.5 * w).turn_reach_m(2) == pytest.approx(6.0 + 8.6, abs=1e-6)
+    # from the kerb lane, toward the kerb lane of as many lanes as the odds and the reading say, as far as the
+    # single lane's place lets
+    assert read(0, None).planned_reach_m(2) == pytest.approx(6.0 + 10.8 - room)
+    assert read(0, inner[2] + depth + 0.5 * w).turn_reach_m(2) == pytest.approx(inner[2] - room, abs=1e-6)
 
 
 def test_the_line_on_our_right_tells_how_many_lanes_lie_between_ours_and_the_kerb() -> None:

@@ -43,7 +43,7 @@ from towndrive.agent.decision.priors import fused, junction_widening_m
 from towndrive.agent.decision.stop_line_track import StopLineTrack
 from towndrive.agent.perception.exit_line import ExitLine
 from towndrive.agent.perception.stop_line import StopLine
-from towndrive.sim.spec import ROAD, VEHICLE, RoadDesign, right_turn_lanes_from_kerb
+from towndrive.sim.spec import ROAD, VEHICLE, RoadDesign, hedged_reach, right_turn_lanes_from_kerb
 
 
 @lru_cache(maxsize=64)
@@ -270,25 +270,35 @@ class JunctionGuidance:
 
     def turn_reach_m(self, command: int) -> float:
         """The stop bar's far edge to where the lane turned into crosses our lane's centre line: as read in the
-        turn from the road turned into (``note_exit``; a right turn goes into its kerb lane, as many lanes short of
-        the inner one as ``exit_lanes`` tells, less ``right_turn_lanes_from_kerb``), else as planned before it
-        (``planned_reach_m``)."""
+        turn from the road turned into (``note_exit``), else as planned before it (``planned_reach_m``). A left
+        turn goes into the inner lane the read places. A right turn goes into the lane ``right_turn_lanes_from_kerb``
+        off the kerb, a lane short of the inner one for each lane between, over the counts the read leaves
+        (``exit_odds``), kept within ``lane_room_m`` of each count's lanes (``hedged_reach``): where one lane may
+        be, near the inner lane's place, which is that lane."""
         if self._exit_fix is None:
             return self.planned_reach_m(command)
         inner = self._exit_fix[0]
         if command != 2:
             return inner
-        lanes = self.exit_lanes()
-        return inner - (lanes - 1 - right_turn_lanes_from_kerb(self.lanes_to_kerb, lanes)) * self.lane_width_m
+        w = self.lane_width_m
+        options = [(p, inner - (n - 1 - right_turn_lanes_from_kerb(self.lanes_to_kerb, n)) * w,
+                    inner - (n - 1) * w, inner) for n, p in self.exit_odds().items()]
+        return hedged_reach(options, self.lane_room_m)
 
     def exit_lanes(self) -> int:
-        """The road turned into's lanes each way, as its centre line read in the turn tells (1 before it is read):
-        the zebra lies at the cross street's near kerb, so the centre line lies farther beyond it on a two-lane
-        street (two lanes) than on a single-lane one (a lane and a parking strip). The count whose design reach
-        (``RoadDesign.turn_reaches``, the kerb lane's plus the lanes between) is likeliest, weighed by the odds of
-        the kind of junction seen; with no zebra measured, the likelier count by those odds alone."""
+        """The road turned into's likeliest lanes each way (``exit_odds``; 1 before it is read)."""
+        odds = self.exit_odds()
+        return max(odds, key=lambda n: odds[n])
+
+    def exit_odds(self) -> dict[int, float]:
+        """How likely the road turned into has one lane each way or two, as its centre line read in the turn tells
+        ({1: 1} before it is read): the zebra lies at the cross street's near kerb, so the centre line lies farther
+        beyond it on a two-lane street (two lanes) than on a single-lane one (a lane and a parking strip). Each
+        count's design reach (``RoadDesign.turn_reaches``, the kerb lane's plus the lanes between) is weighed against
+        the line's distance beyond the zebra, from the odds of the kind of junction seen; with no zebra measured,
+        those odds alone."""
         if self._exit_fix is None or not self.road.turn_reaches:
-            return 1
+            return {1: 1.0}
         share = float(np.clip(self.road.two_lane_share(self.control, self.our_lanes), 0.01, 0.99))
         beyond = self._exit_fix[0] - float(np.median(self._zebra_m)) if self._zebra_m else None
         sd = math.hypot(EXIT_SD_M, ZEBRA_SD_M)
@@ -299,8 +309,13 @@ class JunctionGuidance:
                 return prior
             return prior - 0.5 * ((beyond - right_m - (n - 1) * self.lane_width_m) / sd) ** 2
 
-        counts = [r for r in self.road.turn_reaches if r.cross_lanes in (1, 2)]  # the odds are of one or two
-        return max(counts, key=lambda r: log_odds(r.cross_lanes, r.right_m)).cross_lanes if counts else 1
+        counts = {r.cross_lanes: log_odds(r.cross_lanes, r.right_m) for r in self.road.turn_reaches
+                  if r.cross_lanes in (1, 2)}  # the odds are of one or two
+        if not counts:
+            return {1: 1.0}
+        top = max(counts.values())
+        total = sum(math.exp(v - top) for v in counts.values())
+        return {n: math.exp(v - top) / total for n, v in counts.items()}
 
     def turn_angle_deg(self, command: int) -> float:
         """The turn's heading change: as read from the road turned into, else from the cross street's angle read
