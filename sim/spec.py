@@ -140,6 +140,9 @@ class CrossStreetOdds:
         check_number("cross street odds junctions", self.junctions, 1, 1_000_000)
 
 
+COUNT_DOUBT = 0.05  # a lane count at least this likely is one a turn is kept within reach of (hedged_reach)
+
+
 def hedged_reach(options: list[tuple[float, float, float, float]], within_m: float | None) -> float:
     """A turn's reach over the cross street's lane counts that may be, each given as (weight, the reach of the lane
     the turn goes into on that count, and the nearest and farthest reach of that count's lanes in our direction):
@@ -147,13 +150,15 @@ def hedged_reach(options: list[tuple[float, float, float, float]], within_m: flo
     A turn that ends among the lanes of its direction, whichever they are, stays on the road; one that misses them
     by more leaves it, however likely the count it was aimed at. So a right turn whose cross street may have one
     lane keeps near that lane's place, which on two lanes is the inner one, rather than aiming at a kerb lane that
-    is off the road if the count was guessed wrong."""
+    is off the road if the count was guessed wrong. A count less likely than ``COUNT_DOUBT`` is not kept in reach:
+    the turn would give up the likely count's lane for it."""
     total = sum(w for w, *_ in options)
     expected = sum(w * target for w, target, *_ in options) / total
     if within_m is None:
         return expected
-    lo = max(near for w, _, near, _ in options if w > 0) - within_m
-    hi = min(far for w, _, _, far in options if w > 0) + within_m
+    doubt = COUNT_DOUBT * total
+    lo = max(near for w, _, near, _ in options if w >= doubt) - within_m
+    hi = min(far for w, _, _, far in options if w >= doubt) + within_m
     return expected if lo > hi else min(max(expected, lo), hi)
 
 

@@ -275,15 +275,22 @@ class JunctionGuidance:
         off the kerb, a lane short of the inner one for each lane between, over the counts the read leaves
         (``exit_odds``), kept within ``lane_room_m`` of each count's lanes (``hedged_reach``): where one lane may
         be, near the inner lane's place, which is that lane."""
+        return self._turn_reach(command)[0]
+
+    def _turn_reach(self, command: int) -> tuple[float, float]:
+        """``turn_reach_m``, and how far keeping within reach of every count's lanes moved it from the expected
+        reach (``hedged_reach``)."""
         if self._exit_fix is None:
-            return self.planned_reach_m(command)
+            planned = self.planned_reach_m(command)
+            return planned, planned - self.planned_reach_m(command, hedged=False)
         inner = self._exit_fix[0]
         if command != 2:
-            return inner
+            return inner, 0.0
         w = self.lane_width_m
         options = [(p, inner - (n - 1 - right_turn_lanes_from_kerb(self.lanes_to_kerb, n)) * w,
                     inner - (n - 1) * w, inner) for n, p in self.exit_odds().items()]
-        return hedged_reach(options, self.lane_room_m)
+        hedged = hedged_reach(options, self.lane_room_m)
+        return hedged, hedged - hedged_reach(options, None)
 
     def exit_lanes(self) -> int:
         """The road turned into's likeliest lanes each way (``exit_odds``; 1 before it is read)."""
@@ -327,14 +334,15 @@ class JunctionGuidance:
         """How far the car's centre may be off its lane's centre with the car still inside the lane."""
         return max(0.0, (self.lane_width_m - VEHICLE.width_m) / 2)
 
-    def planned_reach_m(self, command: int) -> float:
+    def planned_reach_m(self, command: int, hedged: bool = True) -> float:
         """The reach planned before the turn: beyond the zebra measured here by the design's reach expected over
-        the cross street's lane count, kept where it can be within ``lane_room_m`` of each count's lane (either
-        count may be, and a turn that leaves its lane is no better for having been the likelier guess), else from
-        the priors (left turns: half a lane beyond the junction's centre; right turns: the kerb lane's own
-        prior)."""
+        the cross street's lane count, kept (``hedged``) where it can be within ``lane_room_m`` of each count's
+        lanes (either count may be, and a turn that leaves the road is no better for having been the likelier
+        guess), else from the priors (left turns: half a lane beyond the junction's centre; right turns: the kerb
+        lane's own prior)."""
         beyond = self.road.turn_reach(command == 1, self.road.two_lane_share(self.control, self.our_lanes),
-                                      within_m=self.lane_room_m, lanes_to_kerb=self.lanes_to_kerb)
+                                      within_m=self.lane_room_m if hedged else None,
+                                      lanes_to_kerb=self.lanes_to_kerb)
         if self._zebra_m and beyond is not None:
             return float(np.median(self._zebra_m)) + beyond
         if command == 2:
@@ -449,7 +457,7 @@ class JunctionGuidance:
         # Left turns into the inner lane, right turns into the kerb lane (as planned, or as the road turned into
         # tells once read). Taken from another lane, the arc still ends in a lane of the road turned into: it is
         # placed from our own lane, and its radius is the tighter one.
-        reach = self.turn_reach_m(command)
+        reach, hedge = self._turn_reach(command)
         heading = odo.yaw - road_yaw
         half = VEHICLE.length_m / 2
         # the rear axle, along the approach and right of it: in highway-env's bicycle model it moves along the
@@ -457,9 +465,11 @@ class JunctionGuidance:
         along, across = self._in_bar_frame(odo.pos)
         here = np.array([along - half * math.cos(heading), across - half * math.sin(heading)])
         radius = self.road.left_turn_radius_m if command == 1 else self.road.right_turn_radius_m
-        if command == 2 and radius is not None:  # the design's is the kerb lane's: a lane farther out, a lane wider
-            radius += self.lanes_to_kerb * self.lane_width_m
         angle = round(self.turn_angle_deg(command), 1)
+        if command == 2 and radius is not None:  # the design's is the kerb lane's: a lane farther out, a lane wider;
+            # a reach hedged farther out moves the arc's end, not its start (a later start, on the kerb lane's
+            # radius, lags the junction's lanes and runs wide of them in the turn)
+            radius += self.lanes_to_kerb * self.lane_width_m + hedge / math.tan(math.radians(angle) / 2)
         path, arc_end = turn_path(command, round(reach, 2), self.road.stop_bar_depth_m, radius, angle_deg=angle)
         lookahead = cfg.turn_lookahead_m + cfg.turn_lookahead_s * speed
         if here[0] < self.road.stop_bar_depth_m - lookahead:  # not yet: the lookahead point is still before the arc
