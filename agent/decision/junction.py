@@ -19,7 +19,9 @@ cross street's lane count was guessed wrong. So once the road turned into is in 
 50 of a left turn), it is read (``agent.perception.exit_line``): its centre line places its inner lane half a lane
 width to the line's right in the direction of travel, whatever the count, and the line's direction gives the turn's
 angle. A left turn goes into that lane; a right turn into the kerb lane, as many lanes short of it as the line's
-distance beyond the zebra tells (``exit_lanes``). A right turn keeps its lane counted from the kerb, as the town's
+distance beyond the zebra tells (``exit_odds``), kept within reach of the single lane while that count is in doubt
+(``sim.spec.hedged_reach``: a two-lane kerb lane is off the road on a single-lane street, the single lane's place is
+the inner lane on a two-lane one). A right turn keeps its lane counted from the kerb, as the town's
 connectors do (``sim.spec.right_turn_lanes_from_kerb``): from the inner lane of two (a lane change before the turn
 held) it goes into the inner lane, whatever the count, on an arc a lane wider than the kerb lane's. The arc is
 re-placed on that lane and leads the whole turn. Where the road turned into is never read, the arc leads only until
