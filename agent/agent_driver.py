@@ -611,10 +611,6 @@ class AgentDriver:
         self._kerb_lanes.note(kerb, (float(odo.pos[0]), float(odo.pos[1])),
                               odo.road_yaw if odo.road_yaw is not None else odo.yaw)
 
-    @property
-    def _lanes_to_kerb(self) -> int | None:
-        return self._kerb_lanes.count
-
     def _decide(self, speed: float, command: int, pilot: float, hold: float | None, turn: float | None,
                 held: str | None, objects: list[PerceivedObject], light: LightSeen | None, stop: StopLine | None,
                 lanes: LaneResult, centre: np.ndarray | None) -> Decision:

@@ -278,8 +278,15 @@ class RoadDesign:
         """The zebra's far edge to where the lane turned into crosses ours (``TurnReach``), expected over the cross
         street's lane count (one or two lanes each way, two with ``two_lane_share``), and with ``within_m`` kept
         within it of every count's lanes where it can be (``hedged_reach``). None when the design has no reach for
-        a count that may be. A left turn goes into the inner lane; a right turn from ``lanes_to_kerb`` lanes off our
-        kerb ends ``right_turn_lanes_from_kerb`` off the cross street's."""
+        a count that may be (``turn_reach_options``)."""
+        options = self.turn_reach_options(left, two_lane_share, lanes_to_kerb)
+        return None if options is None else hedged_reach(options, within_m)
+
+    def turn_reach_options(self, left: bool, two_lane_share: float,
+                           lanes_to_kerb: int = 0) -> list[tuple[float, float, float, float]] | None:
+        """``hedged_reach``'s options beyond the zebra, one per lane count that may be: a left turn goes into the
+        inner lane; a right turn from ``lanes_to_kerb`` lanes off our kerb ends ``right_turn_lanes_from_kerb`` off
+        the cross street's. None when the design has no reach for a count that may be."""
         reaches = {r.cross_lanes: r for r in self.turn_reaches}
         weights = {1: 1.0 - two_lane_share, 2: two_lane_share}
         if any(w > 0 and n not in reaches for n, w in weights.items()):
@@ -290,7 +297,7 @@ class RoadDesign:
                 near = reaches[n].left_m if left else reaches[n].right_m  # the inner lane, the kerb lane
                 lanes = 0 if left else right_turn_lanes_from_kerb(lanes_to_kerb, n)
                 options.append((w, near + lanes * self.lane_width_m, near, near + (n - 1) * self.lane_width_m))
-        return hedged_reach(options, within_m)
+        return options
 
     @property
     def signal_mounts(self) -> tuple[SignalMount, ...]:

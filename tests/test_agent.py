@@ -650,18 +650,18 @@ def test_the_lanes_to_the_kerb_are_read_clear_of_a_stop_bar_and_forgotten_in_a_j
 
     line.stop_line = None
     driver._note_lanes_to_kerb(seen("solid"))
-    assert driver._lanes_to_kerb == 0
+    assert driver._kerb_lanes.count == 0
     line.stop_line = reach - 10.0  # the bar cuts the edge line short: it reads as dashed
     driver._note_lanes_to_kerb(seen("dashed"))
-    assert driver._lanes_to_kerb == 0
+    assert driver._kerb_lanes.count == 0
     line.stop_line = reach + 10.0
     driver._note_lanes_to_kerb(seen("dashed"))
-    assert driver._lanes_to_kerb == 1
+    assert driver._kerb_lanes.count == 1
     odo = driver.stages.odometry
     odo.pos = odo.pos + np.array([5.0, 2.0])  # the car changed lanes, and read no line on its right since
     driver._note_lanes_to_kerb(SimpleNamespace(detected=True, left=None, right=None))
-    assert driver._lanes_to_kerb is None
+    assert driver._kerb_lanes.count is None
     driver._note_lanes_to_kerb(seen("dashed"))
     line.stop_line, line.ignore_light_m = None, 10.0  # past the bar, in the junction
     driver._note_lanes_to_kerb(seen("solid"))
-    assert driver._lanes_to_kerb is None
+    assert driver._kerb_lanes.count is None

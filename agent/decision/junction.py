@@ -283,8 +283,7 @@ class JunctionGuidance:
         """``turn_reach_m``, and how far keeping within reach of every count's lanes moved it from the expected
         reach (``hedged_reach``)."""
         if self._exit_fix is None:
-            planned = self.planned_reach_m(command)
-            return planned, planned - self.planned_reach_m(command, hedged=False)
+            return self._planned(command)
         inner = self._exit_fix[0]
         if command != 2:
             return inner, 0.0
@@ -293,11 +292,6 @@ class JunctionGuidance:
                     inner - (n - 1) * w, inner) for n, p in self.exit_odds().items()]
         hedged = hedged_reach(options, self.lane_room_m)
         return hedged, hedged - hedged_reach(options, None)
-
-    def exit_lanes(self) -> int:
-        """The road turned into's likeliest lanes each way (``exit_odds``; 1 before it is read)."""
-        odds = self.exit_odds()
-        return max(odds, key=lambda n: odds[n])
 
     def exit_odds(self) -> dict[int, float]:
         """How likely the road turned into has one lane each way or two, as its centre line read in the turn tells
@@ -336,20 +330,25 @@ class JunctionGuidance:
         """How far the car's centre may be off its lane's centre with the car still inside the lane."""
         return max(0.0, (self.lane_width_m - VEHICLE.width_m) / 2)
 
-    def planned_reach_m(self, command: int, hedged: bool = True) -> float:
+    def planned_reach_m(self, command: int) -> float:
         """The reach planned before the turn: beyond the zebra measured here by the design's reach expected over
-        the cross street's lane count, kept (``hedged``) where it can be within ``lane_room_m`` of each count's
-        lanes (either count may be, and a turn that leaves the road is no better for having been the likelier
-        guess), else from the priors (left turns: half a lane beyond the junction's centre; right turns: the kerb
-        lane's own prior)."""
-        beyond = self.road.turn_reach(command == 1, self.road.two_lane_share(self.control, self.our_lanes),
-                                      within_m=self.lane_room_m if hedged else None,
-                                      lanes_to_kerb=self.lanes_to_kerb)
-        if self._zebra_m and beyond is not None:
-            return float(np.median(self._zebra_m)) + beyond
+        the cross street's lane count, kept where it can be within ``lane_room_m`` of each count's lanes (either
+        count may be, and a turn that leaves the road is no better for having been the likelier guess), else from
+        the priors (left turns: half a lane beyond the junction's centre; right turns: the kerb lane's own
+        prior)."""
+        return self._planned(command)[0]
+
+    def _planned(self, command: int) -> tuple[float, float]:
+        """``planned_reach_m``, and how far keeping within reach of every count's lanes moved it (0 from the
+        priors)."""
+        options = self.road.turn_reach_options(command == 1, self.road.two_lane_share(self.control, self.our_lanes),
+                                               lanes_to_kerb=self.lanes_to_kerb)
+        if self._zebra_m and options is not None:
+            hedged = hedged_reach(options, self.lane_room_m)
+            return float(np.median(self._zebra_m)) + hedged, hedged - hedged_reach(options, None)
         if command == 2:
-            return self.road.kerb_lane_reach + self.lanes_to_kerb * self.lane_width_m
-        return self.setback_m + 0.5 * self.lane_width_m
+            return self.road.kerb_lane_reach + self.lanes_to_kerb * self.lane_width_m, 0.0
+        return self.setback_m + 0.5 * self.lane_width_m, 0.0
 
     def exit_expected_rad(self) -> float | None:
         """While a turn's arc leads with a design that spreads and the car has turned far enough to see the road
