@@ -282,7 +282,9 @@ class AgentDriver:
             from towndrive.agent.perception.stereo import StereoDepth
 
             stereo = StereoDepth(camera)
-        odometry = Odometry(cfg.straight_steer, cfg.road_min_confidence, cfg.road_clear_m)
+        odometry = Odometry(cfg.straight_steer, cfg.road_min_confidence, cfg.road_clear_m,
+                            new_road_min_confidence=cfg.turn_end.min_confidence,  # the turn is over, as TurnEnd says
+                            new_road_aligned_deg=cfg.turn_end.aligned_deg)
         junction = JunctionGuidance(JunctionRules(
             junction_hold_m=cfg.junction_hold_m, hold_heading_gain=cfg.hold_heading_gain,
             hold_offset_gain=cfg.hold_offset_gain, hold_max_steer=cfg.hold_max_steer, turn_guidance=cfg.turn_guidance,
@@ -519,7 +521,7 @@ class AgentDriver:
             seen = self._model_view.for_pilotnet(image) if self._model_view is not None else image
             last = self._last_view
             net_command = st.turn_end.command(command, odo.turned, last.lanes if last is not None else None,
-                                              st.junction.arc_leads, speed * self.dt)
+                                              st.junction.arc_leads, speed * self.dt, st.junction.placed)
             pilot = float(self.net.steer(seen, 0 if held else net_command))  # held: follow the lane, do not change it
             lap("pilotnet")
         except BaseException:

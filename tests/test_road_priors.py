@@ -9,11 +9,19 @@ import numpy as np
 import pytest
 
 from towndrive.agent.decision.junction import ZEBRA_SD_M, turn_path
+from towndrive.agent.decision.odometry import Odometry
 from towndrive.agent.decision.priors import fused
 from towndrive.sim.road_priors import road_priors
 from towndrive.sim.spec import ROAD
 from towndrive.sim.town import Command, TownConfig
 from towndrive.sim.world import cached_town
+
+
+def approach_odometry(yaw_rad: float = 0.0, pos: tuple[float, float] = (0.0, 0.0)) -> Odometry:
+    """Dead reckoning on an approach lane measured to run along x (the car centred on it)."""
+    odo = Odometry()
+    odo.road_yaw, odo.yaw, odo.pos = 0.0, yaw_rad, np.array(pos, float)
+    return odo
 
 
 def test_a_prior_with_no_spread_is_the_design_and_one_with_a_spread_moves_towards_the_measurement() -> None:
@@ -121,7 +129,7 @@ def test_the_junction_guidance_corrects_its_setback_and_lane_width_by_what_is_me
     def guidance(road) -> JunctionGuidance:
         line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
                                config=SimpleNamespace(camera_to_front_m=2.0))
-        odo = SimpleNamespace(road_yaw=0.0, pos=np.zeros(2), road_offset=0.0, yaw=0.0)
+        odo = approach_odometry()
         return JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
 
     road = road_priors("downtown")
@@ -148,21 +156,23 @@ def test_with_a_design_that_spreads_the_camera_finishes_the_turn_and_with_an_exa
     from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
     from towndrive.agent.perception.stop_line import StopLine
 
-    def steer_at(road, yaw_deg: float) -> float | None:
+    def steer_at(road, yaw_deg: float) -> tuple[float | None, float | None]:
         line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
                                config=SimpleNamespace(camera_to_front_m=2.0))
-        odo = SimpleNamespace(road_yaw=0.0, pos=np.zeros(2), road_offset=0.0, yaw=0.0)
+        odo = approach_odometry()
         g = JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
         g.note(StopLine(8.0, 0.5, 0.9, 0))
         odo.pos = np.array([11.0, 0.0])  # at the bar: the right turn begins
         assert g.turn_steer(2, 3.0) is not None
         along = g.setback_m - 0.3 * g.lane_width_m  # inside the arc, turned by yaw_deg
         odo.pos, odo.yaw = np.array([11.0 + 0.6 * along, 0.4 * along]), math.radians(yaw_deg)
-        return g.turn_steer(2, 3.0)
+        return g.turn_steer(2, 3.0), odo.road_yaw
 
-    assert steer_at(road_priors("downtown"), 45.0) is not None
-    assert steer_at(road_priors("downtown"), 65.0) is None  # facing the road turned into: the camera steers
-    assert steer_at(ROAD, 65.0) is not None
+    steer, road_yaw = steer_at(road_priors("downtown"), 45.0)
+    assert steer is not None and road_yaw == 0.0  # still turning: the approach road is the arc's frame
+    # facing the road turned into: the camera steers, and the approach road, behind the car, is no longer its road
+    assert steer_at(road_priors("downtown"), 65.0) == (None, None)
+    assert steer_at(ROAD, 65.0)[0] is not None
 
 
 def _head_box(camera, x_m: float, z_m: float, height_m: float) -> tuple[float, float, float, float]:
@@ -307,7 +317,7 @@ def test_the_junction_guidance_reads_the_cross_street_s_angle_from_near_zebra_re
     def guidance(road) -> JunctionGuidance:
         line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=5.0,
                                config=SimpleNamespace(camera_to_front_m=2.0))
-        odo = SimpleNamespace(road_yaw=0.0, pos=np.zeros(2), road_offset=0.0, yaw=math.radians(2.0))
+        odo = approach_odometry(yaw_rad=math.radians(2.0))
         return JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
 
     road = road_priors("downtown")
@@ -412,7 +422,7 @@ def test_an_unseen_lane_count_is_hedged_to_keep_both_lanes_within_the_car_s_room
     assert road.turn_reach(False, 1.0, within_m=room) == pytest.approx(9.0)  # two lanes certain: the kerb lane
     line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
                            config=SimpleNamespace(camera_to_front_m=2.0))
-    odo = SimpleNamespace(road_yaw=0.0, pos=np.zeros(2), road_offset=0.0, yaw=0.0)
+    odo = approach_odometry()
     g = JunctionGuidance(JunctionRules(), line, odo, 1.0, replace(road, lane_width_sd_m=0.0))
     g.note(StopLine(9.0, 0.5, 0.9, 0), 9.0 + 0.5 + 6.0, None, None, "signal", 2)
     assert g.lane_room_m == pytest.approx(room)
@@ -434,7 +444,7 @@ def test_the_junction_guidance_places_a_turn_from_the_zebra_by_the_kind_of_junct
                                       CrossStreetOdds("signal", 1, 0.2, 8)))
     line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
                            config=SimpleNamespace(camera_to_front_m=2.0))
-    odo = SimpleNamespace(road_yaw=0.0, pos=np.zeros(2), road_offset=0.0, yaw=0.0)
+    odo = approach_odometry()
     g = JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
     g.note(StopLine(10.0, 0.5, 0.9, 0), None, 3.2, None, "stop", 1)
     assert g.turn_reach_m(2) == road.kerb_lane_reach  # no zebra yet
@@ -499,7 +509,7 @@ def test_the_road_turned_into_read_in_the_turn_places_its_inner_lane_and_the_arc
     def reach_read(command: int, centre_along_m: float, yaw_deg: float) -> JunctionGuidance:
         line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
                                config=SimpleNamespace(camera_to_front_m=2.0))
-        odo = SimpleNamespace(road_yaw=0.0, pos=np.zeros(2), road_offset=0.0, yaw=0.0)
+        odo = approach_odometry()
         g = JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
         g.note(StopLine(8.0, 0.5, 0.9, 0))  # the bar's near edge at x = 11 in the odometry frame
         odo.pos = np.array([11.0, 0.0])
@@ -550,7 +560,7 @@ def test_a_right_turn_read_in_the_turn_keeps_within_reach_of_every_count_the_cen
                        cross_street_odds=(CrossStreetOdds("stop", 1, share, 8),))
         line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
                                config=SimpleNamespace(camera_to_front_m=2.0))
-        odo = SimpleNamespace(road_yaw=0.0, pos=np.zeros(2), road_offset=0.0, yaw=0.0)
+        odo = approach_odometry()
         g = JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
         # the bar's near edge at x = 11 in the odometry frame, the zebra's far edge 6 m beyond the bar's far edge
         g.note(StopLine(8.0, 0.5, 0.9, 0), 8.0 + 0.5 + 6.0 if zebra else None, 3.2, None, "stop", 1)
@@ -603,7 +613,7 @@ def test_a_right_turn_from_the_inner_lane_of_two_goes_into_the_inner_lane_whatev
     def read(lanes_to_kerb: int, centre_along_m: float | None) -> JunctionGuidance:
         line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
                                config=SimpleNamespace(camera_to_front_m=2.0))
-        odo = SimpleNamespace(road_yaw=0.0, pos=np.zeros(2), road_offset=0.0, yaw=0.0)
+        odo = approach_odometry()
         g = JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
         g.note(StopLine(8.0, 0.5, 0.9, 0), 8.0 + 0.5 + 6.0, 3.5, None, "stop", 2, lanes_to_kerb)
         odo.pos = np.array([11.0, 0.0])
@@ -684,7 +694,7 @@ def test_going_straight_the_hold_keeps_to_the_far_sides_lane_once_read() -> None
         rules = JunctionRules()
         line = SimpleNamespace(ignore_light_m=5.0, junction_ignore_m=5.0, stop_line_measured=True, stop_line=None,
                                config=SimpleNamespace(camera_to_front_m=2.0))  # the bumper just past the bar
-        odo = SimpleNamespace(road_yaw=0.0, pos=np.array([10.0, 0.0]), road_offset=0.0, yaw=0.0)
+        odo = approach_odometry(pos=(10.0, 0.0))
         g = JunctionGuidance(rules, line, odo, 1.0, road)  # type: ignore[arg-type]
         assert g.hold(3) == pytest.approx(0.0)  # on the approach lane's line, on its heading
         expected = g.exit_expected_rad()

@@ -79,3 +79,21 @@ def test_once_a_turn_is_over_the_next_junction_s_stop_bar_counts_within_metres()
 
     assert bar_after(leave=False) is None
     assert bar_after(leave=True) == pytest.approx(20.0 - ControllerConfig().camera_to_front_m)
+
+
+def test_the_next_junction_placed_after_a_turn_is_over_gets_its_own_command() -> None:
+    """A block shorter than ``keep_m``: the car turned right, the next junction (placed as its stop bar is located)
+    is a right turn too. PilotNet, and the junction's arc (which takes the same command), must get the route's
+    right there, not "follow the road" left over from the turn before."""
+    end = TurnEnd(TurnEndRules())
+    end.reset()
+    end.command(RIGHT, 0.0, None, False, 0.0)
+    assert end.command(RIGHT, math.radians(85), lane(3.0), False, 0.1) == FOLLOW  # the first turn is over
+    assert end.command(RIGHT, 0.0, None, False, 1.0) == FOLLOW  # on along the road turned into
+    assert end.command(RIGHT, 0.0, lane(0.0), False, 1.0, junction_placed=True) == RIGHT  # the next bar, 13 m short
+    assert end.command(RIGHT, 0.0, lane(0.0), False, 1.0, junction_placed=True) == RIGHT
+    # A junction already placed as the turn ended is not the next one.
+    end.reset()
+    end.command(RIGHT, 0.0, None, False, 0.0, junction_placed=True)
+    assert end.command(RIGHT, math.radians(85), lane(3.0), False, 0.1, junction_placed=True) == FOLLOW
+    assert end.command(RIGHT, 0.0, None, False, 1.0, junction_placed=True) == FOLLOW

@@ -477,17 +477,25 @@ class JunctionGuidance:
             return None
         leads_on = cfg.exit_leads_to_end and self.exit_measured
         if started and self.design_spreads and not leads_on and abs(heading) > math.radians(cfg.turn_handover_deg):
-            self.forget()  # facing the road turned into: the camera's steering finishes the turn
+            self._turned_off()  # facing the road turned into: the camera's steering finishes the turn
             return None
         step = float(np.hypot(*(path[1] - path[0])))
         nearest = int(np.argmin(np.sum((path - here) ** 2, axis=1)))
         if nearest * step > arc_end + 6.0:  # out of the turn, lined up on the road turned into: the lines lead again
-            self.forget()
+            if started:
+                self._turned_off()
+            else:
+                self.forget()
             return None
         if not started:
             self.junction = (self.junction[0], self.junction[1], road_yaw, command)
         delta = self._centre_on_path(path, np.array([along, across]), heading)
         return float(np.clip(delta / VEHICLE.max_steer_rad, -1.0, 1.0))
+
+    def _turned_off(self) -> None:
+        """The turn is done with: the approach road it was planned on is behind the car (``Odometry.leave_road``)."""
+        self.odo.leave_road()
+        self.forget()
 
     def _centre_on_path(self, path: np.ndarray, centre: np.ndarray, heading: float) -> float:
         """The wheel angle that keeps the car's centre on ``path``. In the bicycle model the centre moves at the

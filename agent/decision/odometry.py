@@ -28,12 +28,17 @@ class Odometry:
     """The car's pose in its own episode frame (x ahead at yaw 0, y right; yaw positive to the right)."""
 
     def __init__(self, straight_steer: float = 0.08, road_min_confidence: float = 0.25, road_clear_m: float = 8.0,
-                 along_min_mps: float = 1.0) -> None:
+                 along_min_mps: float = 1.0, new_road_min_confidence: float = 0.4,
+                 new_road_aligned_deg: float = 8.0) -> None:
         self.straight_steer = straight_steer  # below this |steer| the car drives along its lane ...
         self.along_min_mps = along_min_mps  # ... if it drives at all: a turn commanded, a car creeping to a stop
         #                                     or standing keeps its approach heading whatever its wheels do
         self.road_min_confidence = road_min_confidence  # a lane fit this sure measures the approach lane
         self.road_clear_m = road_clear_m  # ... only while the stop line is farther than this
+        # inside a junction, the road a turn brought the car onto is measured from a lane this sure, lined up with
+        # the car this near (the turn is over; other lines there are the junction's)
+        self.new_road_min_confidence = new_road_min_confidence
+        self.new_road_aligned_rad = math.radians(new_road_aligned_deg)
         self.reset()
 
     def reset(self) -> None:
@@ -63,13 +68,22 @@ class Odometry:
         if command not in (1, 2) or (abs(steer) < self.straight_steer and speed >= self.along_min_mps):
             self.approach_yaw = self.yaw
 
+    def leave_road(self) -> None:
+        """A commanded turn is over: the road measured is behind the car, the one turned into not yet measured."""
+        self.road_yaw = None
+        self.road_offset = 0.0
+
     def measure_road(self, centre: np.ndarray | None, confidence: float, line: StopLineTrack, z0: float) -> None:
         """Keep the approach lane's heading and our offset from its centre (``centre``: the lane-centre polynomial
         in the camera's ground frame, evaluated at ``z0``, the car's centre), from a confident lane fit taken well
         before the stop line."""
-        if (centre is None or confidence < self.road_min_confidence or line.ignore_light_m > 0
+        if (centre is None or confidence < self.road_min_confidence
                 or (line.stop_line is not None and line.stop_line < self.road_clear_m)):
             return
-        heading = self.yaw + math.atan(float(np.polyval(np.polyder(centre), z0)))
+        across = math.atan(float(np.polyval(np.polyder(centre), z0)))  # the lane's direction, right of ours
+        if line.ignore_light_m > 0 and (self.road_yaw is not None or confidence < self.new_road_min_confidence
+                                        or abs(across) > self.new_road_aligned_rad):
+            return  # inside a junction the approach lane is kept; the road turned into, once lined up with it
+        heading = self.yaw + across
         self.road_yaw = heading if self.road_yaw is None else self.road_yaw + 0.2 * (heading - self.road_yaw)
         self.road_offset = -float(np.polyval(centre, z0))

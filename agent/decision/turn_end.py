@@ -5,7 +5,9 @@ it, keeps steering into the turn after the junction's arc hands over: where the 
 straight ahead it overturns, and the car cuts to the turn's inner side. The same happens when the car is engaged
 again in the middle of a turn (after a safety driver's take-over), where the turn left to do is small. The lane
 finder tells when the turn is over: a confident lane lined up with the car. From then the command PilotNet gets
-is "follow the road" for ``keep_m`` of travel or until the route's command changes; the controller still knows
+is "follow the road" for ``keep_m`` of travel, until the route's command changes, or until the next junction's
+stop bar is placed (downtown's blocks can be shorter than ``keep_m``, and the next turn may be the same way); the
+controller still knows
 the car is turning (its speed caps are unchanged). The junction is then behind the car: its light is ignored for
 at most ``light_ignore_m`` more (``StopLineTrack.leave_junction``), so that the next junction's stop bar and light
 count from there, not from a window sized for crossing the junction straight on.
@@ -44,16 +46,22 @@ class TurnEnd:
         self._left_m = 0.0  # travel left on the road turned into before the command is given back
         self._engaged_in_turn = engaged_again  # engaged again, perhaps inside a turn: no turning to wait for
         self._first = True
+        self._placed = False  # whether a junction ahead was placed on the last frame
         self.ended = False  # the turn was judged over on this frame
 
     def command(self, command: int, turned_rad: float, lanes: LaneResult | None, arc_leads: bool,
-                travelled_m: float) -> int:
+                travelled_m: float, junction_placed: bool = False) -> int:
         """The command for PilotNet this frame: ``command`` (the route's), or FOLLOW once the turn is over.
         ``turned_rad``: the heading change since the car last drove along its lane; ``lanes``: the last lane fit;
         ``arc_leads``: the junction's arc is under way (``JunctionGuidance.arc_leads``); ``travelled_m``: since the
-        last frame."""
+        last frame; ``junction_placed``: a junction's stop bar ahead is located (``JunctionGuidance.placed``): one
+        placed after the turn was judged over is the next junction, and the route's command is its own."""
         r = self.rules
         self.ended = False
+        next_junction = junction_placed and not self._placed
+        self._placed = junction_placed
+        if self._done is not None and next_junction:
+            self._done, self._engaged_in_turn = None, False
         if self._first:
             self._first = False
             self._engaged_in_turn = self._engaged_in_turn and command in (LEFT, RIGHT)
