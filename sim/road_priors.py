@@ -24,6 +24,10 @@ from towndrive.sim.town import Command, Control, Crosswalk, Town, TownConfig, ge
 from towndrive.sim.town_style import CLASSIC, style_named
 
 PRIOR_TOWNS = 4  # training towns a style's priors are measured on (their junctions number in the hundreds)
+# A kind of junction seen at only a few of them, all alike, is not certain: its two-lane share is the posterior mean
+# with the style's share over every kind as a prior worth this many junctions (a count of 0 or 1 then leaves the
+# other possible, as hedged turns need; ``sim.spec.COUNT_DOUBT``)
+ODDS_PRIOR_JUNCTIONS = 2.0
 _KIND = {Control.SIGNAL: "signal", Control.STOP: "stop", Control.ALL_WAY_STOP: "stop", Control.YIELD: "yield",
          Control.PRIORITY: "none"}
 
@@ -115,6 +119,19 @@ def _turn_radius(lane: object) -> float:
     return float(getattr(lane, "radius", np.inf))
 
 
+def cross_street_odds(samples: dict[str, np.ndarray]) -> tuple[CrossStreetOdds, ...]:
+    """The odds of a two-lane cross street per kind of junction (``odds:<control>:<our lanes>``: 1 where the cross
+    street had two lanes, else 0), each kind's share drawn towards the share over all kinds as far as it was seen
+    at few junctions (``ODDS_PRIOR_JUNCTIONS``)."""
+    if not samples:
+        return ()
+    overall = float(np.mean(np.concatenate(list(samples.values()))))
+    return tuple(CrossStreetOdds(k.split(":")[1], int(k.split(":")[2]),
+                                 round((float(np.sum(v)) + ODDS_PRIOR_JUNCTIONS * overall)
+                                       / (len(v) + ODDS_PRIOR_JUNCTIONS), 3), len(v))
+                 for k, v in sorted(samples.items()))
+
+
 @lru_cache(maxsize=8)
 def road_priors(style: str, towns: int = PRIOR_TOWNS) -> RoadDesign:
     """The road design a driver assumes in towns of ``style`` (module docstring): the classic design for the
@@ -142,8 +159,7 @@ def road_priors(style: str, towns: int = PRIOR_TOWNS) -> RoadDesign:
     # the turns beyond the zebra, by the cross street's lanes each way; the odds of a two-lane cross street by kind
     reaches = tuple(TurnReach(n, mean(f"reach:{n}:left"), mean(f"reach:{n}:right")) for n in (1, 2)
                     if f"reach:{n}:left" in a and f"reach:{n}:right" in a)
-    odds = tuple(CrossStreetOdds(k.split(":")[1], int(k.split(":")[2]), mean(k), len(a[k]))
-                 for k in sorted(a) if k.startswith("odds:"))
+    odds = cross_street_odds({k: v for k, v in a.items() if k.startswith("odds:")})
     return replace(ROAD, lane_width_m=mean("width"), lane_width_sd_m=sd("width"),
                    stop_line_setback_m=mean("setback"), stop_line_setback_sd_m=sd("setback"),
                    zebra_to_centre_m=mean("zebra"), zebra_to_centre_sd_m=sd("zebra"),

@@ -720,3 +720,22 @@ def test_going_straight_the_hold_keeps_to_the_far_sides_lane_once_read() -> None
     assert holding(road, -0.5 * w + 3.0, 0.0).far_lane is None  # a lane and more across: something else
     assert holding(road, -0.5 * w, 15.0).far_lane is None  # turned too far
     assert holding(ROAD, -0.5 * ROAD.lane_width_m + 0.8, 3.0).far_lane is None
+
+
+def test_a_kind_of_junction_seen_only_a_few_times_leaves_the_other_lane_count_possible() -> None:
+    """Eight stop-sign arms, all entering two-lane streets, do not make a single-lane street impossible: a turn
+    planned on certainty leaves the road where it is one. The share is drawn towards the style's overall share as
+    far as the kind was seen at few junctions; one seen at many keeps its own."""
+    from towndrive.sim.road_priors import ODDS_PRIOR_JUNCTIONS, cross_street_odds
+    from towndrive.sim.spec import COUNT_DOUBT
+
+    samples = {"odds:stop:1": np.ones(8), "odds:signal:2": np.array([1.0, 0.0] * 100)}
+    odds = {o.control: o for o in cross_street_odds(samples)}
+    overall = 108 / 208
+    assert odds["stop"].two_lane_share == pytest.approx((8 + ODDS_PRIOR_JUNCTIONS * overall)
+                                                        / (8 + ODDS_PRIOR_JUNCTIONS), abs=1e-3)
+    assert 1.0 - odds["stop"].two_lane_share >= COUNT_DOUBT and odds["stop"].junctions == 8
+    assert odds["signal"].two_lane_share == pytest.approx(0.5, abs=0.01)
+    for style in ("downtown", "suburb"):  # every kind the styles' training towns show
+        for o in road_priors(style).cross_street_odds:
+            assert 0.0 < o.two_lane_share < 1.0
