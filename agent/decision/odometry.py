@@ -76,7 +76,8 @@ class Odometry:
     def measure_road(self, centre: np.ndarray | None, confidence: float, line: StopLineTrack, z0: float) -> None:
         """Keep the approach lane's heading and our offset from its centre (``centre``: the lane-centre polynomial
         in the camera's ground frame, evaluated at ``z0``, the car's centre), from a confident lane fit taken well
-        before the stop line."""
+        before the stop line and outside a junction, or, for a road not yet measured (``leave_road``), from the
+        first sure fit lined up with the car, inside the junction too."""
         if (centre is None or confidence < self.road_min_confidence
                 or (line.stop_line is not None and line.stop_line < self.road_clear_m)):
             return

@@ -7,10 +7,9 @@ again in the middle of a turn (after a safety driver's take-over), where the tur
 finder tells when the turn is over: a confident lane lined up with the car. From then the command PilotNet gets
 is "follow the road" for ``keep_m`` of travel, until the route's command changes, or until the next junction's
 stop bar is placed (downtown's blocks can be shorter than ``keep_m``, and the next turn may be the same way); the
-controller still knows
-the car is turning (its speed caps are unchanged). The junction is then behind the car: its light is ignored for
-at most ``light_ignore_m`` more (``StopLineTrack.leave_junction``), so that the next junction's stop bar and light
-count from there, not from a window sized for crossing the junction straight on.
+controller still knows the car is turning (its speed caps are unchanged). The junction is then behind the car: its
+light is ignored for at most ``light_ignore_m`` more (``StopLineTrack.leave_junction``), so that the next junction's
+stop bar and light count from there, not from a window sized for crossing the junction straight on.
 """
 
 from __future__ import annotations
