@@ -482,10 +482,7 @@ class JunctionGuidance:
         step = float(np.hypot(*(path[1] - path[0])))
         nearest = int(np.argmin(np.sum((path - here) ** 2, axis=1)))
         if nearest * step > arc_end + 6.0:  # out of the turn, lined up on the road turned into: the lines lead again
-            if started:
-                self._turned_off()
-            else:
-                self.forget()
+            self._turned_off() if started else self.forget()
             return None
         if not started:
             self.junction = (self.junction[0], self.junction[1], road_yaw, command)

@@ -14,6 +14,7 @@ import math
 import numpy as np
 
 from towndrive.agent.decision.stop_line_track import StopLineTrack
+from towndrive.agent.decision.turn_end import TurnEndRules
 from towndrive.sim.spec import VEHICLE
 
 
@@ -28,15 +29,15 @@ class Odometry:
     """The car's pose in its own episode frame (x ahead at yaw 0, y right; yaw positive to the right)."""
 
     def __init__(self, straight_steer: float = 0.08, road_min_confidence: float = 0.25, road_clear_m: float = 8.0,
-                 along_min_mps: float = 1.0, new_road_min_confidence: float = 0.4,
-                 new_road_aligned_deg: float = 8.0) -> None:
+                 along_min_mps: float = 1.0, new_road_min_confidence: float = TurnEndRules.min_confidence,
+                 new_road_aligned_deg: float = TurnEndRules.aligned_deg) -> None:
         self.straight_steer = straight_steer  # below this |steer| the car drives along its lane ...
         self.along_min_mps = along_min_mps  # ... if it drives at all: a turn commanded, a car creeping to a stop
         #                                     or standing keeps its approach heading whatever its wheels do
         self.road_min_confidence = road_min_confidence  # a lane fit this sure measures the approach lane
         self.road_clear_m = road_clear_m  # ... only while the stop line is farther than this
         # inside a junction, the road a turn brought the car onto is measured from a lane this sure, lined up with
-        # the car this near (the turn is over; other lines there are the junction's)
+        # the car this near (the turn is over, as ``TurnEnd`` judges it; other lines there are the junction's)
         self.new_road_min_confidence = new_road_min_confidence
         self.new_road_aligned_rad = math.radians(new_road_aligned_deg)
         self.reset()
@@ -78,13 +79,14 @@ class Odometry:
         in the camera's ground frame, evaluated at ``z0``, the car's centre), from a confident lane fit taken well
         before the stop line and outside a junction, or, for a road not yet measured (``leave_road``), from the
         first sure fit lined up with the car, inside the junction too."""
+        in_junction = line.ignore_light_m > 0  # the approach lane is kept there; a road not yet measured is not
         if (centre is None or confidence < self.road_min_confidence
-                or (line.stop_line is not None and line.stop_line < self.road_clear_m)):
+                or (line.stop_line is not None and line.stop_line < self.road_clear_m)
+                or (in_junction and (self.road_yaw is not None or confidence < self.new_road_min_confidence))):
             return
         across = math.atan(float(np.polyval(np.polyder(centre), z0)))  # the lane's direction, right of ours
-        if line.ignore_light_m > 0 and (self.road_yaw is not None or confidence < self.new_road_min_confidence
-                                        or abs(across) > self.new_road_aligned_rad):
-            return  # inside a junction the approach lane is kept; the road turned into, once lined up with it
+        if in_junction and abs(across) > self.new_road_aligned_rad:
+            return  # the road turned into is measured once lined up with the car
         heading = self.yaw + across
         self.road_yaw = heading if self.road_yaw is None else self.road_yaw + 0.2 * (heading - self.road_yaw)
         self.road_offset = -float(np.polyval(centre, z0))
