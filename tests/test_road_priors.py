@@ -739,3 +739,114 @@ def test_a_kind_of_junction_seen_only_a_few_times_leaves_the_other_lane_count_po
     for style in ("downtown", "suburb"):  # every kind the styles' training towns show
         for o in road_priors(style).cross_street_odds:
             assert 0.0 < o.two_lane_share < 1.0
+
+
+def cross_line_seen(odo: Odometry, centre_along_m: float, runs_deg: float, length_m: float = 10.0,
+                    fill: float | None = None, misread_deg: float = 0.0) -> object:
+    """The cross street's centre line as the camera (1 m ahead of the car's centre) sees it from where ``odo`` is:
+    it crosses our lane's centre line ``centre_along_m`` beyond x = 11 (the bar's near edge, ``JunctionGuidance``
+    placed as in these tests) and runs ``runs_deg`` right of our road (x right, z ahead); its direction is read
+    ``misread_deg`` off."""
+    from towndrive.agent.perception.exit_line import ExitLine
+
+    runs = math.radians(runs_deg)
+    cam = odo.pos + np.array([math.cos(odo.yaw), math.sin(odo.yaw)])
+    point = np.array([11.0 + centre_along_m, 0.0]) + 8.0 * np.array([math.cos(runs), math.sin(runs)]) - cam
+    seen = (float(-point[0] * math.sin(odo.yaw) + point[1] * math.cos(odo.yaw)),
+            float(point[0] * math.cos(odo.yaw) + point[1] * math.sin(odo.yaw)))
+    return ExitLine(seen, runs + math.radians(misread_deg) - odo.yaw, 400, length_m, fill)
+
+
+def placed_turn() -> object:
+    """Junction guidance on the suburb priors with the stop bar's near edge at x = 11 of the odometry frame."""
+    from types import SimpleNamespace
+
+    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
+    from towndrive.agent.perception.stop_line import StopLine
+
+    line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
+                           config=SimpleNamespace(camera_to_front_m=2.0))
+    g = JunctionGuidance(JunctionRules(), line, approach_odometry(), 1.0, road_priors("suburb"))
+    g.note(StopLine(8.0, 0.5, 0.9, 0))
+    return g
+
+
+def drive_arc(g: object, command: int, until_deg: float, speed_mps: float = 3.0) -> float:
+    """Drive the car's centre on the bicycle model by the arc's steer until it has turned ``until_deg``; the last
+    steer."""
+    from towndrive.sim.spec import VEHICLE
+
+    odo, dt, steer = g.odo, 0.05, 0.0  # type: ignore[attr-defined]
+    odo.pos = np.array([5.0, 0.0])
+    for _ in range(400):
+        target = g.turn_steer(command, speed_mps)  # type: ignore[attr-defined]
+        steer = 0.0 if target is None else target
+        if abs(odo.yaw) >= math.radians(until_deg):
+            return steer
+        delta = steer * VEHICLE.max_steer_rad
+        beta = math.atan(math.tan(delta) / 2)
+        odo.pos = odo.pos + speed_mps * dt * np.array([math.cos(odo.yaw + beta), math.sin(odo.yaw + beta)])
+        odo.yaw += speed_mps * dt * math.sin(beta) / (VEHICLE.length_m / 2)
+    raise AssertionError("the arc never turned the car that far")
+
+
+def test_a_reading_in_the_turn_moves_the_arcs_end_not_where_it_began() -> None:
+    """A right turn under way on the arc planned before it: the road turned into, read 1.5 m farther on than
+    planned, re-places the arc's end; the car, turning already, keeps turning (the arc's radius grows) instead of
+    steering back out to an arc begun later, which it then cannot follow round."""
+    g = placed_turn()
+    steer = drive_arc(g, 2, 25.0)
+    assert steer > 0.3
+    planned = g.planned_reach_m(2)  # type: ignore[attr-defined]
+    depth = g.road.stop_bar_depth_m  # type: ignore[attr-defined]
+    inner = planned + depth + 0.5 * g.lane_width_m + 1.5  # type: ignore[attr-defined]
+    for _ in range(3):
+        g.note_exit(cross_line_seen(g.odo, inner, 90.0))  # type: ignore[attr-defined]
+    assert g.exit_measured and g.turn_reach_m(2) > planned + 0.5  # type: ignore[attr-defined]
+    assert g.turn_steer(2, 3.0) > 0.2  # type: ignore[attr-defined]  (an arc begun later: 0.07)
+
+
+def test_the_cross_streets_direction_read_from_a_short_line_leans_on_the_zebras() -> None:
+    """``JunctionGuidance.note_exit``: a centre line seen over a few metres, far off, runs up to 10 degrees off
+    (its paint smears along the line of sight); weighed against the cross street's angle read from the zebra before
+    the turn, its reach is off by a fraction of what its own direction, carried 8 m across, would make it. A line
+    seen long is taken as it runs."""
+    from towndrive.agent.perception.stop_line import StopLine
+
+    def reach_read(length_m: float, misread_deg: float) -> tuple[float, float]:
+        g = placed_turn()
+        for _ in range(3):  # the zebra's edges square to our road
+            g.note(StopLine(6.0, 0.5, 0.9, 0), None, None, 0.0)  # type: ignore[attr-defined]
+        drive_arc(g, 2, 30.0)
+        centre = g.planned_reach_m(2) + g.road.stop_bar_depth_m  # type: ignore[attr-defined]
+        for _ in range(3):
+            g.note_exit(cross_line_seen(g.odo, centre, 90.0, length_m, misread_deg=misread_deg))  # type: ignore
+        reach, angle = g._exit_fix  # type: ignore[attr-defined]
+        return reach - (centre - 0.5 * g.lane_width_m - g.road.stop_bar_depth_m), angle  # type: ignore[attr-defined]
+
+    # the line's point is true; only its direction is read off (a short line: 10 degrees less turned)
+    true = reach_read(3.5, 0.0)
+    assert true[0] == pytest.approx(0.0, abs=0.05) and true[1] == pytest.approx(90.0, abs=0.01)
+    short = reach_read(3.5, -10.0)
+    assert abs(short[0]) < 0.1 and abs(short[1] - 90.0) < 0.5  # its own direction: 1.4 m and 10 degrees off
+    long = reach_read(20.0, -5.0)  # a long line is believed
+    assert long[1] == pytest.approx(85.0, abs=0.5)
+
+
+def test_the_line_beside_the_cross_streets_centre_line_tells_its_lane_count() -> None:
+    """``JunctionGuidance.exit_odds``: with the centre line where either count could put it, the white line a lane
+    to its right tells them apart: solid (painted over most of its length) a single lane's edge line, dashed the
+    divider of two lanes; a single frame's odd reading does not overturn the rest."""
+    def odds(fills: list[float | None]) -> dict[int, float]:
+        g = placed_turn()
+        drive_arc(g, 2, 30.0)
+        centre = g.planned_reach_m(2) + g.road.stop_bar_depth_m + 0.5 * g.lane_width_m  # type: ignore[attr-defined]
+        for fill in fills:
+            g.note_exit(cross_line_seen(g.odo, centre, 90.0, fill=fill))  # type: ignore[attr-defined]
+        return g.exit_odds()  # type: ignore[attr-defined]
+
+    unread = odds([None, None, None])
+    assert 0.05 < unread[2] < 0.95  # the centre line alone leaves it open
+    assert odds([0.9, 0.95, 1.0])[1] > 0.9
+    assert odds([0.4, 0.3, 0.45])[2] > 0.9
+    assert odds([0.1, 0.9, 0.95, 1.0])[1] > 0.9

@@ -90,6 +90,19 @@ MAX_SLIP_RAD = math.atan(math.tan(VEHICLE.max_steer_rad) / 2)  # the bicycle mod
 ZEBRA_SD_M = 0.4  # spread of one junction's zebra readings (a band's edge at 5-15 m, a row of the view or two)
 EXIT_SD_M = 0.4  # spread of the road turned into's reach as read in the turn (bench/turn_arc.py, single-lane streets)
 LANE_WIDTH_SD_M = 0.15  # spread of the lane finder's width once both lines were seen
+# The direction of the road turned into's centre line as read spreads with how little of it is in view (far off,
+# its paint smears along the line of sight and pulls a short line's direction towards it): about this many
+# degrees times square metres over its length squared, and no less than the floor (bench/turn_arc.py: 10 degrees
+# at 3.5 m, 3 at 7 m, 1.5 at 11 m, 0.4 beyond 17 m). The cross street's angle read from the zebra before the turn
+# spreads ``ZEBRA_ANGLE_SD_DEG``; unread, the junction's angle is anywhere within ``skew_max_deg`` of square.
+EXIT_ANGLE_SD_DEG_M2 = 150.0
+EXIT_ANGLE_SD_FLOOR_DEG = 0.4
+ZEBRA_ANGLE_SD_DEG = 1.5
+# The white line a lane right of the road turned into's centre line (``ExitLine.divider_fill``): painted over at
+# least this share of its length seen, it is a single lane's solid edge line, else the dashed divider of two lanes
+# (bench/turn_arc.py: 0.8-1.0 beside single lanes, 0.2-0.6 beside two); told so right this often.
+DIVIDER_SOLID_FILL = 0.7
+DIVIDER_RIGHT = 0.95
 
 
 @dataclass(frozen=True)
@@ -160,6 +173,8 @@ class JunctionGuidance:
         self.lanes_to_kerb = 0  # lanes between ours and the kerb, as the lane lines told before the bar
         self._exit: list[tuple[float, float]] = []  # (reach, turn angle in degrees) read from the road turned into
         self._exit_fix: tuple[float, float] | None = None  # ... their medians, once there are enough readings
+        self._fills: list[float] = []  # the white line beside it: how much of it is painted (ExitLine.divider_fill)
+        self._arc_start_m: float | None = None  # where the arc begins (approach frame), once the car is on it
 
     @property
     def skew_rad(self) -> float:
@@ -306,8 +321,13 @@ class JunctionGuidance:
         beyond = self._exit_fix[0] - float(np.median(self._zebra_m)) if self._zebra_m else None
         sd = math.hypot(EXIT_SD_M, ZEBRA_SD_M)
 
+        solid = (float(np.median(self._fills)) >= DIVIDER_SOLID_FILL
+                 if len(self._fills) >= self.rules.exit_min_readings else None)
+
         def log_odds(n: int, right_m: float) -> float:
             prior = math.log(share if n == 2 else 1.0 - share)
+            if solid is not None:  # a solid line beside the centre line: one lane; a dashed one: two
+                prior += math.log(DIVIDER_RIGHT if solid == (n == 1) else 1.0 - DIVIDER_RIGHT)
             if beyond is None:
                 return prior
             return prior - 0.5 * ((beyond - right_m - (n - 1) * self.lane_width_m) / sd) ** 2
@@ -409,12 +429,20 @@ class JunctionGuidance:
         runs = line.direction_rad + (yaw - road_yaw)  # in the approach frame, from its axis (positive right)
         if abs(math.sin(runs)) < math.sin(math.radians(90.0 - cfg.skew_max_deg - 10.0)):
             return  # nearly along our road: not a cross street
+        # its direction weighed against the cross street's angle read before the turn, each by its spread: a line
+        # seen short is far off and its direction is little to go by, and its distance across magnifies that error
+        planned = math.radians(self.planned_angle_deg(command)) * (1.0 if command == 2 else -1.0)
+        planned_sd = ZEBRA_ANGLE_SD_DEG if len(self._skew) >= cfg.skew_min_readings else cfg.skew_max_deg / math.sqrt(3)
+        line_sd = max(EXIT_ANGLE_SD_FLOOR_DEG, EXIT_ANGLE_SD_DEG_M2 / max(line.length_m, 1e-3) ** 2)
+        runs = fused(planned, math.radians(planned_sd), runs, math.radians(line_sd))
         along -= 0.5 * self.lane_width_m * math.sin(runs)  # the inner lane's centre line
         across += 0.5 * self.lane_width_m * math.cos(runs)
         reach = along - across * math.cos(runs) / math.sin(runs) - self.road.stop_bar_depth_m
         if abs(reach - self.planned_reach_m(command)) > cfg.exit_max_shift_m:
             return
         self._exit.append((reach, math.degrees(runs if command == 2 else -runs)))
+        if line.divider_fill is not None:
+            self._fills.append(line.divider_fill)
         fix = self._settled(self._exit)
         if fix is not None:
             self._exit_fix = (fix[0], fix[1])
@@ -471,6 +499,11 @@ class JunctionGuidance:
             # a reach hedged farther out moves the arc's end, not its start (a later start, on the kerb lane's
             # radius, lags the junction's lanes and runs wide of them in the turn)
             radius += self.lanes_to_kerb * self.lane_width_m + hedge / math.tan(math.radians(angle) / 2)
+        half_turn = math.radians(angle) / 2
+        if self._arc_start_m is not None:  # on the arc: a new reading moves its end, not where it began (a start
+            # moved on lags the car already turning there, which steers back out and cannot catch the turn again)
+            radius = round(max(VEHICLE.min_turn_radius_m,
+                               (self.road.stop_bar_depth_m + reach - self._arc_start_m) / math.tan(half_turn)), 2)
         path, arc_end = turn_path(command, round(reach, 2), self.road.stop_bar_depth_m, radius, angle_deg=angle)
         lookahead = cfg.turn_lookahead_m + cfg.turn_lookahead_s * speed
         if here[0] < self.road.stop_bar_depth_m - lookahead:  # not yet: the lookahead point is still before the arc
@@ -486,6 +519,11 @@ class JunctionGuidance:
             return None
         if not started:
             self.junction = (self.junction[0], self.junction[1], road_yaw, command)
+        if self._arc_start_m is None:
+            fits = reach / math.tan(half_turn)
+            start = self.road.stop_bar_depth_m + reach - min(fits if radius is None else radius, fits) * math.tan(half_turn)
+            if along >= start:  # the car's centre, which the arc leads, has reached it
+                self._arc_start_m = start
         delta = self._centre_on_path(path, np.array([along, across]), heading)
         return float(np.clip(delta / VEHICLE.max_steer_rad, -1.0, 1.0))
 

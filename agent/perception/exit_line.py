@@ -22,9 +22,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
-from towndrive.agent.perception.lanes import BirdsEye, BirdsEyeConfig, ThresholdConfig, lane_masks
+from towndrive.agent.perception.lanes import BirdsEye, BirdsEyeConfig, ThresholdConfig, lane_masks, white_any_direction
 from towndrive.sim.spec import CameraConfig
 
 
@@ -42,6 +43,12 @@ class ExitLineConfig:
     # paint beside the line (from ``inlier_m`` to this far across it, along its span) ...
     side_m: float = 1.5
     side_max_share: float = 0.5  # ... at most this share of the line's own: else it is a patch (a zebra), not a line
+    # The white line a lane to the centre line's right (in the direction of travel), looked for this far from it:
+    # a lane width less an edge line's set-in, to a wide lane's width.
+    divider_min_m: float = 2.2
+    divider_max_m: float = 4.4
+    divider_bin_m: float = 0.5  # its length seen is counted in steps of this
+    divider_min_span_m: float = 6.0  # a dashed line (3 m dashes, 6 m gaps; US practice 10 ft and 30 ft) is painted over half of it at most
 
 
 @dataclass(frozen=True)
@@ -52,6 +59,10 @@ class ExitLine:
     direction_rad: float  # the way it runs, from the camera's forward axis (positive right)
     n_pixels: int
     length_m: float  # how much of it was in view
+    # The share of the white line a lane to its right that is painted, over the length of that line in view: a
+    # single lane's edge line is solid (about 1), the divider between two lanes dashed (about a third to a half);
+    # None when no such line was found or less than ``divider_min_span_m`` of it was in view.
+    divider_fill: float | None = None
 
 
 class ExitLineFinder:
@@ -60,6 +71,9 @@ class ExitLineFinder:
     def __init__(self, camera: CameraConfig, config: ExitLineConfig | None = None) -> None:
         self.config = config or ExitLineConfig()
         self.birdseye = BirdsEye(camera, self.config.view)
+        # the bird's-eye pixels the camera sees (the rest of the view is outside its image)
+        seen = self.birdseye.warp(np.full((camera.height, camera.width), 255, np.uint8), cv2.INTER_NEAREST)
+        self.in_view = cv2.erode(seen, np.ones((3, 3), np.uint8)) > 0
 
     def find(self, rgb: np.ndarray, expected_rad: float,
              corridor: tuple[float, float, float] | None = None) -> ExitLine | None:
@@ -68,7 +82,8 @@ class ExitLineFinder:
         paint within the half width of the line through (x, z) in the expected direction is looked at (where the
         line is expected to lie, so that nothing beside it, a kerb lit orange at dusk, outvotes it)."""
         cfg, bev = self.config, self.birdseye
-        yellow = lane_masks(bev.warp(rgb), cfg.thresholds, cfg.view.px_per_m_x)["yellow"]
+        bev_rgb = bev.warp(rgb)
+        yellow = lane_masks(bev_rgb, cfg.thresholds, cfg.view.px_per_m_x)["yellow"]
         rows, cols = np.nonzero(yellow)
         x, z = bev.x_of_col[cols], bev.z_of_row[rows]
         if corridor is not None:
@@ -110,4 +125,38 @@ class ExitLineFinder:
         length = float(along.max() - along.min())
         if length < cfg.min_length_m or abs(math.remainder(direction - expected_rad, 2 * math.pi)) > half:
             return None
-        return ExitLine((float(middle[0]), float(middle[1])), direction, int(near.sum()), length)
+        return ExitLine((float(middle[0]), float(middle[1])), direction, int(near.sum()), length,
+                        self._divider_fill(white_any_direction(bev_rgb, cfg.thresholds, cfg.view.px_per_m_x),
+                                           (float(middle[0]), float(middle[1])), direction))
+
+    def _divider_fill(self, white: np.ndarray, middle: tuple[float, float], direction: float) -> float | None:
+        """``ExitLine.divider_fill``: the strongest white line parallel to the centre line (``middle``,
+        ``direction``) between ``divider_min_m`` and ``divider_max_m`` to its right, and the share of its length in
+        view that has paint on it."""
+        cfg, bev = self.config, self.birdseye
+        rows, cols = np.nonzero(white)
+        c, s = math.cos(direction), math.sin(direction)
+        dx, dz = bev.x_of_col[cols] - middle[0], bev.z_of_row[rows] - middle[1]
+        right, along = dx * c - dz * s, dx * s + dz * c
+        band = (right >= cfg.divider_min_m) & (right <= cfg.divider_max_m)
+        if int(band.sum()) < cfg.min_pixels // 4:
+            return None
+        counts = np.bincount(((right[band] - cfg.divider_min_m) / cfg.bin_m).astype(int))
+        k = int(np.argmax(counts))
+        offset = cfg.divider_min_m + (k + 0.5) * cfg.bin_m
+        on = band & (np.abs(right - offset) <= cfg.inlier_m)
+        # that line's points every bin along, and which of them the camera sees
+        steps = np.arange(-cfg.view.z_max_m - cfg.view.x_max_m, cfg.view.z_max_m + cfg.view.x_max_m, cfg.divider_bin_m)
+        px = middle[0] + steps * s + offset * c
+        pz = middle[1] + steps * c - offset * s
+        col = np.floor((px - cfg.view.x_min_m) * cfg.view.px_per_m_x).astype(int)
+        row = np.floor((cfg.view.z_max_m - pz) * cfg.view.px_per_m_z).astype(int)
+        h, w = self.in_view.shape
+        inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        inside[inside] = self.in_view[row[inside], col[inside]]
+        if int(inside.sum()) * cfg.divider_bin_m < cfg.divider_min_span_m:
+            return None
+        painted = np.zeros(len(steps), bool)
+        idx = np.round((along[on] - steps[0]) / cfg.divider_bin_m).astype(int)
+        painted[idx[(idx >= 0) & (idx < len(steps))]] = True
+        return float((painted & inside).sum() / inside.sum())

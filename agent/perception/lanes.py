@@ -170,6 +170,15 @@ def lane_masks(bev_rgb: np.ndarray, cfg: ThresholdConfig, px_per_m_x: float) -> 
     return {"white": white_u8, "yellow": yellow_u8, "gradient": support, "combined": combined}
 
 
+def white_any_direction(bev_rgb: np.ndarray, cfg: ThresholdConfig, px_per_m: float) -> np.ndarray:
+    """White paint (uint8 0/1) by a square top-hat: lines running any way across the view, where ``lane_masks``'
+    horizontal one finds only lines running up it (a line along the kernel is its own background)."""
+    light = cv2.cvtColor(bev_rgb, cv2.COLOR_RGB2HLS)[..., 1].astype(np.float32)
+    k = max(3, int(round(cfg.line_kernel_m * px_per_m)) | 1)
+    bg = cv2.morphologyEx(light, cv2.MORPH_OPEN, np.ones((k, k), np.uint8))
+    return (((light - bg) >= cfg.white_min_contrast) & (light >= cfg.white_min_ratio * bg)).astype(np.uint8)
+
+
 # --------------------------------------------------------------------------- marking conventions
 @dataclass(frozen=True)
 class MarkingSpec:
