@@ -137,21 +137,21 @@ def test_going_straight_the_far_sides_centre_line_in_its_corridor(entry_index: i
         assert kerb is not None and _off_line_m(kerb.point, a, b) > 2.0
 
 
-@pytest.mark.parametrize("style, town_seed, entry_index, weather, lanes", [
-    ("suburb", 4000, 0, "noon", 2),
-    ("suburb", 4000, 1, "night", 1),
-    ("suburb", 4000, 4, "dusk", 1),
-    ("downtown", 4000, 3, "night", 2),
-    ("downtown", 4000, 1, "noon", 1),
+@pytest.mark.parametrize("style, town_seed, entry_index, turned_deg, weather, lanes", [
+    ("suburb", 4000, 0, 50.0, "noon", 2),
+    ("suburb", 4000, 1, 50.0, "night", 1),
+    ("suburb", 4000, 4, 40.0, "dusk", 1),
+    ("downtown", 4000, 3, 50.0, "night", 2),
+    ("downtown", 4000, 1, 65.0, "noon", 1),  # the lane turned into comes into view late in this turn
 ])
 def test_the_line_a_lane_right_of_the_centre_line_tells_one_lane_from_two(
-        style: str, town_seed: int, entry_index: int, weather: str, lanes: int) -> None:
+        style: str, town_seed: int, entry_index: int, turned_deg: float, weather: str, lanes: int) -> None:
     """Part way through a right turn, the white line a lane to the right of the road turned into's centre line is a
     single lane's solid edge line or the dashed divider of two lanes: painted over most of its length seen, or over
-    a third to a half of it (``ExitLine.divider_fill``; the junction takes 0.7 as the boundary)."""
+    half of it at most (``ExitLine.divider_fill``; the junction takes 0.7 as the boundary)."""
     from towndrive.agent.decision.junction import DIVIDER_SOLID_FILL
 
-    rgb, env, (a, b) = _in_turn(style, town_seed, entry_index, Command.RIGHT, 50.0, weather)
+    rgb, env, (a, b) = _in_turn(style, town_seed, entry_index, Command.RIGHT, turned_deg, weather)
     finder = ExitLineFinder(env.config.camera)
     env.close()
     line = finder.find(rgb, math.atan2(b[0] - a[0], b[1] - a[1]))

@@ -17,14 +17,19 @@ odds at the kind of junction the car sees (``RoadDesign.two_lane_share``: who st
 Where the design's numbers spread, a turn planned so still misses the lane turned into by a metre or two when the
 cross street's lane count was guessed wrong. So once the road turned into is in view (from 20 degrees of a right turn,
 50 of a left turn), it is read (``agent.perception.exit_line``): its centre line places its inner lane half a lane
-width to the line's right in the direction of travel, whatever the count, and the line's direction gives the turn's
-angle. A left turn goes into that lane; a right turn into the kerb lane, as many lanes short of it as the line's
-distance beyond the zebra tells (``exit_odds``), kept within reach of the single lane while that count is in doubt
+width to the line's right in the direction of travel, whatever the count, and the line's direction, weighed against
+the zebra's by how much of the line is in view, gives the turn's angle (a line seen short is far off, and its
+direction, carried back across the junction, would misplace the lane by a metre or more). A left turn goes into that
+lane; a right turn into the kerb lane, as many lanes short of it as the street has lanes beyond the first: the line's
+distance beyond the zebra tells the count a little, the white line a lane to its right (solid beside a single lane,
+dashed between two) much more (``exit_odds``), kept within reach of the single lane while that count is in doubt
 (``sim.spec.hedged_reach``: a two-lane kerb lane is off the road on a single-lane street, the single lane's place is
 the inner lane on a two-lane one). A right turn keeps its lane counted from the kerb, as the town's
 connectors do (``sim.spec.right_turn_lanes_from_kerb``): from the inner lane of two (a lane change before the turn
 held) it goes into the inner lane, whatever the count, on an arc a lane wider than the kerb lane's. The arc is
-re-placed on that lane and leads the whole turn. Where the road turned into is never read, the arc leads only until
+re-placed on that lane and leads the whole turn; once the car is on it, a reading moves the arc's end and not where
+it began (an arc begun later, as a tighter radius would have it, lies beyond a car already turning, which steers
+back out and then cannot follow it round). Where the road turned into is never read, the arc leads only until
 the car faces that road (``turn_handover_deg``) and PilotNet, which sees it, finishes the turn. An exact design's
 arc leads to the end.
 Where junctions are not square, the arc turns by the cross street's angle, read from the zebra beyond the bar (its

@@ -15,6 +15,13 @@ have a direction counts, and only one with road on both sides: at dusk the low s
 zebra's stripes (side by side, a metre apart) line up into a band as dense as the centre line; the centre line has
 no paint of its colour within a metre or so beside it, a zebra has as much as on the band itself. Nothing is
 guessed.
+
+The white line a lane to the centre line's right (in the direction of travel) tells the street's lane count, which
+a right turn's kerb lane depends on: beside a single lane it is the solid edge line, between two lanes the dashed
+divider (``ExitLine.divider_fill``, the share of it painted over the length in view). It is found in white paint
+by a square top-hat (the lane finder's runs across the view only, and the road turned into runs any way across it),
+and only over 6 m or more in view: a dash and its gap are 9 m, so a dashed line is painted over half of any 6 m at
+most, a solid one over nearly all.
 """
 
 from __future__ import annotations
@@ -48,7 +55,8 @@ class ExitLineConfig:
     divider_min_m: float = 2.2
     divider_max_m: float = 4.4
     divider_bin_m: float = 0.5  # its length seen is counted in steps of this
-    divider_min_span_m: float = 6.0  # a dashed line (3 m dashes, 6 m gaps; US practice 10 ft and 30 ft) is painted over half of it at most
+    # at least this much of it in view: 3 m dashes and 6 m gaps (US practice 10 ft and 30 ft) paint at most half
+    divider_min_span_m: float = 6.0
 
 
 @dataclass(frozen=True)
