@@ -524,7 +524,7 @@ class JunctionGuidance:
             return None
         if not started:
             self.junction = (self.junction[0], self.junction[1], road_yaw, command)
-        if self._arc_start_m is None:
+        if self._arc_start_m is None and self.design_spreads:  # (an exact design's arc never moves)
             fits = reach / math.tan(half_turn)
             start = self.road.stop_bar_depth_m + reach - min(fits if radius is None else radius, fits) * math.tan(half_turn)
             if along >= start:  # the car's centre, which the arc leads, has reached it
