@@ -335,6 +335,7 @@ class AgentDriver:
         self._exit_expected: float | None = None  # in a turn, the direction the road turned into should run
         self._exit_seen: ExitLine | None = None  # ... and its centre line as seen this frame
         self._far_corridor: tuple[float, float, float] | None = None  # going straight, where the far side's lies
+        self._read_count = False  # in a right turn: the road turned into's lane count is read too
         self._frame = 0
         self._restart()
 
@@ -469,7 +470,8 @@ class AgentDriver:
             self._zebra_tilt = None if seen is None else seen.tilt
         finder, expected = self.stages.exit_line, self._exit_expected
         self._exit_seen = (None if finder is None or expected is None
-                           else self._timed("exit_line", times, finder.find, image, expected, self._far_corridor))
+                           else self._timed("exit_line", times, finder.find, image, expected, self._far_corridor,
+                                            self._read_count))
         return lanes, stop
 
     def _act(self, observation: dict[str, Any],
@@ -494,6 +496,7 @@ class AgentDriver:
         run = self._frame % self.config.detect_every == 0
         self._exit_expected = st.junction.exit_expected_rad()  # the lane finder's thread reads them
         self._far_corridor = st.junction.far_corridor()
+        self._read_count = st.junction.reads_lane_count
         # Two cores: the detector, then lanes and the stop line, on the worker while this thread looks in the
         # mirror and runs PilotNet (each stage's own thread times it); else all on this thread, in this order.
         threads = self._threads.now() if self._threads is not None else self.config.stage_threads

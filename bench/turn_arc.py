@@ -100,7 +100,7 @@ def drive_turn(style: str, town_seed: int, entry_index: int, command: int,
         odometry.advance(speed, steer, int(world.command()), driver.dt)
         expected = guidance.exit_expected_rad()
         if finder is not None and expected is not None:
-            guidance.note_exit(finder.find(obs["image"], expected))
+            guidance.note_exit(finder.find(obs["image"], expected, divider=guidance.reads_lane_count))
         outside = world.lane_band_offset_m()
         worst = max(worst, outside if math.isfinite(outside) else OFF_ROAD)
         if terminated:

@@ -154,6 +154,6 @@ def test_the_line_a_lane_right_of_the_centre_line_tells_one_lane_from_two(
     rgb, env, (a, b) = _in_turn(style, town_seed, entry_index, Command.RIGHT, turned_deg, weather)
     finder = ExitLineFinder(env.config.camera)
     env.close()
-    line = finder.find(rgb, math.atan2(b[0] - a[0], b[1] - a[1]))
+    line = finder.find(rgb, math.atan2(b[0] - a[0], b[1] - a[1]), divider=True)
     assert line is not None and line.divider_fill is not None
     assert (line.divider_fill >= DIVIDER_SOLID_FILL) == (lanes == 1)

@@ -476,22 +476,31 @@ def likeliest(g: object) -> int:
     return max(odds, key=lambda n: odds[n])
 
 
+def cross_line_seen(odo: Odometry, centre_along_m: float, runs_deg: float, length_m: float = 10.0,
+                    fill: float | None = None, misread_deg: float = 0.0) -> object:
+    """The cross street's centre line as the camera (1 m ahead of the car's centre) sees it from where ``odo`` is:
+    it crosses our lane's centre line ``centre_along_m`` beyond x = 11 (the bar's near edge, ``JunctionGuidance``
+    placed as in these tests) and runs ``runs_deg`` right of our road (x right, z ahead); its direction is read
+    ``misread_deg`` off."""
+    from towndrive.agent.perception.exit_line import ExitLine
+
+    runs = math.radians(runs_deg)
+    cam = odo.pos + np.array([math.cos(odo.yaw), math.sin(odo.yaw)])
+    point = np.array([11.0 + centre_along_m, 0.0]) + 8.0 * np.array([math.cos(runs), math.sin(runs)]) - cam
+    seen = (float(-point[0] * math.sin(odo.yaw) + point[1] * math.cos(odo.yaw)),
+            float(point[0] * math.cos(odo.yaw) + point[1] * math.sin(odo.yaw)))
+    return ExitLine(seen, runs + math.radians(misread_deg) - odo.yaw, 400, length_m, fill)
+
+
 def see_cross_centre_line(g: object, command: int, centre_along_m: float, yaw_deg: float) -> None:
     """Turn the car ``yaw_deg`` into a junction turn (the bar's near edge at x = 11 of the odometry frame) and give
     the guidance three readings of the cross street's centre line, which crosses our lane ``centre_along_m``
     beyond the bar's near edge, as the camera sees it (x right, z ahead)."""
-    from towndrive.agent.perception.exit_line import ExitLine
-
     side = 1.0 if command == 2 else -1.0
-    yaw = side * math.radians(yaw_deg)
     odo = g.odo  # type: ignore[attr-defined]
-    odo.pos, odo.yaw = np.array([15.0, side * 2.0]), yaw
-    cam = odo.pos + np.array([math.cos(yaw), math.sin(yaw)])
-    point = np.array([11.0 + centre_along_m, side * 6.0]) - cam  # on the cross street's centre line
-    seen = (float(-point[0] * math.sin(yaw) + point[1] * math.cos(yaw)),
-            float(point[0] * math.cos(yaw) + point[1] * math.sin(yaw)))
+    odo.pos, odo.yaw = np.array([15.0, side * 2.0]), side * math.radians(yaw_deg)
     for _ in range(3):
-        g.note_exit(ExitLine(seen, side * math.pi / 2 - yaw, 400, 10.0))  # type: ignore[attr-defined]
+        g.note_exit(cross_line_seen(odo, centre_along_m, side * 90.0))  # type: ignore[attr-defined]
 
 
 def test_the_road_turned_into_read_in_the_turn_places_its_inner_lane_and_the_arc_then_leads_to_the_end() -> None:
@@ -739,22 +748,6 @@ def test_a_kind_of_junction_seen_only_a_few_times_leaves_the_other_lane_count_po
     for style in ("downtown", "suburb"):  # every kind the styles' training towns show
         for o in road_priors(style).cross_street_odds:
             assert 0.0 < o.two_lane_share < 1.0
-
-
-def cross_line_seen(odo: Odometry, centre_along_m: float, runs_deg: float, length_m: float = 10.0,
-                    fill: float | None = None, misread_deg: float = 0.0) -> object:
-    """The cross street's centre line as the camera (1 m ahead of the car's centre) sees it from where ``odo`` is:
-    it crosses our lane's centre line ``centre_along_m`` beyond x = 11 (the bar's near edge, ``JunctionGuidance``
-    placed as in these tests) and runs ``runs_deg`` right of our road (x right, z ahead); its direction is read
-    ``misread_deg`` off."""
-    from towndrive.agent.perception.exit_line import ExitLine
-
-    runs = math.radians(runs_deg)
-    cam = odo.pos + np.array([math.cos(odo.yaw), math.sin(odo.yaw)])
-    point = np.array([11.0 + centre_along_m, 0.0]) + 8.0 * np.array([math.cos(runs), math.sin(runs)]) - cam
-    seen = (float(-point[0] * math.sin(odo.yaw) + point[1] * math.cos(odo.yaw)),
-            float(point[0] * math.cos(odo.yaw) + point[1] * math.sin(odo.yaw)))
-    return ExitLine(seen, runs + math.radians(misread_deg) - odo.yaw, 400, length_m, fill)
 
 
 def placed_turn() -> object:

@@ -64,10 +64,8 @@ def turn_path(command: int, reach_m: float, bar_depth_m: float = ROAD.stop_bar_d
     classic junction connectors); with one (at most what fits), the arc tangent to both lanes, after a straight
     lead-in (styled towns' fillets)."""
     half = math.radians(angle_deg) / 2
-    fits = reach_m / math.tan(half)  # the largest radius whose arc starts at the bar's far edge
-    radius = fits if radius_m is None else min(radius_m, fits)
+    radius, x0 = arc_placement(reach_m, bar_depth_m, radius_m, angle_deg)
     side = 1.0 if command == 2 else -1.0
-    x0 = bar_depth_m + reach_m - radius * math.tan(half)  # where the arc begins
     before = np.arange(x0 - 30.0, x0, step_m)
     approach = np.stack([before, np.zeros(len(before))], axis=1)
     theta = np.arange(0.0, 2 * half, step_m / radius)
@@ -78,6 +76,15 @@ def turn_path(command: int, reach_m: float, bar_depth_m: float = ROAD.stop_bar_d
     path = np.concatenate([approach, arc, exit_])
     path.setflags(write=False)
     return path, (len(approach) + len(arc)) * step_m
+
+
+def arc_placement(reach_m: float, bar_depth_m: float, radius_m: float | None, angle_deg: float) -> tuple[float, float]:
+    """``turn_path``'s arc: its radius (``radius_m``, at most the largest whose arc starts at the bar's far edge;
+    that one with none) and where along the approach it begins."""
+    half = math.radians(angle_deg) / 2
+    fits = reach_m / math.tan(half)
+    radius = fits if radius_m is None else min(radius_m, fits)
+    return radius, bar_depth_m + reach_m - radius * math.tan(half)
 
 
 def _right_of(yaw: float) -> np.ndarray:
@@ -352,6 +359,12 @@ class JunctionGuidance:
         return self._exit_fix[1] if self._exit_fix is not None else self.planned_angle_deg(command)
 
     @property
+    def reads_lane_count(self) -> bool:
+        """Whether the road turned into's lane count is read (``ExitLine.divider_fill``): in a right turn under way,
+        whose lane is the kerb lane; a left turn's inner lane and the straight hold do not depend on it."""
+        return self.junction is not None and self.junction[3] == 2
+
+    @property
     def lane_room_m(self) -> float:
         """How far the car's centre may be off its lane's centre with the car still inside the lane."""
         return max(0.0, (self.lane_width_m - VEHICLE.width_m) / 2)
@@ -501,11 +514,11 @@ class JunctionGuidance:
         here = np.array([along - half * math.cos(heading), across - half * math.sin(heading)])
         radius = self.road.left_turn_radius_m if command == 1 else self.road.right_turn_radius_m
         angle = round(self.turn_angle_deg(command), 1)
+        half_turn = math.radians(angle) / 2
         if command == 2 and radius is not None:  # the design's is the kerb lane's: a lane farther out, a lane wider;
             # a reach hedged farther out moves the arc's end, not its start (a later start, on the kerb lane's
             # radius, lags the junction's lanes and runs wide of them in the turn)
-            radius += self.lanes_to_kerb * self.lane_width_m + hedge / math.tan(math.radians(angle) / 2)
-        half_turn = math.radians(angle) / 2
+            radius += self.lanes_to_kerb * self.lane_width_m + hedge / math.tan(half_turn)
         if self._arc_start_m is not None:  # on the arc: a new reading moves its end, not where it began (a start
             # moved on lags the car already turning there, which steers back out and cannot catch the turn again)
             radius = round(max(VEHICLE.min_turn_radius_m,
@@ -526,8 +539,7 @@ class JunctionGuidance:
         if not started:
             self.junction = (self.junction[0], self.junction[1], road_yaw, command)
         if self._arc_start_m is None and self.design_spreads:  # (an exact design's arc never moves)
-            fits = reach / math.tan(half_turn)
-            start = self.road.stop_bar_depth_m + reach - min(fits if radius is None else radius, fits) * math.tan(half_turn)
+            _, start = arc_placement(reach, self.road.stop_bar_depth_m, radius, angle)
             if along >= start:  # the car's centre, which the arc leads, has reached it
                 self._arc_start_m = start
         delta = self._centre_on_path(path, np.array([along, across]), heading)

@@ -82,13 +82,19 @@ class ExitLineFinder:
         # the bird's-eye pixels the camera sees (the rest of the view is outside its image)
         seen = self.birdseye.warp(np.full((camera.height, camera.width), 255, np.uint8), cv2.INTER_NEAREST)
         self.in_view = cv2.erode(seen, np.ones((3, 3), np.uint8)) > 0
+        # where along a line, from its middle, the divider is checked: the view's whole diagonal either way
+        view = self.config.view
+        reach = view.z_max_m + view.x_max_m
+        self.divider_steps = np.arange(-reach, reach, self.config.divider_bin_m)
 
     def find(self, rgb: np.ndarray, expected_rad: float,
-             corridor: tuple[float, float, float] | None = None) -> ExitLine | None:
+             corridor: tuple[float, float, float] | None = None, divider: bool = False) -> ExitLine | None:
         """The yellow line running within ``window_deg`` of ``expected_rad`` (from the camera's forward axis,
         positive right), or None when there is not enough of one. ``corridor`` (x, z, half width in metres): only
         paint within the half width of the line through (x, z) in the expected direction is looked at (where the
-        line is expected to lie, so that nothing beside it, a kerb lit orange at dusk, outvotes it)."""
+        line is expected to lie, so that nothing beside it, a kerb lit orange at dusk, outvotes it). ``divider``:
+        also read the white line a lane to its right (``ExitLine.divider_fill``; a second top-hat of the view, so
+        only where the lane count is wanted)."""
         cfg, bev = self.config, self.birdseye
         bev_rgb = bev.warp(rgb)
         yellow = lane_masks(bev_rgb, cfg.thresholds, cfg.view.px_per_m_x)["yellow"]
@@ -133,9 +139,9 @@ class ExitLineFinder:
         length = float(along.max() - along.min())
         if length < cfg.min_length_m or abs(math.remainder(direction - expected_rad, 2 * math.pi)) > half:
             return None
-        return ExitLine((float(middle[0]), float(middle[1])), direction, int(near.sum()), length,
-                        self._divider_fill(white_any_direction(bev_rgb, cfg.thresholds, cfg.view.px_per_m_x),
-                                           (float(middle[0]), float(middle[1])), direction))
+        fill = (self._divider_fill(white_any_direction(bev_rgb, cfg.thresholds, cfg.view.px_per_m_x),
+                                   (float(middle[0]), float(middle[1])), direction) if divider else None)
+        return ExitLine((float(middle[0]), float(middle[1])), direction, int(near.sum()), length, fill)
 
     def _divider_fill(self, white: np.ndarray, middle: tuple[float, float], direction: float) -> float | None:
         """``ExitLine.divider_fill``: the strongest white line parallel to the centre line (``middle``,
@@ -154,7 +160,7 @@ class ExitLineFinder:
         offset = cfg.divider_min_m + (k + 0.5) * cfg.bin_m
         on = band & (np.abs(right - offset) <= cfg.inlier_m)
         # that line's points every bin along, and which of them the camera sees
-        steps = np.arange(-cfg.view.z_max_m - cfg.view.x_max_m, cfg.view.z_max_m + cfg.view.x_max_m, cfg.divider_bin_m)
+        steps = self.divider_steps
         px = middle[0] + steps * s + offset * c
         pz = middle[1] + steps * c - offset * s
         col = np.floor((px - cfg.view.x_min_m) * cfg.view.px_per_m_x).astype(int)
