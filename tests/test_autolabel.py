@@ -36,9 +36,12 @@ def renderer(town):
     r.close()
 
 
-def test_known_car_gets_a_tight_full_label(town, renderer):
+@pytest.mark.parametrize("camera", [CameraConfig(), CameraConfig(mount_height_m=1.75, hfov_deg=108.0, pitch_deg=-7.5)],
+                         ids=["default rig", "another car's rig"])
+def test_known_car_gets_a_tight_full_label(town, renderer, camera):
+    """The label is the car's pixels and agrees with its 3D box, from the default camera and from another car's
+    (the rig splits render each frame from a drawn camera)."""
     world = scene(town, (15.0,), (SemanticClass.CAR,))
-    camera = CameraConfig()
     frame, labels = render_and_label(renderer, world, camera, "noon")
     cars = [lab for lab in labels if lab.name == "car"]
     assert len(cars) == 1
@@ -184,3 +187,24 @@ def test_sign_classes_are_appended_and_named_in_one_place():
     assert sign_class(SignKind.STOP.name) == "stop_sign" and sign_class(SignKind.YIELD.name, 0) == "yield_sign"
     assert [sign_class(SignKind.SPEED_LIMIT.name, v) for v in (30, 50, 70)] == ["speed_limit_30", "speed_limit_50", None]
     assert LIMIT_OF_CLASS == {"speed_limit_30": 30, "speed_limit_50": 50}
+
+
+def test_rig_range_draws_other_cars_cameras_around_the_default_rig():
+    """Each draw is a camera within the ranges (size and stereo kept); the default rig and the other car of the
+    closed-loop check (0.2 m higher, 100 degrees) lie inside them; the same seed draws the same cameras."""
+    from towndrive.agent.training.autolabel import RigRange
+
+    rigs, base = RigRange(), CameraConfig()
+    for lo_hi, value in ((rigs.mount_height_m, base.mount_height_m), (rigs.hfov_deg, base.hfov_deg),
+                         (rigs.pitch_deg, base.pitch_deg), (rigs.mount_height_m, base.mount_height_m + 0.2),
+                         (rigs.hfov_deg, 100.0)):
+        assert lo_hi[0] < value < lo_hi[1]
+    draws = [rigs.draw(np.random.default_rng(3), base) for _ in range(2)]
+    assert draws[0] == draws[1]
+    many = [rigs.draw(rng, base) for rng in [np.random.default_rng(4)] for _ in range(200)]
+    for cam in many:
+        assert rigs.mount_height_m[0] <= cam.mount_height_m <= rigs.mount_height_m[1]
+        assert rigs.hfov_deg[0] <= cam.hfov_deg <= rigs.hfov_deg[1]
+        assert rigs.pitch_deg[0] <= cam.pitch_deg <= rigs.pitch_deg[1]
+        assert (cam.width, cam.height, cam.mount_forward_m) == (base.width, base.height, base.mount_forward_m)
+    assert np.ptp([c.hfov_deg for c in many]) > 30 and np.ptp([c.mount_height_m for c in many]) > 0.5

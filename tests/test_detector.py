@@ -81,14 +81,16 @@ def test_targets_put_a_small_object_on_the_stride_8_map_at_its_centre_cell():
     assert w[5, 5] == 0.0 and w[15, 30] == 1.0  # inside the ignore region: no objectness loss
 
 
-def test_loss_decreases_on_a_tiny_batch():
+@pytest.mark.parametrize("classes", [len(CLASSES), 6], ids=["all classes", "six without the signs"])
+def test_loss_decreases_on_a_tiny_batch(classes):
+    """The loss trains a model of all classes and one of the six without the road signs (``--classes 6``)."""
     torch.manual_seed(0)
     img = torch.full((2, 3, 160, 320), 0.3)
     img[0, :, 60:90, 100:160] = torch.tensor([0.9, 0.1, 0.1])[:, None, None]
     img[1, :, 40:100, 200:220] = torch.tensor([0.1, 0.2, 0.9])[:, None, None]
     targets = [build_targets(np.array([[100, 60, 160, 90]], np.float32), np.array([0]), np.array([False])),
                build_targets(np.array([[200, 40, 220, 100]], np.float32), np.array([2]), np.array([False]))]
-    model = Detector(DetectorConfig(width=8))  # narrow: the loss and targets are under test, not capacity
+    model = Detector(DetectorConfig(width=8, num_classes=classes))  # narrow: the loss is under test, not capacity
     opt = torch.optim.Adam(model.parameters(), lr=1e-2)
     losses = []
     for _ in range(20):
@@ -309,15 +311,19 @@ def test_training_splits_share_no_town_with_val_or_test():
     from towndrive.agent.training.autolabel import WEATHERS, default_splits
 
     specs = {s.name: s for s in default_splits()}
-    assert set(specs) == {"train", "val", "test", "train_peds", "train_peds2"}
+    assert set(specs) == {"train", "val", "test", "train_peds", "train_peds2", "train_rigs", "val_rigs", "test_rigs"}
     held_out = set(specs["val"].town_seeds) | set(specs["test"].town_seeds)
-    training = [specs[n] for n in ("train", "train_peds", "train_peds2")]
+    training = [specs[n] for n in ("train", "train_peds", "train_peds2", "train_rigs")]
     for spec in training:
         assert not set(spec.town_seeds) & held_out, spec.name
         assert spec.weathers == WEATHERS
     assert not set(specs["train_peds"].town_seeds) & set(specs["train_peds2"].town_seeds)
     assert specs["train_peds2"].town_seeds == tuple(range(60, 100))
     assert specs["train_peds"].pedestrian_count == specs["train_peds2"].pedestrian_count == 60
+    # the rig splits: another car's camera per frame, on the same held-out towns as val and test
+    assert specs["val_rigs"].town_seeds == specs["val"].town_seeds and specs["test_rigs"].town_seeds == specs["test"].town_seeds
+    assert all(specs[n].rigs is not None for n in ("train_rigs", "val_rigs", "test_rigs"))
+    assert all(specs[n].rigs is None for n in ("train", "val", "test", "train_peds", "train_peds2"))
 
 
 def test_init_grows_a_six_class_head_copying_its_channels_exactly(tmp_path):

@@ -334,6 +334,25 @@ WEATHERS: tuple[str, ...] = ("noon", "dusk", "overcast", "night")
 
 
 @dataclass(frozen=True)
+class RigRange:
+    """The cameras other cars carry: each sampled frame is rendered from one drawn uniformly from these ranges.
+
+    Why: a detector trained on one mount sees a different picture on another car (objects sit at other heights
+    and sizes in the image, the road fills another share of it, and the image's edges show what the training
+    camera never showed) and invents objects there. The ranges cover a hatchback's to a van's mount and a
+    narrow to a wide lens; the default rig (``sim.spec.CameraConfig``) lies inside them."""
+
+    mount_height_m: tuple[float, float] = (1.1, 1.8)
+    hfov_deg: tuple[float, float] = (70.0, 110.0)
+    pitch_deg: tuple[float, float] = (-8.0, 0.0)
+
+    def draw(self, rng: np.random.Generator, camera: CameraConfig) -> CameraConfig:
+        """``camera`` with a mount height, field of view and pitch drawn from the ranges."""
+        return replace(camera, mount_height_m=float(rng.uniform(*self.mount_height_m)),
+                       hfov_deg=float(rng.uniform(*self.hfov_deg)), pitch_deg=float(rng.uniform(*self.pitch_deg)))
+
+
+@dataclass(frozen=True)
 class SplitSpec:
     """Which towns and weathers one split is drawn from, and how many frames."""
 
@@ -345,20 +364,28 @@ class SplitSpec:
     pedestrian_count: int | None = None  # the world's pedestrians before the traffic density (None: its default)
     town_style: str | None = None  # sim.town_style's name (None: the env's default town, classic)
     sign_boost: bool = False  # sample more often while a sign faces the ego close ahead (see generate_split)
+    rigs: RigRange | None = None  # each frame from a camera drawn from this range (None: the env's own camera)
 
 
 def default_splits(train_frames: int = 6000, val_frames: int = 1200, test_frames: int = 1200,
-                   peds_frames: int = 6000, peds_count: int = 60, peds2_frames: int = 6000) -> list[SplitSpec]:
+                   peds_frames: int = 6000, peds_count: int = 60, peds2_frames: int = 6000,
+                   rigs_frames: int = 8000) -> list[SplitSpec]:
     """Training towns 0-29; validation (checkpoint choice) towns 100-109; test (the reported figures) towns
     200-209. Neither held-out set shares a town with training; all four weathers are in each.
     ``train_peds`` and ``train_peds2`` are extra training data: towns 30-59 and 60-99 with ``peds_count``
     pedestrians per town (the world's default is 24), for the detector's weakest class; only generated when
-    asked for by name. These are classic towns and predate ``sim/splits.py``; ``styled_splits`` follows it."""
+    asked for by name. ``train_rigs``, ``val_rigs`` and ``test_rigs`` draw each frame's camera from ``RigRange``
+    (other cars' mounts and lenses): training towns 30-99 with ``peds_count`` pedestrians, and the validation and
+    test towns. These are classic towns and predate ``sim/splits.py``; ``styled_splits`` follows it."""
     return [SplitSpec("train", tuple(range(30)), WEATHERS, train_frames),
             SplitSpec("val", tuple(range(100, 110)), WEATHERS, val_frames),
             SplitSpec("test", tuple(range(200, 210)), WEATHERS, test_frames),
             SplitSpec("train_peds", tuple(range(30, 60)), WEATHERS, peds_frames, pedestrian_count=peds_count),
-            SplitSpec("train_peds2", tuple(range(60, 100)), WEATHERS, peds2_frames, pedestrian_count=peds_count)]
+            SplitSpec("train_peds2", tuple(range(60, 100)), WEATHERS, peds2_frames, pedestrian_count=peds_count),
+            SplitSpec("train_rigs", tuple(range(30, 100)), WEATHERS, rigs_frames, pedestrian_count=peds_count,
+                      rigs=RigRange()),
+            SplitSpec("val_rigs", tuple(range(100, 110)), WEATHERS, val_frames, rigs=RigRange()),
+            SplitSpec("test_rigs", tuple(range(200, 210)), WEATHERS, test_frames, rigs=RigRange())]
 
 
 # The dataset's split names -> sim/splits.py's town-seed ranges.
@@ -474,16 +501,20 @@ def generate_split(root, spec: SplitSpec, seed: int, progress: bool = True) -> d
                 if stopped and stopped_before and rng.random() < 0.75:
                     continue
                 stopped_before = stopped
-                frame, labels = render_and_label(renderer, world, camera, weather)
+                shot = camera if spec.rigs is None else spec.rigs.draw(rng, camera)
+                frame, labels = render_and_label(renderer, world, shot, weather)
                 name = f"{spec.name}_{index:06d}"
                 cv2.imwrite(str(img_dir / f"{name}.png"), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
                 kept = [lab for lab in labels if not lab.ignore]
                 (lab_dir / f"{name}.txt").write_text("".join(lab.yolo_line(camera.width, camera.height) + "\n"
                                                              for lab in kept))
+                rig = {} if spec.rigs is None else {"camera": {"mount_height_m": round(shot.mount_height_m, 3),
+                                                              "hfov_deg": round(shot.hfov_deg, 2),
+                                                              "pitch_deg": round(shot.pitch_deg, 2)}}
                 meta.write(json.dumps({"image": f"images/{spec.name}/{name}.png", "town_seed": town_seed,
                                        "town_style": world.town.config.style, "weather": weather,
                                        "time_s": round(world.time_s, 2),
-                                       "objects": [lab.as_dict() for lab in labels]}) + "\n")
+                                       **rig, "objects": [lab.as_dict() for lab in labels]}) + "\n")
                 for lab in labels:
                     counts["ignored" if lab.ignore else "labels"][lab.name] += 1
                 index += 1

@@ -175,7 +175,7 @@ def yolo_loss(maps: list[torch.Tensor], targets: list[list[dict[str, np.ndarray]
     IoU 0.5.
     """
     bce = torch.nn.functional.binary_cross_entropy_with_logits
-    nc = len(CLASSES)
+    nc = maps[0].shape[1] - 5  # the model's classes (the six without the road signs, or all of CLASSES)
     lbox, lcls, lobj, ll1 = (maps[0].new_zeros(()) for _ in range(4))
     n_pos = 0
     for level, (m, s) in enumerate(zip(maps, strides, strict=True)):
@@ -282,7 +282,7 @@ def evaluate_model(model: Detector, images: np.ndarray, samples: list[Sample]) -
             x = torch.from_numpy(np.ascontiguousarray(images[i:i + 32].transpose(0, 3, 1, 2))).float().div_(255.0)
             for row in dec(to_device(x, device)).float().cpu().numpy():
                 dets.append(postprocess(row, 0.01))
-    return detection_report(samples, dets)
+    return detection_report(samples, dets, model.config.num_classes)
 
 
 def save_checkpoint(path: Path, model: Detector, meta: dict) -> None:
@@ -353,6 +353,7 @@ def _train(args: argparse.Namespace, device: torch.device, dist: Distributed, wo
     val_x = load_images(val_s, "val") if dist.is_main else None  # rank 0 alone validates
     strides = tuple(int(v) for v in str(getattr(args, "strides", "8,16")).split(","))
     model = Detector(DetectorConfig(width=getattr(args, "width", 32), strides=strides,
+                                    num_classes=getattr(args, "classes", len(CLASSES)),
                                     s4_blocks=getattr(args, "s4_blocks", 0),
                                     s4_pixels=getattr(args, "s4_pixels", False)))
     obj_iou, scale_prob = getattr(args, "obj_iou", 0.0), getattr(args, "scale_prob", 1.0)

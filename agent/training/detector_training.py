@@ -19,6 +19,7 @@ import json
 import time
 from pathlib import Path
 
+from towndrive.agent.perception.classes import CLASSES, SIGN_CLASSES
 from towndrive.agent.training.devices import add_device_argument, add_loader_argument
 from towndrive.agent.training.outputs import add_replace_shipped
 
@@ -44,10 +45,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--peds-count", type=int, default=60,
                    help="pedestrians per town in train_peds and train_peds2 (default world: 24)")
     p.add_argument("--peds2-frames", type=int, default=6000, help="frames of the extra train_peds2 split")
+    p.add_argument("--rigs-frames", type=int, default=8000,
+                   help="frames of the train_rigs split (each from another car's camera, autolabel.RigRange)")
     p.add_argument("--splits", default="train,val,test",
                    help="which splits to (re)generate, comma-separated. train, val, test: classic towns 0-29, "
                    "100-109, 200-209; train_peds, train_peds2: extra training towns 30-59 and 60-99 with more "
-                   "pedestrians; train_STYLE, val_STYLE, test_STYLE (STYLE: classic, downtown, suburb): towns of that "
+                   "pedestrians; train_rigs, val_rigs, test_rigs: towns 30-99 (more pedestrians), 100-109 and "
+                   "200-209, each frame from a camera drawn from other cars' mounts and lenses; train_STYLE, val_STYLE, "
+                   "test_STYLE (STYLE: classic, downtown, suburb): towns of that "
                    "town style from sim/splits.py's train (0-3999), validation (4000-4999) and test (5000-5999) "
                    "seeds, the first 30, 10 and 10 of each, sampled more often near road signs")
     p.add_argument("--town-style", default="",
@@ -71,6 +76,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--strides", default="4,8,16", help="head strides: 4,8,16 (the shipped model) or 8,16 (no stride-4 head)")
     p.add_argument("--width", type=int, default=32, help="backbone channels at stride 4 (doubled at each stride)")
     p.add_argument("--s4-blocks", type=int, default=0, help="residual blocks on the stride-4 path before its head")
+    p.add_argument("--classes", type=int, default=len(CLASSES), choices=(len(CLASSES) - len(SIGN_CLASSES), len(CLASSES)),
+                   help="the first N classes of agent/perception/classes.py: all of them, or the six without the road "
+                   "signs (the default detector's, for towns without signs)")
     p.add_argument("--s4-pixels", action="store_true",
                    help="add each 4x4 cell's raw pixels (space-to-depth, 1x1 conv) to the stride-4 path")
     p.add_argument("--init", default="", help="warm start: this checkpoint's weights where names and shapes match "
@@ -173,7 +181,7 @@ def dataset_specs(args: argparse.Namespace) -> list:
     from towndrive.sim.town_style import STYLES
 
     specs = default_splits(args.train_frames, args.val_frames, args.test_frames, args.peds_frames, args.peds_count,
-                           args.peds2_frames)
+                           args.peds2_frames, args.rigs_frames)
     for style in STYLES:
         specs += styled_splits(style, args.train_frames, args.val_frames, args.test_frames)
     by_name = {spec.name: spec for spec in specs}
