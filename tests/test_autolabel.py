@@ -208,3 +208,24 @@ def test_rig_range_draws_other_cars_cameras_around_the_default_rig():
         assert rigs.pitch_deg[0] <= cam.pitch_deg <= rigs.pitch_deg[1]
         assert (cam.width, cam.height, cam.mount_forward_m) == (base.width, base.height, base.mount_forward_m)
     assert np.ptp([c.hfov_deg for c in many]) > 30 and np.ptp([c.mount_height_m for c in many]) > 0.5
+
+
+def test_on_policy_split_keeps_what_the_agents_detector_sees(tmp_path):
+    """``train_agent``-style splits: the camera-only agent drives, and each frame is rendered with the trained lens
+    and pitch at the drawn car's mounting height (what the agent's model view hands its detector), its camera in
+    the meta file; an unknown driver is one sentence."""
+    import json
+
+    from towndrive.agent.training.autolabel import RigRange, SplitSpec, generate_split
+    from towndrive.sim.spec import CAMERA
+
+    spec = SplitSpec("train_agent", (30,), ("noon",), 3, frames_per_episode=3, rigs=RigRange(), driver="agent")
+    counts = generate_split(tmp_path, spec, 0, progress=False)
+    assert counts["frames"] == 3
+    rows = [json.loads(line) for line in (tmp_path / "train_agent_meta.jsonl").read_text().splitlines()]
+    heights = {r["camera"]["mount_height_m"] for r in rows}
+    assert len(heights) == 1 and RigRange().mount_height_m[0] <= heights.pop() <= RigRange().mount_height_m[1]
+    assert all((r["camera"]["hfov_deg"], r["camera"]["pitch_deg"]) == (CAMERA.hfov_deg, CAMERA.pitch_deg) for r in rows)
+    assert len(list((tmp_path / "images" / "train_agent").glob("*.png"))) == 3
+    with pytest.raises(ValueError, match="unknown driver"):
+        generate_split(tmp_path, SplitSpec("x", (30,), ("noon",), 1, driver="human"), 0, progress=False)

@@ -311,9 +311,10 @@ def test_training_splits_share_no_town_with_val_or_test():
     from towndrive.agent.training.autolabel import WEATHERS, default_splits
 
     specs = {s.name: s for s in default_splits()}
-    assert set(specs) == {"train", "val", "test", "train_peds", "train_peds2", "train_rigs", "val_rigs", "test_rigs"}
+    assert set(specs) == {"train", "val", "test", "train_peds", "train_peds2", "train_rigs", "val_rigs", "test_rigs",
+                          "train_agent"}
     held_out = set(specs["val"].town_seeds) | set(specs["test"].town_seeds)
-    training = [specs[n] for n in ("train", "train_peds", "train_peds2", "train_rigs")]
+    training = [specs[n] for n in ("train", "train_peds", "train_peds2", "train_rigs", "train_agent")]
     for spec in training:
         assert not set(spec.town_seeds) & held_out, spec.name
         assert spec.weathers == WEATHERS
@@ -324,6 +325,7 @@ def test_training_splits_share_no_town_with_val_or_test():
     assert specs["val_rigs"].town_seeds == specs["val"].town_seeds and specs["test_rigs"].town_seeds == specs["test"].town_seeds
     assert all(specs[n].rigs is not None for n in ("train_rigs", "val_rigs", "test_rigs"))
     assert all(specs[n].rigs is None for n in ("train", "val", "test", "train_peds", "train_peds2"))
+    assert [n for n, spec in specs.items() if spec.driver == "agent"] == ["train_agent"]
 
 
 def test_init_grows_a_six_class_head_copying_its_channels_exactly(tmp_path):

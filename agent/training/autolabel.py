@@ -365,18 +365,22 @@ class SplitSpec:
     town_style: str | None = None  # sim.town_style's name (None: the env's default town, classic)
     sign_boost: bool = False  # sample more often while a sign faces the ego close ahead (see generate_split)
     rigs: RigRange | None = None  # each frame from a camera drawn from this range (None: the env's own camera)
+    driver: str = "autopilot"  # who drives: "autopilot", or "agent" (frames of the camera-only agent's own runs)
 
 
 def default_splits(train_frames: int = 6000, val_frames: int = 1200, test_frames: int = 1200,
                    peds_frames: int = 6000, peds_count: int = 60, peds2_frames: int = 6000,
-                   rigs_frames: int = 8000) -> list[SplitSpec]:
+                   rigs_frames: int = 8000, agent_frames: int = 3000) -> list[SplitSpec]:
     """Training towns 0-29; validation (checkpoint choice) towns 100-109; test (the reported figures) towns
     200-209. Neither held-out set shares a town with training; all four weathers are in each.
     ``train_peds`` and ``train_peds2`` are extra training data: towns 30-59 and 60-99 with ``peds_count``
     pedestrians per town (the world's default is 24), for the detector's weakest class; only generated when
     asked for by name. ``train_rigs``, ``val_rigs`` and ``test_rigs`` draw each frame's camera from ``RigRange``
     (other cars' mounts and lenses): training towns 30-99 with ``peds_count`` pedestrians, and the validation and
-    test towns. These are classic towns and predate ``sim/splits.py``; ``styled_splits`` follows it."""
+    test towns. ``train_agent`` is on-policy: the camera-only agent drives (one drawn car per episode) and each
+    frame is what its detector gets, so the places it stands in (inside a junction, at an angle the autopilot never
+    takes) are in the data, labelled from ground truth. These are classic towns and predate ``sim/splits.py``;
+    ``styled_splits`` follows it."""
     return [SplitSpec("train", tuple(range(30)), WEATHERS, train_frames),
             SplitSpec("val", tuple(range(100, 110)), WEATHERS, val_frames),
             SplitSpec("test", tuple(range(200, 210)), WEATHERS, test_frames),
@@ -384,6 +388,8 @@ def default_splits(train_frames: int = 6000, val_frames: int = 1200, test_frames
             SplitSpec("train_peds2", tuple(range(60, 100)), WEATHERS, peds2_frames, pedestrian_count=peds_count),
             SplitSpec("train_rigs", tuple(range(30, 100)), WEATHERS, rigs_frames, pedestrian_count=peds_count,
                       rigs=RigRange()),
+            SplitSpec("train_agent", tuple(range(30, 100)), WEATHERS, agent_frames, pedestrian_count=peds_count,
+                      rigs=RigRange(), driver="agent"),
             SplitSpec("val_rigs", tuple(range(100, 110)), WEATHERS, val_frames, rigs=RigRange()),
             SplitSpec("test_rigs", tuple(range(200, 210)), WEATHERS, test_frames, rigs=RigRange())]
 
@@ -448,6 +454,7 @@ def generate_split(root, spec: SplitSpec, seed: int, progress: bool = True) -> d
     from tqdm import tqdm
 
     from towndrive.agent.drivers import make_driver
+    from towndrive.agent.perception.model_view import model_camera
     from towndrive.envs.drive_env import DriveConfig, DriveEnv
 
     root = Path(root)
@@ -455,11 +462,16 @@ def generate_split(root, spec: SplitSpec, seed: int, progress: bool = True) -> d
     img_dir.mkdir(parents=True, exist_ok=True)
     lab_dir.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng((seed, sum(map(ord, spec.name))))
-    config = DriveConfig(render_camera=False, terminate_on_route_deviation=False, terminate_on_infraction=True)
+    on_policy = spec.driver == "agent"
+    if spec.driver not in ("autopilot", "agent"):
+        raise ValueError(f"unknown driver {spec.driver!r} for split {spec.name}; use 'autopilot' or 'agent'.")
+    # the agent drives from its camera's pictures; the autopilot needs none (only sampled frames are rendered)
+    config = DriveConfig(render_camera=on_policy, terminate_on_route_deviation=False, terminate_on_infraction=True)
     if spec.pedestrian_count is not None:
         config = replace(config, world=replace(config.world, pedestrian_count=spec.pedestrian_count))
     env = DriveEnv(config)
     camera = env.config.camera
+    agent = make_driver("agent", stage_threads=1) if on_policy else None
     renderer: SceneRenderer | None = None
     renderer_town: int | None = None
     counts: dict = {"frames": 0, "labels": dict.fromkeys(CLASSES, 0), "ignored": dict.fromkeys(CLASSES, 0)}
@@ -474,6 +486,15 @@ def generate_split(root, spec: SplitSpec, seed: int, progress: bool = True) -> d
             options = {"town_seed": town_seed, "weather": weather, "traffic_density": density}
             if spec.town_style is not None:
                 options["town_style"] = spec.town_style
+            seen: CameraConfig | None = None
+            if on_policy:
+                # The agent's camera is one car's for the whole episode (its stages are built for it); the frame
+                # kept is what its detector gets: the trained lens and pitch at this car's mounting height.
+                mount = camera if spec.rigs is None else spec.rigs.draw(rng, camera)
+                if mount != env.config.camera:
+                    env.close()
+                    env = DriveEnv(replace(config, camera=mount))
+                seen = model_camera(mount)
             obs, _ = env.reset(seed=int(rng.integers(2**31 - 1)), options=options)
             world = env.world
             assert world is not None
@@ -481,7 +502,7 @@ def generate_split(root, spec: SplitSpec, seed: int, progress: bool = True) -> d
                 if renderer is not None:
                     renderer.close()
                 renderer, renderer_town = SceneRenderer(world.town, seed=world.town.seed), id(world.town)
-            driver = make_driver("autopilot")
+            driver = agent if agent is not None else make_driver("autopilot")
             driver.reset(env)
             next_sample = int(rng.integers(10, 40))
             taken, step, stopped_before = 0, 0, False
@@ -501,14 +522,14 @@ def generate_split(root, spec: SplitSpec, seed: int, progress: bool = True) -> d
                 if stopped and stopped_before and rng.random() < 0.75:
                     continue
                 stopped_before = stopped
-                shot = camera if spec.rigs is None else spec.rigs.draw(rng, camera)
+                shot = seen if seen is not None else camera if spec.rigs is None else spec.rigs.draw(rng, camera)
                 frame, labels = render_and_label(renderer, world, shot, weather)
                 name = f"{spec.name}_{index:06d}"
                 cv2.imwrite(str(img_dir / f"{name}.png"), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
                 kept = [lab for lab in labels if not lab.ignore]
                 (lab_dir / f"{name}.txt").write_text("".join(lab.yolo_line(camera.width, camera.height) + "\n"
                                                              for lab in kept))
-                rig = {} if spec.rigs is None else {"camera": {"mount_height_m": round(shot.mount_height_m, 3),
+                rig = {} if spec.rigs is None and not on_policy else {"camera": {"mount_height_m": round(shot.mount_height_m, 3),
                                                               "hfov_deg": round(shot.hfov_deg, 2),
                                                               "pitch_deg": round(shot.pitch_deg, 2)}}
                 meta.write(json.dumps({"image": f"images/{spec.name}/{name}.png", "town_seed": town_seed,

@@ -47,11 +47,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--peds2-frames", type=int, default=6000, help="frames of the extra train_peds2 split")
     p.add_argument("--rigs-frames", type=int, default=8000,
                    help="frames of the train_rigs split (each from another car's camera, autolabel.RigRange)")
+    p.add_argument("--agent-frames", type=int, default=3000,
+                   help="frames of the train_agent split (the camera-only agent drives: its own closed loop's frames)")
     p.add_argument("--splits", default="train,val,test",
                    help="which splits to (re)generate, comma-separated. train, val, test: classic towns 0-29, "
                    "100-109, 200-209; train_peds, train_peds2: extra training towns 30-59 and 60-99 with more "
                    "pedestrians; train_rigs, val_rigs, test_rigs: towns 30-99 (more pedestrians), 100-109 and "
-                   "200-209, each frame from a camera drawn from other cars' mounts and lenses; train_STYLE, val_STYLE, "
+                   "200-209, each frame from a camera drawn from other cars' mounts and lenses; train_agent: towns 30-99 "
+                   "driven by the camera-only agent, what its detector sees; train_STYLE, val_STYLE, "
                    "test_STYLE (STYLE: classic, downtown, suburb): towns of that "
                    "town style from sim/splits.py's train (0-3999), validation (4000-4999) and test (5000-5999) "
                    "seeds, the first 30, 10 and 10 of each, sampled more often near road signs")
@@ -181,7 +184,7 @@ def dataset_specs(args: argparse.Namespace) -> list:
     from towndrive.sim.town_style import STYLES
 
     specs = default_splits(args.train_frames, args.val_frames, args.test_frames, args.peds_frames, args.peds_count,
-                           args.peds2_frames, args.rigs_frames)
+                           args.peds2_frames, args.rigs_frames, args.agent_frames)
     for style in STYLES:
         specs += styled_splits(style, args.train_frames, args.val_frames, args.test_frames)
     by_name = {spec.name: spec for spec in specs}
