@@ -352,6 +352,12 @@ class RigRange:
                        hfov_deg=float(rng.uniform(*self.hfov_deg)), pitch_deg=float(rng.uniform(*self.pitch_deg)))
 
 
+def camera_fields(camera: CameraConfig) -> dict[str, float]:
+    """What a frame's meta line records of a camera that is not the env's own: the fields ``RigRange`` draws."""
+    return {"mount_height_m": round(camera.mount_height_m, 3), "hfov_deg": round(camera.hfov_deg, 2),
+            "pitch_deg": round(camera.pitch_deg, 2)}
+
+
 @dataclass(frozen=True)
 class SplitSpec:
     """Which towns and weathers one split is drawn from, and how many frames."""
@@ -522,16 +528,15 @@ def generate_split(root, spec: SplitSpec, seed: int, progress: bool = True) -> d
                 if stopped and stopped_before and rng.random() < 0.75:
                     continue
                 stopped_before = stopped
-                shot = seen if seen is not None else camera if spec.rigs is None else spec.rigs.draw(rng, camera)
+                # the agent's episode keeps one car's camera; else the env's, or one drawn per frame
+                shot = seen or (camera if spec.rigs is None else spec.rigs.draw(rng, camera))
                 frame, labels = render_and_label(renderer, world, shot, weather)
                 name = f"{spec.name}_{index:06d}"
                 cv2.imwrite(str(img_dir / f"{name}.png"), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
                 kept = [lab for lab in labels if not lab.ignore]
                 (lab_dir / f"{name}.txt").write_text("".join(lab.yolo_line(camera.width, camera.height) + "\n"
                                                              for lab in kept))
-                rig = {} if spec.rigs is None and not on_policy else {"camera": {"mount_height_m": round(shot.mount_height_m, 3),
-                                                              "hfov_deg": round(shot.hfov_deg, 2),
-                                                              "pitch_deg": round(shot.pitch_deg, 2)}}
+                rig = {"camera": camera_fields(shot)} if on_policy or spec.rigs is not None else {}
                 meta.write(json.dumps({"image": f"images/{spec.name}/{name}.png", "town_seed": town_seed,
                                        "town_style": world.town.config.style, "weather": weather,
                                        "time_s": round(world.time_s, 2),
