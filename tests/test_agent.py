@@ -290,6 +290,16 @@ def test_a_pedestrian_box_too_small_for_where_it_stands_is_no_person() -> None:
     assert not driver.stages.objects.plausible_person(np.array([100.0, y1 - 0.6 * whole, 112.0, y1]))  # too short to stand there
     assert not driver.stages.objects.plausible_person(np.array([100.0, y1 - 1.5 * whole, 112.0, y1]))  # too tall
     assert driver.stages.objects.plausible_person(np.array([100.0, 0.0, 130.0, y1]))  # cut at the top: not judged
+    # The floor rises with the box's height (its rows are read to a pixel or two): three quarters of a person is
+    # within reading error 25 m away, not 2.5 m away (paint by the image's edge scored so at night)
+    for z_m, person in ((25.0, True), (2.5, False)):
+        bottom = float(rows[np.nanargmin(np.abs(g.birdseye.ground_z_of_row(rows) - z_m))])
+        tall = g.f * 1.75 / float(g.birdseye.ground_z_of_row(np.array([bottom]))[0])
+        box = np.array([100.0, bottom - 0.75 * tall, 108.0, bottom])
+        assert driver.stages.objects.plausible_person(box) is person
+    near = float(rows[np.nanargmin(np.abs(g.birdseye.ground_z_of_row(rows) - 2.5))])
+    tall = g.f * 1.75 / float(g.birdseye.ground_z_of_row(np.array([near]))[0])
+    assert driver.stages.objects.plausible_person(np.array([100.0, near - 0.93 * tall, 130.0, near]))
     # Cut at the bottom: a person 1.6 m ahead shows their head where 1.75 m is at that distance
     head = min(np.arange(-50.0, 80.0, 0.25), key=lambda v: abs(g.height_of_row(v, 1.6) - 1.75))
     assert driver.stages.objects.plausible_person(np.array([100.0, head, 190.0, 170.0]))

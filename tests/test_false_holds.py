@@ -5,6 +5,8 @@ frame after frame while the car stood, and a person seen whole a few seconds bef
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from towndrive.agent.perception.box_geometry import BoxGeometry
@@ -73,3 +75,18 @@ def test_an_expired_track_is_not_remembered() -> None:
         memory.note(objs, [o.track_id for o in objs], est.edge_only)
         t += DT
     assert objs == [] and memory.lost == {}
+
+
+def test_paint_by_the_edge_is_no_person_for_a_higher_camera() -> None:
+    """A camera 0.2 m higher, at night inside a left turn: the crossed road's yellow centre line by the image's left
+    edge scored as a person 75-81 px tall, about three quarters of a person's height where it met the road. The
+    fixed 0.7 floor let it through (the car stood there with nothing in its path); near, a box's rows are read
+    too well for that (the floor rises with the box's height). The same proportion far away is reading error."""
+    geometry = BoxGeometry(replace(CAMERA, mount_height_m=CAMERA.mount_height_m + 0.2))
+    est = ObjectEstimator(geometry, ObjectRules())
+    for box in ((9.0, 78.0, 26.0, 153.0), (7.0, 77.0, 19.0, 158.0)):
+        assert 0.7 < geometry.height_ratio(box, "pedestrian") < 0.75
+        assert est.update([Track(1, np.array(box), 10, 10, 0, PEDESTRIAN)], 0.0, None, 0.0) == []
+    far = person_box(geometry, 150.0, bottom=90.0)
+    far[1] = far[3] - 0.75 * (far[3] - far[1])
+    assert len(est.update([Track(2, far, 10, 10, 0, PEDESTRIAN)], 0.05, None, 0.0)) == 1

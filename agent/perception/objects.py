@@ -76,6 +76,7 @@ class ObjectRules:
     edge_confirm_s: float = 8.0  # a person at the image's side edge is confirmed this long after last seen whole
     whole_margin_px: float = 3.0  # a box this near the image's side edge may be cut: it does not show the whole
     person_height_ratio: tuple[float, float] = (0.7, 1.4)  # a whole person's box height over the prior's
+    person_height_slack_px: float = 10.0  # ... and at least 1 - this / box height (see plausible_person)
     cut_person_height_ratio: float = 0.8  # the least height a person's box cut at the bottom shows, over the prior's
     stereo_max_m: float = 15.0  # beyond this stereo disparity is too small: use geometry
 
@@ -234,10 +235,18 @@ class ObjectEstimator:
         """Whether a pedestrian box's size agrees with where its bottom row meets the road (a box cut by the
         image's top edge is not judged; one cut at the bottom must reach up to a standing person's head). People
         in this world are all 1.75 m tall, and the ratio of box height to the prior's stays near 1 for true
-        detections (``docs/agent_rules.md``)."""
+        detections (``docs/agent_rules.md``).
+
+        The ratio is read from pixels: the box's top and bottom rows, and the bottom row's road distance, each a
+        pixel or two off. Both errors shrink as the box grows (the distance's share is ``z / (f h_cam)`` per
+        row, and z itself is ``f H / h``), so the ratio's spread goes as one over the box's height in pixels,
+        and a tall box must come close to the prior's height: at least ``1 - person_height_slack_px / h``.
+        Near, the fixed floor alone let through a box 0.64-0.75 of a person's height over paint by the image's
+        left edge, where true detections 60 px tall or more never fell under 0.91."""
         ratio = self.geometry.height_ratio(box, "pedestrian")
         lo, hi = self.rules.person_height_ratio
         if math.isfinite(ratio):
-            return lo <= ratio <= hi
+            height_px = float(box[3]) - float(box[1])
+            return max(lo, 1.0 - self.rules.person_height_slack_px / height_px) <= ratio <= hi
         cut = self.geometry.cut_height_ratio(box, "pedestrian")
         return not math.isfinite(cut) or cut >= self.rules.cut_person_height_ratio
