@@ -113,8 +113,11 @@ class AgentConfig:
     # The ratio is read to a pixel or two at each of the box's rows, so its spread goes as one over the box's
     # height: a box h px tall must reach 1 - this / h of the prior's height (5,605 true detections within 40 m on
     # the test and validation splits, fixed and drawn rigs, kept (1 - ratio) x h under 8.1 px). Like the fixed
-    # floor it assumes everyone is the prior's height: where heights vary, both must allow for the shortest.
+    # floor it assumes everyone is the prior's height: where heights vary, both must allow for the shortest. What
+    # does not shrink with the box (a person's depth between the near foot and the head, the car's pitch) keeps
+    # the floor at or under 1 - person_height_slack_share (a person 2.3 m away, 110 px tall, read 0.906).
     person_height_slack_px: float = 10.0
+    person_height_slack_share: float = 0.15
     # A person's box cut by the image's bottom edge stands nearer than the last row's road; its top row, read at
     # that distance, shows at least the person's height (the head is above the camera). Under this fraction of
     # 1.75 m it is no person (true detections' whole boxes never fell under 0.83).
@@ -127,7 +130,7 @@ class AgentConfig:
     turn_guidance: bool = True  # commanded turns inside a junction follow the road design's turn arc
     turn_lookahead_m: float = 3.5  # pure pursuit of the arc from the rear axle (as the autopilot follows lanes):
     turn_lookahead_s: float = 0.4  # lookahead = this + turn_lookahead_s x speed
-    turn_bar_seen_m: float = 12.0  # a turn is placed only by a stop bar seen this near
+    turn_bar_seen_m: float = 12.0  # a turn is placed only by a stop bar this near (seen, or tracked there)
     turn_handover_deg: float = 60.0  # with a design that spreads, the camera's steering finishes the turn from here
     road_min_confidence: float = 0.25  # a lane fit this sure measures the approach lane
     road_clear_m: float = 8.0  # the approach lane is measured only while the stop line is farther than this
@@ -302,8 +305,8 @@ class AgentDriver:
             stop=StopLineDetector(camera), geometry=geometry,
             objects=ObjectEstimator(geometry, ObjectRules(cfg.history_s, cfg.still_lateral_mps, cfg.edge_confirm_s,
                                                           cfg.whole_margin_px, cfg.person_height_ratio,
-                                                          cfg.person_height_slack_px, cfg.cut_person_height_ratio,
-                                                          cfg.stereo_max_m), stereo),
+                                                          cfg.person_height_slack_px, cfg.person_height_slack_share,
+                                                          cfg.cut_person_height_ratio, cfg.stereo_max_m), stereo),
             memory=ObjectMemory(geometry, MemoryRules(cfg.lost_memory_s, cfg.lost_memory_m, cfg.near_memory_s,
                                                       cfg.near_memory_m)),
             light=OurLight(geometry, LightRules(cfg.light_score_threshold, cfg.light_max_lateral_m,

@@ -76,7 +76,8 @@ class ObjectRules:
     edge_confirm_s: float = 8.0  # a person at the image's side edge is confirmed this long after last seen whole
     whole_margin_px: float = 3.0  # a box this near the image's side edge may be cut: it does not show the whole
     person_height_ratio: tuple[float, float] = (0.7, 1.4)  # a whole person's box height over the prior's
-    person_height_slack_px: float = 10.0  # ... and at least 1 - this / box height (see plausible_person)
+    person_height_slack_px: float = 10.0  # ... and at least 1 - this / box height (see plausible_person) ...
+    person_height_slack_share: float = 0.15  # ... or 1 - this, whichever is lower
     cut_person_height_ratio: float = 0.8  # the least height a person's box cut at the bottom shows, over the prior's
     stereo_max_m: float = 15.0  # beyond this stereo disparity is too small: use geometry
 
@@ -239,14 +240,17 @@ class ObjectEstimator:
 
         The ratio is read from pixels: the box's top and bottom rows, and the bottom row's road distance, each a
         pixel or two off. Both errors shrink as the box grows (the distance's share is ``z / (f h_cam)`` per
-        row, and z itself is ``f H / h``), so the ratio's spread goes as one over the box's height in pixels,
-        and a tall box must come close to the prior's height: at least ``1 - person_height_slack_px / h``.
-        Near, the fixed floor alone let through a box 0.64-0.75 of a person's height over paint by the image's
-        left edge, where true detections 60 px tall or more never fell under 0.91."""
+        row, and z itself is ``f H / h``), so that part of the ratio's spread goes as one over the box's height
+        in pixels. What does not shrink with the box stays: the bottom row is the near foot's front, the top the
+        head, a person's depth apart, and the car pitches (``person_height_slack_share``). A tall box must come
+        that close to the prior's height: at least ``1 - max(person_height_slack_px / h, slack_share)``. Near,
+        the fixed floor alone let through a box 0.64-0.75 of a person's height over paint by the image's left
+        edge, where true detections 60 px tall or more never fell under 0.91 (one 2.3 m away, 110 px, 0.906)."""
         ratio = self.geometry.height_ratio(box, "pedestrian")
         lo, hi = self.rules.person_height_ratio
         if math.isfinite(ratio):
             height_px = float(box[3]) - float(box[1])
-            return max(lo, 1.0 - self.rules.person_height_slack_px / height_px) <= ratio <= hi
+            slack = max(self.rules.person_height_slack_px / height_px, self.rules.person_height_slack_share)
+            return max(lo, 1.0 - slack) <= ratio <= hi
         cut = self.geometry.cut_height_ratio(box, "pedestrian")
         return not math.isfinite(cut) or cut >= self.rules.cut_person_height_ratio
