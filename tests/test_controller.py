@@ -172,6 +172,32 @@ def test_a_bar_glimpsed_once_and_never_again_does_not_put_the_car_in_the_junctio
     assert run.decisions[-1].reason.startswith("red light")
 
 
+def test_a_bar_out_of_sight_behind_the_car_ahead_is_kept() -> None:
+    """A bar read once 18 m ahead, then hidden by the car we follow towards it: it is not forgotten as a glimpse
+    (the junction guidance places the turn by it). With nothing in front of it, the same unseen bar is."""
+    lead = PerceivedObject(47, "car", 6.5, -0.9, 0.9, closing_speed_mps=0.0)
+    kept = []
+    for ahead in ([lead], []):
+        ctrl = Controller(CFG)
+        ctrl.step(Scene(3.0, light="green", stop_line_m=18.0 + CAM, objects=list(ahead)), 0.0, DT)
+        for _ in range(40):  # 2 s at 3 m/s: 6 m nearer, never seen again
+            ctrl.step(Scene(3.0, light="green", objects=list(ahead)), 0.0, DT)
+        kept.append(ctrl.line.stop_line_measured and ctrl.line.stop_line is not None)
+        if ahead:
+            assert ctrl.line.stop_line == pytest.approx(18.0 - 40 * 3.0 * DT, abs=1e-6)
+            assert ctrl.line.bar_confirmed  # read once, then hidden: no glimpse
+    assert kept == [True, False]
+
+
+def test_a_bar_read_once_with_nothing_in_front_is_not_confirmed_until_read_again() -> None:
+    ctrl = Controller(CFG)
+    ctrl.step(Scene(6.0, light="green", stop_line_m=15.6 + CAM), 0.0, DT)
+    ctrl.step(Scene(6.0, light="green"), 0.0, DT)
+    assert ctrl.line.stop_line_measured and not ctrl.line.bar_confirmed
+    ctrl.step(Scene(6.0, light="green", stop_line_m=15.6 - 0.6 + CAM), 0.0, DT)
+    assert ctrl.line.bar_confirmed
+
+
 def test_one_frame_of_a_near_light_does_not_put_the_car_past_a_line_it_never_saw() -> None:
     # Seed 513: no bar seen yet, the line inferred from the light 43 m ahead; one frame read a yellow light
     # 12 m ahead, whose inferred line lay behind the bumper: the car "was in the junction" and ignored lights.

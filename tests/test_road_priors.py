@@ -148,6 +148,43 @@ def test_the_junction_guidance_corrects_its_setback_and_lane_width_by_what_is_me
     assert classic.setback_m == ROAD.stop_line_setback_m and classic.lane_width_m == ROAD.lane_width_m
 
 
+def test_a_bar_lost_short_of_the_placing_range_is_placed_where_odometry_tracks_it() -> None:
+    """``JunctionGuidance.note``: a bar last read 12.6 m ahead, then lost to the camera (low sun), places the turn
+    once the tracked bar is within ``turn_bar_seen_m``; one tracked farther does not yet, nor a glimpse (a bar read
+    once, nothing hiding it since: ``StopLineTrack.bar_confirmed``). (Unplaced, PilotNet alone turned late and the
+    mirror's look, taking the turn for a pending lane change, held it mid-turn.)"""
+    from types import SimpleNamespace
+
+    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
+    from towndrive.agent.perception.stop_line import StopLine
+
+    ctf = 1.3  # camera to the front bumper
+    for confirmed in (True, False):
+        line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=12.6 - ctf,
+                               bar_confirmed=confirmed, config=SimpleNamespace(camera_to_front_m=ctf))
+        odo = approach_odometry()
+        g = JunctionGuidance(JunctionRules(), line, odo, 1.0, ROAD)
+        g.note(None)
+        assert not g.placed  # tracked 12.6 m ahead: beyond the placing range
+        line.stop_line, odo.pos = 11.3 - ctf, np.array([1.3, 0.0])  # 1.3 m driven, the bar not seen again
+        g.note(None)
+        assert g.placed is confirmed
+    assert g.junction is None
+    line.bar_confirmed = True
+    g.note(None)
+    assert g.junction is not None and g.junction[0] == pytest.approx(1.3 + 11.3 - ctf + ctf + 1.0)
+    # The bar, never read near, then forgotten as a glimpse (unseen a second while still 6 m off): the turn it
+    # placed goes with it. One read within the placing range stays when the bar is forgotten.
+    line.stop_line_measured, line.stop_line = False, None
+    g.note(None)
+    assert g.junction is None
+    line.stop_line_measured, line.stop_line = True, 10.0 - ctf
+    g.note(StopLine(10.0, 0.5, 0.9, 0))
+    line.stop_line_measured, line.stop_line = False, None
+    g.note(None)
+    assert g.placed
+
+
 def test_with_a_design_that_spreads_the_camera_finishes_the_turn_and_with_an_exact_one_the_arc_does() -> None:
     """Past ``turn_handover_deg`` of heading change the turn arc lets go (PilotNet steers) where the design's numbers
     are priors with a spread; the classic design's exact arc leads on."""

@@ -278,6 +278,15 @@ class Controller:
         curvature = math.tan(steer * cfg.max_steer_rad) / cfg.wheelbase_m
         return 0.5 * curvature * z_m * z_m
 
+    def _bar_hidden(self, scene: Scene, steer: float) -> bool:
+        """Whether a vehicle in our path stands between the camera and the tracked stop bar (a car waiting at it
+        hides its paint: not seeing the bar then says nothing against it)."""
+        if self.line.stop_line is None:
+            return False
+        bar_m = self.line.stop_line + self.config.camera_to_front_m
+        return any(o.kind in VEHICLE_KINDS and o.distance_m < bar_m and self.overlaps(scene, o, steer)
+                   for o in scene.objects)
+
     def overlaps(self, scene: Scene, obj: PerceivedObject, steer: float) -> bool:
         """Whether the object's lateral extent overlaps the corridor at its distance (people: wider)."""
         cfg = self.config
@@ -545,7 +554,8 @@ class Controller:
         self.last_steer = steer
         self._update_light(scene, dt)
         self.signs.update(scene.signs, scene.lanes_each_way, speed, dt)
-        if self.line.update(scene.speed_mps, scene.stop_line_m, scene.light, scene.light_distance_m, dt):
+        if self.line.update(scene.speed_mps, scene.stop_line_m, scene.light, scene.light_distance_m, dt,
+                            self._bar_hidden(scene, steer)):
             self.light_state, self._light_candidate, self._yellow_go = None, None, None  # in the junction
             self._view_back_m = 0.0
             self.signs.entered()

@@ -128,7 +128,7 @@ class JunctionRules:
     turn_lookahead_m: float = 3.5  # the arc takes over with the rear axle this + s x speed before the bar's far edge
     turn_lookahead_s: float = 0.4
     turn_offset_gain: float = 0.5  # the car's centre heads back onto the arc at atan(this x its offset in metres)
-    turn_bar_seen_m: float = 12.0  # a turn is placed only by a stop bar seen this near
+    turn_bar_seen_m: float = 12.0  # a turn is placed only by a stop bar this near (seen, or tracked from a reading)
     # With a design whose numbers spread, the arc (dead-reckoned from priors) leads the turn only this far; the
     # camera's steering finishes it, facing the road turned into. An exact design's arc leads to the end.
     turn_handover_deg: float = 60.0
@@ -178,6 +178,7 @@ class JunctionGuidance:
         setback until then)."""
         # the stop bar ahead (x, y, road yaw) and the command of the turn once it has begun (0: not yet)
         self.junction: tuple[float, float, float, int] | None = None
+        self._by_track = False  # placed by the tracked bar, never read within turn_bar_seen_m (note)
         self._zebra_m: list[float] = []  # bar's far edge to the zebra's far edge, as measured at this junction
         self._skew: list[float] = []  # the cross street's angle from square (rad, positive: its right arm leans
         #                               away from us), as measured at this junction
@@ -249,8 +250,13 @@ class JunctionGuidance:
              zebra_tilt: float | None = None, control: str | None = None, our_lanes: int | None = None,
              lanes_to_kerb: int | None = None) -> None:
         """Where the stop bar ahead lies in the odometry frame (the approach lane's centre at the bar's near edge),
-        from the tracked bar and the approach lane measured before it. Only a bar seen within ``turn_bar_seen_m``
-        of the camera places a turn (farther readings are a metre or so off). ``zebra_far_m``: the camera to the
+        from the tracked bar and the approach lane measured before it. Only a bar within ``turn_bar_seen_m`` of the
+        camera places a turn (farther readings are a metre or so off): seen there, or tracked there by odometry
+        from the last reading when the camera loses the bar short of it (paint under low sun, the lane lines that
+        bound the search gone), which is as good as that reading, if it is no glimpse
+        (``StopLineTrack.bar_confirmed``) and until it is forgotten as one; without a placed bar PilotNet alone turns, late
+        and wide, and the car is not known to be turning (a lane change towards the turn is then thought to be
+        pending, and the mirror's look may hold it mid-turn). ``zebra_far_m``: the camera to the
         far edge of the zebra beyond the bar this frame; ``lane_width_m``: the lane width the lane finder
         measured (both correct the design's priors, module docstring); ``zebra_tilt``: the slope of the zebra's
         edges (dz/dx in the camera's ground frame), the cross street's direction; ``control``: what governs our
@@ -260,10 +266,19 @@ class JunctionGuidance:
         lane it drives in now (which lane of the cross street a right turn goes into,
         ``right_turn_lanes_from_kerb``); None when not known: the kerb lane, as a right turn is made from."""
         line, odo, road = self.line, self.odo, self.road
+        if (self._by_track and self.junction is not None and self.junction[3] == 0 and line.ignore_light_m <= 0
+                and not line.stop_line_measured):
+            self.junction = None  # the bar it was placed by, never read near, was forgotten as a glimpse: so is it
         if line.ignore_light_m > 0 or not line.stop_line_measured or line.stop_line is None or odo.road_yaw is None:
             return
-        if self.junction is None and (stop is None or stop.distance_m > self.rules.turn_bar_seen_m):
-            return
+        near = stop is not None and stop.distance_m <= self.rules.turn_bar_seen_m
+        if near:
+            self._by_track = False
+        elif self.junction is None:
+            if not (line.bar_confirmed
+                    and line.stop_line + line.config.camera_to_front_m <= self.rules.turn_bar_seen_m):
+                return
+            self._by_track = True
         if stop is not None:  # still before the bar: not yet turning
             if control is not None and (self.control in (None, "none") or control != "none"):
                 self.control = control  # a light or a sign seen once governs the arm

@@ -64,6 +64,8 @@ class StopLineTrack:
         self.stop_line_measured = False  # True once a bar was seen (not only inferred from the light)
         self._farther = Unconfirmed()  # a bar reading farther than the tracked line
         self._line_unseen_s = 0.0  # since the tracked bar was last measured
+        self._reads = 0  # paint readings of the tracked bar
+        self._hidden = False  # a vehicle in our path stood nearer than the bar since its last reading
         self._odd_light = Unconfirmed()  # a stop line inferred from a light, far from the tracked one
         self.ignore_light_m = 0.0  # travel left during which lights are ignored (inside a junction)
 
@@ -72,14 +74,24 @@ class StopLineTrack:
         self.ignore_light_m = min(self.ignore_light_m, within_m)
 
     @property
+    def bar_confirmed(self) -> bool:
+        """Whether the tracked bar is one to place a turn by without a near reading: read more than once, or read
+        once and then hidden behind a vehicle in our path. A bar read once and then out of sight with nothing in
+        front of it may be a glimpse (a kerb or a zebra's edge at night), which ``line_unseen_forget_s`` would
+        forget: placed meanwhile, it put a turn's arc where there was none."""
+        return self.stop_line_measured and self.stop_line is not None and (self._reads >= 2 or self._hidden)
+
+    @property
     def in_junction(self) -> bool:
         """Whether the bumper crossed a stop line within the last ``junction_ignore_m`` metres."""
         return self.ignore_light_m > 0
 
     def update(self, speed_mps: float, stop_line_m: float | None, light: str | None, light_distance_m: float | None,
-               dt: float) -> bool:
+               dt: float, hidden: bool = False) -> bool:
         """One frame: the car travelled ``speed_mps x dt``; ``stop_line_m`` is the camera-to-bar reading (None when no bar
-        is seen), ``light`` and ``light_distance_m`` our light. Returns whether the bumper just entered a junction."""
+        is seen), ``light`` and ``light_distance_m`` our light; ``hidden``: a vehicle in our path stands nearer than
+        the tracked bar (its paint may be out of sight behind it). Returns whether the bumper just entered a
+        junction."""
         cfg = self.config
         travelled = speed_mps * dt
         if self.ignore_light_m > 0:
@@ -99,11 +111,16 @@ class StopLineTrack:
         else:
             self._farther.clear()
         if measured is not None and self.ignore_light_m <= 0:
+            self._reads = self._reads + 1 if self.stop_line_measured else 1
+            self._hidden = False
             self.stop_line = measured
             self.stop_line_measured = True
             self._line_unseen_s = 0.0
         elif self.stop_line_measured and self.stop_line is not None:
-            self._line_unseen_s += dt
+            if hidden:  # a bar behind a car waiting at it is out of sight, not a glimpse that was never there
+                self._hidden = True
+            else:
+                self._line_unseen_s += dt
             if self.stop_line > cfg.line_unseen_far_m and self._line_unseen_s > cfg.line_unseen_forget_s:
                 # A glimpse (a kerb seen across the lane, a patch of headlight) dead-reckoned to the bumper
                 # would put the car "in the junction" and make it ignore the real light ahead.
