@@ -7,6 +7,7 @@
     python bench/bench_agent.py --threads 1           # a frame's stages one after another on one thread
     python bench/bench_agent.py --threads 2           # ... always on two threads (default 0: the faster)
     python bench/bench_agent.py --pipeline            # perception of frame t while the simulator renders t+1
+    python bench/bench_agent.py --town-style downtown --signs   # a downtown town, its road priors, the sign classes
 
 The agent drives (closed loop, its own actions), in the default town with its default traffic, at 320x160.
 "Whole loop" is ``env.step`` (simulation and rendering) plus ``driver.act`` (every perception stage and
@@ -35,8 +36,12 @@ from bench.timing import latency_of, machine_line  # noqa: E402
 from towndrive.agent.agent_driver import STAGES  # noqa: E402
 from towndrive.agent.decision.blind_spot import BlindSpotConfig  # noqa: E402
 from towndrive.agent.drivers import make_driver  # noqa: E402
+from towndrive.drive_cli import agent_variant  # noqa: E402
 from towndrive.envs.drive_env import DriveConfig, DriveEnv  # noqa: E402
 from towndrive.sim.render import CameraConfig  # noqa: E402
+from towndrive.sim.town import TownConfig  # noqa: E402
+from towndrive.sim.town_style import STYLES  # noqa: E402
+from towndrive.sim.world import WorldConfig  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -54,18 +59,24 @@ def main(argv: list[str] | None = None) -> int:
                          "faster of the two, timed now and then; the actions are the same")
     ap.add_argument("--pipeline", action="store_true",
                     help="perceive frame t while the simulator renders frame t+1 (one frame of latency)")
+    ap.add_argument("--town-style", default="classic", choices=sorted(STYLES),
+                    help="the kind of town (the agent gets that style's road priors)")
+    ap.add_argument("--signs", action="store_true",
+                    help="the detector with the road-sign classes and the sign reader (as drive --signs)")
     ap.add_argument("--no-blind-spot", action="store_true",
                     help="without the mirror-camera look before lane changes (agent.decision.blind_spot; on by default)")
     args = ap.parse_args(argv)
     cv2.setNumThreads(1)
     if args.pin and hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
-    config = DriveConfig(camera=CameraConfig(stereo=args.stereo), observe_stereo=args.stereo, weather=args.weather,
+    config = DriveConfig(world=WorldConfig(town=TownConfig.of_style(args.town_style)),
+                         camera=CameraConfig(stereo=args.stereo), observe_stereo=args.stereo, weather=args.weather,
                          terminate_on_infraction=False, terminate_on_route_deviation=False)
     kwargs: dict = {"detect_every": args.detect_every, "distance": "stereo" if args.stereo else "geometry",
                     "clock": "cpu", "stage_threads": args.threads, "pipeline": args.pipeline}
     if args.model is not None:
         kwargs["model"] = args.model
+    kwargs.update(agent_variant(args.town_style, "style", args.signs))
     if args.no_blind_spot:
         kwargs["blind_spot"] = BlindSpotConfig(enabled=False)
     driver = make_driver("agent", **kwargs)
@@ -94,7 +105,9 @@ def main(argv: list[str] | None = None) -> int:
     cam = config.camera
     loop = latency_of(loop_s)
     print(machine_line())
-    print(f"Agent closed loop at {cam.width}x{cam.height}, {args.frames} frames, seed {args.seed}, {args.weather}, "
+    town = "" if args.town_style == "classic" else f"{args.town_style} town, its road priors, "
+    print(f"Agent closed loop at {cam.width}x{cam.height}, {args.frames} frames, seed {args.seed}, {args.weather}, {town}"
+          f"{'the sign detector, ' if args.signs else ''}"
           f"detector every {args.detect_every} frame(s), distances by {'stereo' if args.stereo else 'box geometry'}, "
           f"stage threads {args.threads or 'the faster of 1 and 2'}{', pipelined' if args.pipeline else ''}")
     cpu = latency_of(cpu_s)
