@@ -280,8 +280,9 @@ class Controller:
 
     def _bar_hidden(self, scene: Scene, steer: float) -> bool:
         """Whether a vehicle in our path stands between the camera and the tracked stop bar (a car waiting at it
-        hides its paint: not seeing the bar then says nothing against it)."""
-        if self.line.stop_line is None:
+        hides its paint: not seeing the bar then says nothing against it). Only a bar read from paint is asked
+        about (``StopLineTrack.update`` uses the answer for no other): on most frames nothing is looked at."""
+        if not self.line.stop_line_measured or self.line.stop_line is None:
             return False
         bar_m = self.line.stop_line + self.config.camera_to_front_m
         return any(o.kind in VEHICLE_KINDS and o.distance_m < bar_m and self.overlaps(scene, o, steer)
