@@ -726,6 +726,25 @@ def test_the_lanes_to_the_kerb_describe_the_lane_they_were_read_in() -> None:
     assert kerb.count is None
 
 
+def test_a_turn_under_way_is_not_held_straight_when_the_command_moves_on() -> None:
+    """Leaving a junction by a turn, the route's command already announces the next junction: "straight" there
+    must not hand the car, still on the turn's arc, to the straight hold, which steered it back to the approach
+    lane's heading and across the oncoming lanes (a downtown vehicle collision). Going straight, it still holds."""
+    from types import SimpleNamespace
+
+    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
+
+    line = SimpleNamespace(ignore_light_m=20.0, junction_ignore_m=30.0, stop_line_measured=True, stop_line=None,
+                           config=SimpleNamespace(camera_to_front_m=2.0))  # the bumper 10 m past the bar
+    odo = approach_odometry(pos=(14.0, 3.0))
+    odo.yaw = math.radians(45.0)  # half way round a right turn
+    g = JunctionGuidance(JunctionRules(), line, odo, 1.0, road_priors("downtown"))  # type: ignore[arg-type]
+    g.junction = (5.0, 0.0, 0.0, 2)  # its bar, and the right turn under way
+    assert g.arc_leads and g.hold(3) is None
+    g.junction = (5.0, 0.0, 0.0, 0)  # no turn begun here: straight on
+    assert g.hold(3) == pytest.approx(-g.rules.hold_max_steer)  # back onto the approach lane's heading
+
+
 def test_going_straight_the_hold_keeps_to_the_far_sides_lane_once_read() -> None:
     """``JunctionGuidance._note_far``: going straight through a junction of a winding street, the far side's centre
     line (read as the road turned into is) places the lane the hold keeps to: half a lane width to its right, at its

@@ -214,12 +214,14 @@ class JunctionGuidance:
 
     def hold(self, command: int) -> float | None:
         """Going straight through a junction, the steer that keeps the approach lane's heading and our place
-        across it; None when this does not apply."""
+        across it; None when this does not apply. Not in a turn under way here: its arc finishes it, and the route's
+        command, which announces the next junction once the car is leaving this one, may already say straight
+        (held to the approach lane's heading then, a turning car was swung back across the oncoming lanes)."""
         line, cfg, odo = self.line, self.rules, self.odo
         # the configured hold is for the classic design; a wider junction (a longer setback) is held longer
         hold_m = cfg.junction_hold_m + junction_widening_m(self.setback_m)
         inside = line.ignore_light_m > line.junction_ignore_m - hold_m
-        self._holding = command == 3 and inside and odo.road_yaw is not None
+        self._holding = command == 3 and inside and odo.road_yaw is not None and not self.arc_leads
         if not self._holding:
             self._far = []
             return None
