@@ -351,11 +351,14 @@ class AgentDriver:
     def on_intervention(self) -> None:
         """The safety driver took over and put the car back on its lane: what was tracked and dead-reckoned
         (stop line, lights, objects, the junction's arc) describes the place the car left, so it starts afresh,
-        as a car's system does when it is engaged again. The episode's timings and warnings stay."""
+        as a car's system does when it is engaged again. The episode's timings and warnings stay. Whether the
+        bumper was past a stop line is kept: the safety driver leaves the car inside the junction then, perhaps
+        mid-turn (``TurnEnd.engaged_mid_turn``)."""
+        inside = self.controller.line.in_junction  # (before the restart forgets it)
         self._drain()
         self._setup(self.camera, self.dt)
         self._restart()
-        self.stages.turn_end.reset(engaged_again=True)
+        self.stages.turn_end.reset(engaged_again=True, inside_junction=inside)
 
     def _restart(self) -> None:
         """Forget every tracked and dead-reckoned state."""
@@ -367,6 +370,12 @@ class AgentDriver:
         self._lights: list[Detection] = []
         self._signs: list[SignSeen] = []
         self._kerb_lanes = KerbLanes(lane_width_m=self.config.road.lane_width_m)  # read clear of a stop bar
+
+    @property
+    def _turn_placed(self) -> bool:
+        """Whether the car is in a junction turn or has one placed ahead: a left or right command is then no lane
+        change to look over the shoulder for (``BlindSpot.plan``)."""
+        return self.stages.junction.placed or self.stages.turn_end.engaged_mid_turn
 
     # Stage shortcuts kept for overlays, profiles and tests.
     lanes = property(lambda self: self.stages.lanes)
@@ -391,7 +400,7 @@ class AgentDriver:
         look = self._look
         if look is not None:
             st = self.stages
-            _, side = st.blind_spot.plan(self._frame, int(observation["command"]), st.junction.placed,
+            _, side = st.blind_spot.plan(self._frame, int(observation["command"]), self._turn_placed,
                                          self._last_view.lanes if self._last_view is not None else None)
             frame = look(side) if side is not None else None
             look = (lambda _side: frame) if frame is not None else self._refuse_look
@@ -518,7 +527,7 @@ class AgentDriver:
                 detected = worker.submit(self._detect_started, started, times, image)
             lane_job = worker.submit(self._lanes_and_stop, image, times)
             if run and look is not None and st.blind_spot.plan(
-                    self._frame, command, st.junction.placed,
+                    self._frame, command, self._turn_placed,
                     self._last_view.lanes if self._last_view is not None else None)[1] is not None:
                 # The mirror render holds the GIL for milliseconds: let the worker reach ONNX Runtime (which
                 # runs without it) first, so the two overlap.
@@ -526,7 +535,7 @@ class AgentDriver:
         try:
             held = None
             if look is not None:
-                held = st.blind_spot.check(t, self._frame, command, st.junction.placed,
+                held = st.blind_spot.check(t, self._frame, command, self._turn_placed,
                                            self._last_view.lanes if self._last_view is not None else None, look,
                                            self._detect_vehicles)
             lap("blind_spot")

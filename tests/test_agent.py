@@ -560,6 +560,23 @@ def test_after_an_intervention_the_agent_forgets_what_it_dead_reckoned() -> None
     env.close()
 
 
+@needs_models
+def test_engaged_again_inside_a_junction_a_turn_command_is_no_lane_change_to_look_for() -> None:
+    """A take-over inside a junction leaves the car there, mid-turn, and the agent starts afresh with no junction
+    placed: the right command must not read as a lane change still to come, which the mirror look would hold
+    (PilotNet then told to follow a lane the car is not in). Taken over on the open road, it still does."""
+    env, world, driver = blind_world_and_agent()
+    right = 2
+    driver.controller.line.ignore_light_m = 10.0  # the bumper crossed a stop line 20 m back: inside the junction
+    driver.on_intervention()
+    assert driver.stages.turn_end.engaged_mid_turn
+    assert driver.stages.blind_spot.plan(0, right, driver._turn_placed, None)[0] is None
+    driver.on_intervention()  # (the restart forgot the junction: this take-over is on the open road)
+    assert not driver.stages.turn_end.engaged_mid_turn
+    assert driver.stages.blind_spot.plan(0, right, driver._turn_placed, None)[0] == "right"
+    env.close()
+
+
 def _stand_in_a_left_turn(driver, detections, seconds: float) -> list[tuple[float, str]]:
     """Drive ``act()`` on a black frame, PilotNet steering hard left (a junction's left turn, no lane lines),
     the detector returning ``detections(frame)``; the car's speed follows its own acceleration. Returns the

@@ -52,6 +52,19 @@ def test_engaged_again_inside_a_turn_the_car_need_not_turn_far_before_following_
     assert off.command(RIGHT, math.radians(85), lane(0.0), False, 0.1) == RIGHT
 
 
+def test_engaged_again_inside_a_junction_the_car_is_mid_turn_until_the_turn_is_over() -> None:
+    end = TurnEnd(TurnEndRules())
+    end.reset(engaged_again=True, inside_junction=True)
+    end.command(RIGHT, 0.0, None, False, 0.0)
+    assert end.engaged_mid_turn
+    assert end.command(RIGHT, math.radians(30), lane(3.0), False, 0.1) == FOLLOW  # lined up: over
+    assert not end.engaged_mid_turn
+    for engaged, inside, command in ((True, False, RIGHT), (False, True, RIGHT), (True, True, FOLLOW)):
+        end.reset(engaged_again=engaged, inside_junction=inside)
+        end.command(command, 0.0, None, False, 0.0)
+        assert not end.engaged_mid_turn, (engaged, inside, command)
+
+
 def test_once_a_turn_is_over_the_next_junction_s_stop_bar_counts_within_metres() -> None:
     """Past a stop line the junction's light and any bar are ignored for ``junction_ignore_m`` (a window sized for
     crossing the junction straight on); a turn that is over ends it within ``light_ignore_m``, so the bar of a

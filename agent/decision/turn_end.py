@@ -40,13 +40,24 @@ class TurnEnd:
         self.rules = rules
         self.reset()
 
-    def reset(self, engaged_again: bool = False) -> None:
+    def reset(self, engaged_again: bool = False, inside_junction: bool = False) -> None:
+        """``engaged_again``: after a take-over; ``inside_junction``: one taken inside a junction (the safety driver
+        leaves the car there, on the turn's path)."""
         self._done: int | None = None  # the turn judged over, while its command lasts
         self._left_m = 0.0  # travel left on the road turned into before the command is given back
         self._engaged_in_turn = engaged_again  # engaged again, perhaps inside a turn: no turning to wait for
+        self._inside = engaged_again and inside_junction
         self._first = True
         self._placed = False  # whether a junction ahead was placed on the last frame
         self.ended = False  # the turn was judged over on this frame
+
+    @property
+    def engaged_mid_turn(self) -> bool:
+        """Engaged again inside a junction with its turn not yet over: the car is turning, whatever the lane lines
+        (absent there) and the junction guidance (which starts afresh, nothing placed) tell. A left or right
+        command then is no lane change to come (``BlindSpot.plan``): held as one, PilotNet was told to follow a
+        lane the car was not in, and it left the turn."""
+        return self._engaged_in_turn and self._inside
 
     def command(self, command: int, turned_rad: float, lanes: LaneResult | None, arc_leads: bool,
                 travelled_m: float, junction_placed: bool = False) -> int:
