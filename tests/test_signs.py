@@ -120,6 +120,20 @@ def test_limit_30_holds_until_another_limit_is_seen() -> None:
     assert d.target_speed_mps == pytest.approx(min(15.0, 50 * KMH))
 
 
+def test_a_stop_sign_seen_while_turning_through_a_junction_is_not_ours() -> None:
+    # Mid-turn the camera sweeps across the junction's other arms: a stop sign that stands where ours would, with
+    # the car turned 12 degrees from its lane, is no stop for it; the same plate seen lined up is.
+    plate = [SignSeen("stop", 19.0, 9.0)]
+    turning = Controller(CFG)
+    for _ in range(10):
+        d = turning.step(Scene(3.0, signs=plate, turned_rad=math.radians(-12.0)), 0.0, DT)
+    assert turning.signs.control is None and not d.reason.startswith("stop sign")
+    lined_up = Controller(CFG)
+    for _ in range(10):
+        d = lined_up.step(Scene(3.0, signs=plate, turned_rad=math.radians(-2.0)), 0.0, DT)
+    assert lined_up.signs.control == "stop" and d.reason.startswith("stop sign")
+
+
 def test_one_frame_of_a_sign_is_not_believed() -> None:
     ctrl = Controller(ControllerConfig(speed_limit_mps=15.0))
     ctrl.step(Scene(10.0, signs=[SignSeen("limit", 20.0, 4.0, 30)], lanes_each_way=2), 0.0, DT)

@@ -554,7 +554,7 @@ class Controller:
             steer = min(self.last_steer + step, max(self.last_steer - step, steer))
         self.last_steer = steer
         self._update_light(scene, dt)
-        self.signs.update(scene.signs, scene.lanes_each_way, speed, dt)
+        self.signs.update(scene.signs, scene.lanes_each_way, speed, dt, scene.turned_rad)
         if self.line.update(scene.speed_mps, scene.stop_line_m, scene.light, scene.light_distance_m, dt,
                             self._bar_hidden(scene, steer)):
             self.light_state, self._light_candidate, self._yellow_go = None, None, None  # in the junction

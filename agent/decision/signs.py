@@ -5,6 +5,11 @@
   (``RoadDesign.sign_before_stop_line_m`` beyond the sign), dead-reckoned by the car's travel. A stop is *made*
   once the car stands (under the world's full-stop speed, ``sim.spec.STOP_SPEED_MPS``) within ``full_stop_m`` of
   the line; the control ends when the car crosses the line (``entered``).
+- **Signs are read with the car lined up on its road** (turned at most ``max_turned_deg`` from the lane it last
+  drove along): which plates address the car is told by where they stand beside its road, and turning through a
+  junction the camera sweeps across the plates of the junction's other arms, one of which stands where ours would
+  for a moment (a stop sign read so stopped the car on the road turned into, a block before any line). The road
+  turned into's own signs stand on past the junction and are read once the car is lined up on it.
 - **The speed limit** is the last limit sign seen (debounced alike), kept until another is seen. Before any, the
   default for the kind of street, which the car measures from its lane lines: a dashed white line beside its
   lane means another lane in its direction (a multi-lane street: ``RoadDesign.multi_lane_limit_kmh``); a yellow
@@ -28,6 +33,7 @@ class SignControlRules:
     confirm_frames: int = 2  # a sign counts once seen this many frames in a row
     full_stop_m: float = 2.0  # a full stop is made standing at most this far before the line (the world: STOP_ZONE_M)
     line_lost_m: float = 1.0  # a sign-inferred line this far behind the bumper is passed
+    max_turned_deg: float = 5.0  # signs are read only with the car turned at most this from its lane (a turn's sweep)
 
     def __post_init__(self) -> None:
         if self.full_stop_m > STOP_ZONE_M:
@@ -108,13 +114,16 @@ class SignControl:
         self._seen: tuple[str, int] | None = None
         self._count = 0
 
-    def update(self, signs: list[SignSeen], lanes_each_way: int | None, speed_mps: float, dt: float) -> None:
-        """One frame: the car travelled ``speed x dt``; ``signs`` addressing it were seen (nearest first)."""
+    def update(self, signs: list[SignSeen], lanes_each_way: int | None, speed_mps: float, dt: float,
+               turned_rad: float = 0.0) -> None:
+        """One frame: the car travelled ``speed x dt``; ``signs`` addressing it were seen (nearest first), with the
+        car turned ``turned_rad`` from the lane it last drove along (``Odometry.turned``)."""
         if self.sign_line_m is not None:
             self.sign_line_m -= speed_mps * dt
         if lanes_each_way is not None:
             self.lanes_each_way = lanes_each_way
-        sign = signs[0] if signs else None
+        lined_up = abs(turned_rad) <= math.radians(self.rules.max_turned_deg)
+        sign = signs[0] if signs and lined_up else None
         key = (sign.kind, sign.limit_kmh) if sign is not None else None
         self._count = self._count + 1 if key is not None and key == self._seen else (1 if key else 0)
         self._seen = key
