@@ -67,7 +67,7 @@ import numpy as np
 
 from towndrive.agent.decision.odometry import in_approach_frame
 from towndrive.agent.decision.signs import SignControl, SignControlRules
-from towndrive.agent.decision.stop_line_track import LIGHT_STATES, StopLineTrack
+from towndrive.agent.decision.stop_line_track import LIGHT_STATES, StopLineTrack, camera_to_bar_m
 from towndrive.agent.perception.objects import PerceivedObject
 from towndrive.agent.perception.signs import SignSeen
 from towndrive.sim.idm import idm_acceleration
@@ -284,7 +284,7 @@ class Controller:
         about (``StopLineTrack.update`` uses the answer for no other): on most frames nothing is looked at."""
         if not self.line.stop_line_measured or self.line.stop_line is None:
             return False
-        bar_m = self.line.stop_line + self.config.camera_to_front_m
+        bar_m = camera_to_bar_m(self.line)
         return any(o.kind in VEHICLE_KINDS and o.distance_m < bar_m and self.overlaps(scene, o, steer)
                    for o in scene.objects)
 

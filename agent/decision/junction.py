@@ -47,7 +47,7 @@ import numpy as np
 
 from towndrive.agent.decision.odometry import Odometry
 from towndrive.agent.decision.priors import fused, junction_widening_m
-from towndrive.agent.decision.stop_line_track import StopLineTrack
+from towndrive.agent.decision.stop_line_track import StopLineTrack, camera_to_bar_m
 from towndrive.agent.perception.exit_line import ExitLine
 from towndrive.agent.perception.stop_line import StopLine
 from towndrive.sim.spec import ROAD, VEHICLE, RoadDesign, hedged_reach, right_turn_lanes_from_kerb
@@ -277,8 +277,7 @@ class JunctionGuidance:
         if near:
             self._by_track = False
         elif self.junction is None:
-            if not (line.bar_confirmed
-                    and line.stop_line + line.config.camera_to_front_m <= self.rules.turn_bar_seen_m):
+            if not (line.bar_confirmed and camera_to_bar_m(line) <= self.rules.turn_bar_seen_m):
                 return
             self._by_track = True
         if stop is not None:  # still before the bar: not yet turning
@@ -296,7 +295,7 @@ class JunctionGuidance:
             measured = float(np.median(self._zebra_m)) + road.zebra_to_centre_m if self._zebra_m else None
             self.setback_m = fused(road.stop_line_setback_m, road.stop_line_setback_sd_m, measured,
                                    math.hypot(road.zebra_to_centre_sd_m, ZEBRA_SD_M))
-        ahead = line.stop_line + line.config.camera_to_front_m + self.camera_to_centre_m  # car centre to the bar
+        ahead = camera_to_bar_m(line) + self.camera_to_centre_m  # car centre to the bar
         u = np.array([math.cos(odo.road_yaw), math.sin(odo.road_yaw)])
         right = np.array([-u[1], u[0]])
         bar = odo.pos - odo.road_offset * right + ahead * u

@@ -15,7 +15,7 @@ import math
 from dataclasses import dataclass
 
 from towndrive.agent.decision.odometry import in_approach_frame
-from towndrive.agent.decision.stop_line_track import StopLineTrack
+from towndrive.agent.decision.stop_line_track import StopLineTrack, camera_to_bar_m
 from towndrive.agent.perception.box_geometry import BoxGeometry
 from towndrive.agent.perception.detector import Detection
 from towndrive.sim.spec import ROAD, RoadDesign
@@ -98,8 +98,7 @@ class OurLight:
                 if abs(lateral - (mount.lateral_m - road.light_lateral_m)) > rules.light_max_lateral_m:
                     continue
                 if measured:
-                    assert line.stop_line is not None
-                    expected = line.stop_line + line.config.camera_to_front_m + mount.beyond_stop_line_m
+                    expected = camera_to_bar_m(line) + mount.beyond_stop_line_m
                     if abs(z - expected) > rules.light_line_tolerance_m:
                         continue
                 if best is None or z < best.distance_m:

@@ -21,6 +21,13 @@ if TYPE_CHECKING:
 LIGHT_STATES = ("red", "yellow", "green")
 
 
+def camera_to_bar_m(line: StopLineTrack) -> float:
+    """The camera to the tracked bar's near edge (the track keeps the bumper's distance, which the controller stops
+    by; perception and the road design measure from the camera). Only with a bar tracked."""
+    assert line.stop_line is not None
+    return line.stop_line + line.config.camera_to_front_m
+
+
 class Unconfirmed:
     """A stop-line reading that disagrees with the tracked one: believed once it has been seen again, frame after
     frame, where odometry puts it (within a metre)."""
