@@ -35,16 +35,15 @@ Row = tuple[float, float, str]  # time (s), route progress (m), the driver's rea
 
 def drive(driver_name: str, args: argparse.Namespace) -> list[Row]:
     """One episode of ``driver_name`` on the route; a row per step."""
-    base = WorldConfig(town=TownConfig.of_style(args.town_style))
-    world = replace(base, npc_count=round(base.npc_count * args.traffic),
-                    pedestrian_count=round(base.pedestrian_count * args.traffic))
+    world = WorldConfig(town=TownConfig.of_style(args.town_style))
     config = replace(DriveConfig(world=world, max_time_s=args.seconds), terminate_on_infraction=False,
                      terminate_on_route_deviation=False)
     kwargs = agent_variant(args.town_style, args.road_priors, args.signs) if driver_name == "agent" else {}
     driver = make_driver(driver_name, **kwargs)
     env = DriveEnv(config)
     try:
-        obs, _ = env.reset(seed=args.seed, options={"town_seed": args.town_seed, "weather": args.weather})
+        obs, _ = env.reset(seed=args.seed, options={"town_seed": args.town_seed, "weather": args.weather,
+                                                    "traffic_density": args.traffic})
         driver.reset(env)
         rows: list[Row] = []
         t, done = 0.0, False

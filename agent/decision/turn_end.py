@@ -46,7 +46,7 @@ class TurnEnd:
         self._done: int | None = None  # the turn judged over, while its command lasts
         self._left_m = 0.0  # travel left on the road turned into before the command is given back
         self._engaged_in_turn = engaged_again  # engaged again, perhaps inside a turn: no turning to wait for
-        self._inside = engaged_again and inside_junction
+        self._inside = inside_junction  # (counts only while engaged again: engaged_mid_turn)
         self._first = True
         self._placed = False  # whether a junction ahead was placed on the last frame
         self.ended = False  # the turn was judged over on this frame
