@@ -78,6 +78,24 @@ def test_stop_sign_waits_for_a_vehicle_with_priority() -> None:
     assert any("waiting" in d.reason and "priority" in d.reason for _, _, _, d in run)
 
 
+def test_a_standing_car_whose_readings_scatter_has_no_priority() -> None:
+    # A car standing on the street we turn into, 20 m beyond the line and 6.5 m right: its box jitters a pixel, so
+    # its fitted speed reads 1.2 m/s with a standard error of 0.7. That is no traffic to wait for; the same speed
+    # read cleanly is.
+    def standing(sd: float):
+        def objects(t: float, s: float) -> list[PerceivedObject]:
+            z = 45.0 - s + CAM + 20.0
+            return [PerceivedObject(3, "car", z, 5.5, 7.5, closing_speed_mps=-1.2, lateral_speed_mps=0.2,
+                                    closing_speed_sd_mps=sd, lateral_speed_sd_mps=0.1)]
+        return objects
+
+    scattered = drive_sign("stop", 45.0, 20.0, objects=standing(0.7))
+    assert next(t for t, gap, _, _ in scattered if gap < -1.0) < 15.0
+    clean = drive_sign("stop", 45.0, 20.0, objects=standing(0.05))
+    assert all(gap > -1.0 for _, gap, _, _ in clean)
+    assert any("with priority" in d.reason for _, _, _, d in clean)
+
+
 def test_stop_sign_waits_for_a_person_on_the_crossing() -> None:
     def person(t: float, s: float) -> list[PerceivedObject]:
         if t > 14.0:

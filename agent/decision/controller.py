@@ -85,6 +85,11 @@ from towndrive.sim.spec import (
 VEHICLE_KINDS = ("car", "truck")
 
 
+def toward_zero(value: float, by: float) -> float:
+    """``value`` moved ``by`` nearer zero, not past it: a speed less what its reading's scatter could make up."""
+    return math.copysign(max(abs(value) - by, 0.0), value)
+
+
 @dataclass(frozen=True)
 class ControllerConfig:
     speed_limit_mps: float = 8.0  # cruise speed: the town's limit
@@ -94,7 +99,9 @@ class ControllerConfig:
     bend_horizon_s: float = 1.0  # a growing curvature ahead is taken at what it grows to in this time
     signs: SignControlRules = SignControlRules()
     priority_near_m: float = 30.0  # at a stop or give-way line, a moving vehicle this near (not driving away
-    priority_min_speed_mps: float = 1.0  # ahead of us) has priority; slower than this it is not moving
+    priority_min_speed_mps: float = 1.0  # ahead of us) has priority; slower than this it is not moving ...
+    priority_speed_sigmas: float = 2.0  # ... its speeds taken this many standard errors nearer zero (the fit's
+    #                                     scatter: a standing car 20 m off reads 1 m/s from its box's jitter)
     yield_settle_m: float = 3.0  # at a give-way line, down to YIELD_APPROACH_MPS this far before the stop point
     crossing_depth_m: float = 8.0  # a person within this beyond the line, across the road, is on the crossing
     oncoming_horizon_s: float = 5.0  # a left turn waits while oncoming traffic would reach the camera within this
@@ -493,8 +500,10 @@ class Controller:
                 continue
             along = scene.speed_mps - o.closing_speed_mps  # its speed along our heading (positive: away)
             lateral = o.lateral_speed_mps
-            if math.hypot(along, lateral) < cfg.priority_min_speed_mps:
-                continue
+            k = cfg.priority_speed_sigmas
+            if math.hypot(toward_zero(along, k * o.closing_speed_sd_mps),
+                          toward_zero(lateral, k * o.lateral_speed_sd_mps)) < cfg.priority_min_speed_mps:
+                continue  # standing, or its motion within the readings' scatter
             if along > 0 and abs(lateral) < along and self.overlaps(scene, o, steer):
                 continue  # driving away ahead of us, in our lane
             if math.hypot(o.distance_m, o.lateral_m) <= cfg.priority_near_m:

@@ -73,7 +73,8 @@ class ObjectMemory:
             shift += xc * cos_t - z * sin_t - xc
             z = xc * sin_t + z * cos_t
             ghost = PerceivedObject(tid, o.kind, z, o.lateral_left_m + shift, o.lateral_right_m + shift,
-                                    o.closing_speed_mps, o.lateral_speed_mps, o.box, o.unseen_s + dt)
+                                    o.closing_speed_mps, o.lateral_speed_mps, o.box, o.unseen_s + dt,
+                                    closing_speed_sd_mps=o.closing_speed_sd_mps, lateral_speed_sd_mps=o.lateral_speed_sd_mps)
             self.lost[tid] = ghost
             out.append(ghost)
         return out

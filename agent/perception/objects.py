@@ -2,7 +2,9 @@
 
 Each SORT track of a vehicle or person becomes a ``PerceivedObject`` in the camera's ground frame: its distance
 from box geometry (or stereo, near), its lateral extent, and its closing and lateral speeds from a least-squares
-fit over the track's last second. A vehicle standing wholly to one side of the camera axis and not moving
+fit over the track's last second, each with its standard error (how far the readings scatter about the fit: a
+car standing 20 m off reads a metre or two nearer or farther from frame to frame, a speed of a metre a second that
+is not there). A vehicle standing wholly to one side of the camera axis and not moving
 sideways draws its inner box edge from its far side: that edge is read the vehicle's depth beyond its near face,
 its length when the box's width says it stands lengthwise (parked at the kerb), else its width (a car waiting in
 the oncoming lane is not in our path, and a parked one is as far from it as it is).
@@ -56,6 +58,8 @@ class PerceivedObject:
     unseen_s: float = 0.0  # > 0: no longer detected, remembered where it was last (see agent_driver)
     confirmed: bool = True  # False: detected, but only in a way that is easy to fake (see agent_driver)
     stale: bool = False  # unconfirmed for UNCONFIRMED_STANDING_FRAMES while the car stood: passed at creeping pace
+    closing_speed_sd_mps: float = 0.0  # the closing speed's standard error (its fit's scatter)
+    lateral_speed_sd_mps: float = 0.0  # the lateral speed's standard error
 
     @property
     def unconfirmed(self) -> bool:
@@ -82,10 +86,17 @@ class ObjectRules:
     stereo_max_m: float = 15.0  # beyond this stereo disparity is too small: use geometry
 
 
-def slope(t: list[float], v: list[float]) -> float:
-    """The least-squares rate of change of ``v`` over times ``t``."""
-    tt = np.asarray(t) - np.mean(t)
-    return float((tt * (np.asarray(v) - np.mean(v))).sum() / (tt ** 2).sum())
+def slope(t: list[float], v: list[float]) -> tuple[float, float]:
+    """The least-squares rate of change of ``v`` over times ``t`` and its standard error (from the scatter of
+    the readings about the line; 0 with fewer than three)."""
+    tt = np.asarray(t, float) - np.mean(t)
+    vv = np.asarray(v, float) - np.mean(v)
+    sxx = float((tt ** 2).sum())
+    rate = float((tt * vv).sum() / sxx)
+    if len(tt) < 3:
+        return rate, 0.0
+    residual = vv - rate * tt
+    return rate, math.sqrt(float((residual ** 2).sum()) / (len(tt) - 2) / sxx)
 
 
 class ObjectEstimator:
@@ -156,14 +167,15 @@ class ObjectEstimator:
             while hist and hist[0][0] < t - rules.history_s:
                 hist.popleft()
             alive.add(tr.track_id)
-            closing, lateral = 0.0, 0.0
+            closing, lateral, closing_sd, lateral_sd = 0.0, 0.0, 0.0, 0.0
             known = len(hist) >= 4 and hist[-1][0] - hist[0][0] >= 0.2  # enough history for speeds
             same = [h for h in hist if h[3] == mode]  # lateral motion only from readings of the same point
             # a side vehicle's bearing moves a pixel or two in 0.2 s at 7 m/s, as much as the box's edge jitters:
             # its sideways motion is judged over half a second
             known_lateral = len(same) >= 4 and same[-1][0] - same[0][0] >= (SIDE_LATERAL_SPAN_S if side else 0.2)
             if known:
-                closing = -slope([h[0] for h in hist], [h[1] for h in hist])
+                rate, closing_sd = slope([h[0] for h in hist], [h[1] for h in hist])
+                closing = -rate
             if known_lateral:
                 readings = [h[2] for h in same]
                 if side:
@@ -176,7 +188,7 @@ class ObjectEstimator:
                     along = speed_mps - closing if math.isfinite(speed_mps) else math.inf
                     approach = speed_mps if abs(along) < STILL_ALONG_MPS else closing
                     readings = [h[2] * (z + depth_m + (t - h[0]) * approach) for h in same]
-                lateral = slope([h[0] for h in same], readings)
+                lateral, lateral_sd = slope([h[0] for h in same], readings)
             still = known_lateral and abs(lateral) < rules.still_lateral_mps
             if side and (still or tr.track_id in self._lengthwise):
                 # Wholly to one side: its inner edge is where the far inner corner stands. Lengthwise, its length
@@ -203,7 +215,8 @@ class ObjectEstimator:
                 continue
             out.append(PerceivedObject(tr.track_id, kind, float(z), float(xl), float(xr), closing, lateral,
                                        (float(box[0]), float(box[1]), float(box[2]), float(box[3])),
-                                       confirmed=confirmed and not stale, stale=stale))
+                                       confirmed=confirmed and not stale, stale=stale,
+                                       closing_speed_sd_mps=closing_sd, lateral_speed_sd_mps=lateral_sd))
         # A track's state outlives a frame or two without it: SORT leaves out a track it coasts on for a few
         # frames, and the same track coming back must still count as seen whole (a person who walked up to the
         # car and out at the image's edge was otherwise taken for a box seen only at the edge, and forgotten).
