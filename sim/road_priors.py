@@ -61,7 +61,8 @@ def exit_crossing(lane: AbstractLane, origin: np.ndarray, heading: float) -> flo
 
 def junction_samples(town: Town) -> dict[str, list[float]]:
     """Each junction arm's road-design numbers in one town (the quantities ``RoadDesign`` holds)."""
-    out: dict[str, list[float]] = {k: [] for k in ("setback", "zebra", "left", "right", "width", "kerb_reach")}
+    out: dict[str, list[float]] = {k: [] for k in ("setback", "zebra", "left", "right", "width", "kerb_reach",
+                                                   "far_shift", "far_turn")}
     zebra_at = {(cw.node, cw.arm): cw for cw in town.crosswalks}
     depth = ROAD.stop_bar_depth_m
     for entry in town.entries:
@@ -90,6 +91,12 @@ def junction_samples(town: Town) -> dict[str, list[float]]:
                     out.setdefault(f"reach:{cross_lanes}:{side}", []).append(
                         exit_crossing(lane, start, entry.travel_heading)
                         - zebra_far_along(cw, start, entry.travel_heading))
+            if info.command == Command.STRAIGHT:
+                # where the lane straight on leads, across from our lane carried on, and how far it is turned
+                start, end = lane.position(0.0, 0.0), lane.position(lane.length, 0.0)
+                out["far_shift"].append(float((end - start) @ right))
+                out["far_turn"].append(float(np.degrees(wrap_to_pi(lane.heading_at(lane.length)
+                                                                   - entry.travel_heading))))
             if info.command == Command.LEFT and idx[2] == 0:
                 out["left"].append(radius)
             elif info.command == Command.RIGHT and idx[2] == entry.lane_count - 1:
@@ -166,4 +173,5 @@ def road_priors(style: str, towns: int = PRIOR_TOWNS) -> RoadDesign:
                    left_turn_radius_m=mean("left"), right_turn_radius_m=mean("right"),
                    kerb_lane_reach_m=mean("kerb_reach"), kerb_lane_reach_sd_m=sd("kerb_reach"),
                    turn_reaches=reaches, cross_street_odds=odds,
+                   far_lane_shift_sd_m=sd("far_shift"), far_lane_turn_sd_deg=sd("far_turn"),
                    **mast_arm, other_signal_mounts=tuple(mounts[m] for m in sorted(mounts) if m != "mast_arm"))

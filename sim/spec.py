@@ -215,6 +215,10 @@ class RoadDesign:
     # above place them.
     turn_reaches: tuple[TurnReach, ...] = ()
     cross_street_odds: tuple[CrossStreetOdds, ...] = ()
+    # Straight on through a junction, the far side's lane lies where the approach lane carried on would, give or
+    # take this across and this turned (a winding street's junction shifts and bends it); 0: exactly there.
+    far_lane_shift_sd_m: float = 0.0
+    far_lane_turn_sd_deg: float = 0.0
     stop_bar_depth_m: float = 0.5  # the painted bar's depth along the lane
     # Where our signal head hangs: on a mast arm over the incoming lanes, across the junction. A design with
     # other mounts (posts at a corner) lists them in ``other_signal_mounts``: where heads hang is a kind, not a
@@ -252,8 +256,10 @@ class RoadDesign:
             radius = getattr(self, name)
             if radius is not None:
                 check_number(f"road {name}", radius, 3.0, 60.0)
-        for name in ("lane_width_sd_m", "stop_line_setback_sd_m", "zebra_to_centre_sd_m", "kerb_lane_reach_sd_m"):
+        for name in ("lane_width_sd_m", "stop_line_setback_sd_m", "zebra_to_centre_sd_m", "kerb_lane_reach_sd_m",
+                     "far_lane_shift_sd_m"):
             check_number(f"road {name}", getattr(self, name), 0.0, 20.0)
+        check_number("road far_lane_turn_sd_deg", self.far_lane_turn_sd_deg, 0.0, 45.0)
 
     @property
     def kerb_lane_reach(self) -> float:

@@ -748,8 +748,9 @@ def test_a_turn_under_way_is_not_held_straight_when_the_command_moves_on() -> No
 def test_going_straight_the_hold_keeps_to_the_far_sides_lane_once_read() -> None:
     """``JunctionGuidance._note_far``: going straight through a junction of a winding street, the far side's centre
     line (read as the road turned into is) places the lane the hold keeps to: half a lane width to its right, at its
-    heading; before it is read, or where a reading lies a lane or more across, the approach lane's line as before.
-    The classic design reads nothing."""
+    heading, each weighed against how far the design lets the far side lie and turn; before it is read, or where a
+    reading lies a lane or more across, the approach lane's line as before. A design whose far side lies exactly
+    where the approach lane carried on would (the classic one, downtown's grid) reads nothing."""
     from types import SimpleNamespace
 
     from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
@@ -763,8 +764,8 @@ def test_going_straight_the_hold_keeps_to_the_far_sides_lane_once_read() -> None
         g = JunctionGuidance(rules, line, odo, 1.0, road)  # type: ignore[arg-type]
         assert g.hold(3) == pytest.approx(0.0)  # on the approach lane's line, on its heading
         expected = g.exit_expected_rad()
-        if road is ROAD:
-            assert expected is None
+        if road.far_lane_shift_sd_m == 0:
+            assert expected is None and g.far_corridor() is None
             return g
         assert expected == pytest.approx(0.0)  # the far side is looked for straight ahead, along our road's centre
         assert g.far_corridor() == pytest.approx((-0.5 * g.lane_width_m, -1.0, rules.far_max_shift_m))  # line
@@ -773,15 +774,23 @@ def test_going_straight_the_hold_keeps_to_the_far_sides_lane_once_read() -> None
             g.note_exit(ExitLine((line_x_m, 15.0), math.radians(line_deg), 300, 8.0))
         return g
 
+    from towndrive.agent.decision.junction import FAR_ANGLE_SD_DEG, FAR_SD_M
+
     road = road_priors("suburb")
     w = road.lane_width_m
+    shift_weight = road.far_lane_shift_sd_m ** 2 / (road.far_lane_shift_sd_m ** 2 + FAR_SD_M ** 2)
+    turn_weight = road.far_lane_turn_sd_deg ** 2 / (road.far_lane_turn_sd_deg ** 2 + FAR_ANGLE_SD_DEG ** 2)
+    assert 0.5 < shift_weight < 1.0 and 0.5 < turn_weight < 1.0  # the suburb's far sides shift and turn: mostly read
     g = holding(road, -0.5 * w + 0.8, 0.0)  # the far side's lane lies 0.8 m right of ours
     assert g.far_lane == pytest.approx((26.0, 0.8, 0.0))  # 15 m ahead of the camera, 1 m ahead of the car's centre
-    assert g.hold(3) == pytest.approx(g.rules.hold_offset_gain * 0.8)  # steers right, towards it
+    assert g.hold(3) == pytest.approx(g.rules.hold_offset_gain * 0.8 * shift_weight)  # steers right, towards it
     g = holding(road, -0.5 * w, 3.0)  # ... running 3 degrees right of the approach
     assert math.degrees(g.far_lane[2]) == pytest.approx(3.0)
     g.odo.pos = np.array([g.far_lane[0], g.far_lane[1]])  # on that lane, on the approach's heading
-    assert g.hold(3) == pytest.approx(g.rules.hold_heading_gain * math.radians(3.0))  # turns onto the far side's
+    assert g.hold(3) == pytest.approx(g.rules.hold_heading_gain * math.radians(3.0) * turn_weight, rel=0.05)
+    # the same readings in a design whose far side lies exactly on: nothing read, the approach lane held
+    exact = holding(road_priors("downtown"), -0.5 * road_priors("downtown").lane_width_m + 0.8, 0.0)
+    assert exact.far_lane is None and exact.hold(3) == pytest.approx(0.0)
     assert holding(road, -0.5 * w + 3.0, 0.0).far_lane is None  # a lane and more across: something else
     assert holding(road, -0.5 * w, 15.0).far_lane is None  # turned too far
     assert holding(ROAD, -0.5 * ROAD.lane_width_m + 0.8, 3.0).far_lane is None
