@@ -115,12 +115,12 @@ ZEBRA_ANGLE_SD_DEG = 1.5
 # (bench/turn_arc.py: 0.7 or more in 94-100 % of frames beside single lanes, in none beside two, whose 95th
 # percentile is 0.56); the median of a turn's readings is taken as right this often.
 DIVIDER_SOLID_FILL = 0.7
+DIVIDER_RIGHT = 0.95
 # The far side's lane as read going straight (``JunctionGuidance.far_lane``), across and turned: on rendered suburb
 # crossings at noon the line lay within 0.07 m and 0.8 degrees of the town's; at dusk and at night it is read from
 # paint that smears and takes the light's hue, and a line other than the centre line can pass (a metre off).
 FAR_SD_M = 0.3
 FAR_ANGLE_SD_DEG = 1.5
-DIVIDER_RIGHT = 0.95
 
 
 @dataclass(frozen=True)
