@@ -59,6 +59,7 @@ from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
 from towndrive.agent.decision.odometry import Odometry
 from towndrive.agent.decision.our_light import LightRules, LightSeen, OurLight
 from towndrive.agent.decision.signs import KerbLanes, lanes_each_way, lanes_to_kerb
+from towndrive.agent.decision.stop_line_track import camera_to_bar_m
 from towndrive.agent.decision.turn_end import TurnEnd, TurnEndRules
 from towndrive.agent.perception.box_geometry import BoxGeometry
 from towndrive.agent.perception.classes import LIGHT_CLASSES
@@ -341,6 +342,7 @@ class AgentDriver:
         self.view = self._last_view = None
         self._zebra_far_m: float | None = None  # this frame's zebra far edge (camera to it), when looked for
         self._zebra_tilt: float | None = None  # ... and the slope of its edges (the cross street's direction)
+        self._bar_tracked_m: float | None = None  # camera to the tracked bar this frame (the zebra's look, unread)
         self._exit_expected: float | None = None  # in a turn, the direction the road turned into should run
         self._exit_seen: ExitLine | None = None  # ... and its centre line as seen this frame
         self._far_corridor: tuple[float, float, float] | None = None  # going straight, where the far side's lies
@@ -482,8 +484,9 @@ class AgentDriver:
         zebra = self.stages.zebra
         self._zebra_far_m = None
         self._zebra_tilt = None
-        if zebra is not None and stop is not None and stop.distance_m <= self.config.turn_bar_seen_m:
-            seen = self._timed("zebra", times, zebra.detect, image, lanes, stop.distance_m)
+        bar_m = stop.distance_m if stop is not None else self._bar_tracked_m
+        if zebra is not None and bar_m is not None and bar_m <= self.config.turn_bar_seen_m:
+            seen = self._timed("zebra", times, zebra.detect, image, lanes, bar_m)
             self._zebra_far_m = None if seen is None else seen.far_m
             self._zebra_tilt = None if seen is None else seen.tilt
         finder, expected = self.stages.exit_line, self._exit_expected
@@ -513,6 +516,9 @@ class AgentDriver:
         t = self._frame * self.dt
         run = self._frame % self.config.detect_every == 0
         self._exit_expected = st.junction.exit_expected_rad()  # the lane finder's thread reads them
+        line = self.controller.line  # the tracked bar, moved on by this frame's travel: where the zebra lies beyond
+        self._bar_tracked_m = (camera_to_bar_m(line) - speed * self.dt
+                               if line.stop_line is not None and line.bar_confirmed and not line.in_junction else None)
         self._far_corridor = st.junction.far_corridor()
         self._read_count = st.junction.reads_lane_count
         # Two cores: the detector, then lanes and the stop line, on the worker while this thread looks in the

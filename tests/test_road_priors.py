@@ -371,6 +371,35 @@ def test_the_junction_guidance_reads_the_cross_street_s_angle_from_near_zebra_re
     assert classic.skew_rad == 0.0
 
 
+def test_the_zebra_is_read_from_the_tracked_bar_when_this_frame_misses_the_bar() -> None:
+    """``JunctionGuidance.note`` with no bar read this frame (at night the bar is often lost near, the zebra
+    beyond it is not): the zebra's far edge and slope are taken from the tracked bar once it is confirmed, and
+    not from a bar seen once (a glimpse)."""
+    from types import SimpleNamespace
+
+    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
+
+    def guidance(confirmed: bool) -> JunctionGuidance:
+        line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=4.0, bar_confirmed=confirmed,
+                               config=SimpleNamespace(camera_to_front_m=2.0))  # the camera 6 m from the bar
+        return JunctionGuidance(JunctionRules(), line, approach_odometry(), 1.0, road_priors("suburb"))
+
+    lean = math.radians(-14.0)  # the cross street 14 degrees off square
+    g = guidance(True)
+    for _ in range(3):
+        g.note(None, 6.0 + 0.5 + 2.1, None, math.tan(lean))
+    assert g.skew_rad == pytest.approx(lean)
+    assert g.planned_angle_deg(2) == pytest.approx(90.0 - math.degrees(lean))  # the turn planned by that angle
+    road = g.road
+    assert g.setback_m == pytest.approx(fused(road.stop_line_setback_m, road.stop_line_setback_sd_m,
+                                              2.1 + road.zebra_to_centre_m,
+                                              math.hypot(road.zebra_to_centre_sd_m, ZEBRA_SD_M)))
+    glimpse = guidance(False)
+    for _ in range(3):
+        glimpse.note(None, 6.0 + 0.5 + 2.1, None, math.tan(lean))
+    assert glimpse.skew_rad == 0.0 and glimpse.setback_m == road.stop_line_setback_m
+
+
 def _turns_beyond_zebra(style: str, seeds: tuple[int, ...]) -> list[tuple[str, int, int, bool, float, float]]:
     """Each turn of some towns with a zebra before it: (what governs the arm, our lanes, the cross street's,
     left?, the zebra's far edge along our lane, where the lane turned into crosses ours), from the bar's far edge."""

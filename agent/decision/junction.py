@@ -296,9 +296,11 @@ class JunctionGuidance:
             self.lanes_to_kerb = lanes_to_kerb if lanes_to_kerb is not None else 0  # not known: the kerb lane
             if lane_width_m is not None and math.isfinite(lane_width_m):
                 self.lane_width_m = fused(road.lane_width_m, road.lane_width_sd_m, lane_width_m, LANE_WIDTH_SD_M)
+        if stop is not None or line.bar_confirmed:  # the zebra beyond the bar, read from this frame's or the tracked
+            bar_m = stop.distance_m if stop is not None else camera_to_bar_m(line)
             if zebra_far_m is not None:
-                self._zebra_m.append(zebra_far_m - stop.distance_m - road.stop_bar_depth_m)
-            if zebra_tilt is not None and stop.distance_m <= self.rules.skew_bar_max_m:
+                self._zebra_m.append(zebra_far_m - bar_m - road.stop_bar_depth_m)
+            if zebra_tilt is not None and bar_m <= self.rules.skew_bar_max_m:
                 # in the approach lane's frame: the camera is turned (yaw - road_yaw) to the right of it
                 self._skew.append(math.atan(zebra_tilt) - (odo.yaw - odo.road_yaw))
             measured = float(np.median(self._zebra_m)) + road.zebra_to_centre_m if self._zebra_m else None
