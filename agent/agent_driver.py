@@ -518,7 +518,7 @@ class AgentDriver:
         self._exit_expected = st.junction.exit_expected_rad()  # the lane finder's thread reads them
         line = self.controller.line  # the tracked bar, moved on by this frame's travel: where the zebra lies beyond
         self._bar_tracked_m = (camera_to_bar_m(line) - speed * self.dt
-                               if line.stop_line is not None and line.bar_confirmed and not line.in_junction else None)
+                               if line.bar_confirmed and not line.in_junction else None)  # confirmed: a bar tracked
         self._far_corridor = st.junction.far_corridor()
         self._read_count = st.junction.reads_lane_count
         # Two cores: the detector, then lanes and the stop line, on the worker while this thread looks in the
