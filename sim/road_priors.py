@@ -18,7 +18,7 @@ from highway_env.road.lane import AbstractLane
 
 from towndrive.sim.fillet_lane import FilletLane
 from towndrive.sim.geometry import wrap_to_pi
-from towndrive.sim.spec import ROAD, CrossStreetOdds, RoadDesign, SignalMount, TurnReach
+from towndrive.sim.spec import ROAD, CrossStreetOdds, RoadDesign, SignalMount, TurnRadius, TurnReach
 from towndrive.sim.splits import split_towns
 from towndrive.sim.town import Command, Control, Crosswalk, Town, TownConfig, generate_town
 from towndrive.sim.town_style import CLASSIC, style_named
@@ -91,6 +91,8 @@ def junction_samples(town: Town) -> dict[str, list[float]]:
                     out.setdefault(f"reach:{cross_lanes}:{side}", []).append(
                         exit_crossing(lane, start, entry.travel_heading)
                         - zebra_far_along(cw, start, entry.travel_heading))
+                if info.command == Command.RIGHT:  # its radius, by both roads' lanes each way
+                    out.setdefault(f"radius:{entry.lane_count}:{cross_lanes}", []).append(radius)
             if info.command == Command.STRAIGHT:
                 # where the lane straight on leads, across from our lane carried on, and how far it is turned
                 start, end = lane.position(0.0, 0.0), lane.position(lane.length, 0.0)
@@ -167,10 +169,12 @@ def road_priors(style: str, towns: int = PRIOR_TOWNS) -> RoadDesign:
     reaches = tuple(TurnReach(n, mean(f"reach:{n}:left"), mean(f"reach:{n}:right")) for n in (1, 2)
                     if f"reach:{n}:left" in a and f"reach:{n}:right" in a)
     odds = cross_street_odds({k: v for k, v in a.items() if k.startswith("odds:")})
+    radii = tuple(TurnRadius(int(k.split(":")[1]), int(k.split(":")[2]), mean(k)) for k in sorted(a)
+                  if k.startswith("radius:"))
     return replace(ROAD, lane_width_m=mean("width"), lane_width_sd_m=sd("width"),
                    stop_line_setback_m=mean("setback"), stop_line_setback_sd_m=sd("setback"),
                    zebra_to_centre_m=mean("zebra"), zebra_to_centre_sd_m=sd("zebra"),
-                   left_turn_radius_m=mean("left"), right_turn_radius_m=mean("right"),
+                   left_turn_radius_m=mean("left"), right_turn_radius_m=mean("right"), right_turn_radii=radii,
                    kerb_lane_reach_m=mean("kerb_reach"), kerb_lane_reach_sd_m=sd("kerb_reach"),
                    turn_reaches=reaches, cross_street_odds=odds,
                    far_lane_shift_sd_m=sd("far_shift"), far_lane_turn_sd_deg=sd("far_turn"),

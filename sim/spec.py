@@ -188,6 +188,23 @@ class TurnReach:
 
 
 @dataclass(frozen=True)
+class TurnRadius:
+    """A right turn's radius from the kerb lane of a road of ``our_lanes`` lanes each way into a cross street of
+    ``cross_lanes``. It goes round the corner's kerb at the nearer of the two lanes' distances from their kerbs, and
+    a parking strip puts a single-lane street's lane farther out: so it depends on both roads' lanes (a turn from
+    a two-lane road is as tight as its kerb lane, whatever it turns into)."""
+
+    our_lanes: int
+    cross_lanes: int
+    right_m: float
+
+    def __post_init__(self) -> None:
+        check_number("turn radius our_lanes", self.our_lanes, 1, 4)
+        check_number("turn radius cross_lanes", self.cross_lanes, 1, 4)
+        check_number("turn radius right_m", self.right_m, 3.0, 60.0)
+
+
+@dataclass(frozen=True)
 class RoadDesign:
     """How the default towns are built, and so what the agent assumes of a road it has not measured."""
 
@@ -204,6 +221,9 @@ class RoadDesign:
     # straight on past the bar and bends where an arc of that radius meets the lane turned into.
     left_turn_radius_m: float | None = None
     right_turn_radius_m: float | None = None
+    # ... the right turn's by both roads' lanes each way (``TurnRadius``); empty, or a pairing not listed: the one
+    # above.
+    right_turn_radii: tuple[TurnRadius, ...] = ()
     # A right turn goes into the cross street's kerb lane: beyond the stop bar's far edge lie a gap, the zebra, the
     # kerb, any parking strip and half a lane, whatever the cross street's lane count (its centre line lies one or
     # two lanes farther, a count not seen before the turn). None: the classic design's kerb lane, the setback less
@@ -304,6 +324,16 @@ class RoadDesign:
                 lanes = 0 if left else right_turn_lanes_from_kerb(lanes_to_kerb, n)
                 options.append((w, near + lanes * self.lane_width_m, near, near + (n - 1) * self.lane_width_m))
         return options
+
+    def right_turn_radius(self, our_lanes: int | None, cross_odds: dict[int, float]) -> float | None:
+        """A right turn's radius from the kerb lane of a road of ``our_lanes`` lanes each way (None: not seen),
+        expected over the cross street's lane count (``cross_odds``: count to its probability): each count's
+        ``TurnRadius``, or ``right_turn_radius_m`` where the pairing is not listed."""
+        radii = {(r.our_lanes, r.cross_lanes): r.right_m for r in self.right_turn_radii}
+        each = [(p, radii.get((our_lanes, n), self.right_turn_radius_m)) for n, p in cross_odds.items() if p > 0]
+        if our_lanes is None or not each or any(r is None for _, r in each):
+            return self.right_turn_radius_m
+        return sum(p * r for p, r in each) / sum(p for p, _ in each)  # type: ignore[operator]
 
     @property
     def signal_mounts(self) -> tuple[SignalMount, ...]:

@@ -522,16 +522,79 @@ def test_the_junction_guidance_places_a_turn_from_the_zebra_by_the_kind_of_junct
     assert g.turn_reach_m(2) == pytest.approx(6.0 + 0.8 * 11.0 + 0.2 * 8.5)
 
 
-def test_a_profile_sets_the_turn_reaches_and_the_cross_street_odds() -> None:
+def test_a_right_turn_s_radius_is_the_one_of_both_roads_lanes() -> None:
+    """``RoadDesign.right_turn_radii``: a right turn goes round the corner's kerb at the nearer lane's distance from
+    its kerb, and a parking strip puts a single-lane street's lane farther out, so a turn from a two-lane road is as
+    tight as its kerb lane whatever it turns into. On validation towns the style's radius by both roads' lanes lies
+    within 0.2 m of every right turn's, the style's mean radius 0.7 m or more off most of them. Expected over the
+    cross street's odds; a pairing not listed, or our lanes not seen, takes the mean."""
+    from towndrive.sim.road_priors import junction_samples
+    from towndrive.sim.spec import TurnRadius
+    from towndrive.sim.splits import split_towns
+    from towndrive.sim.town import TownConfig, generate_town
+
+    road = road_priors("suburb")
+    by_pair = {(r.our_lanes, r.cross_lanes): r.right_m for r in road.right_turn_radii}
+    assert road.right_turn_radius_m is not None and set(by_pair) == {(1, 1), (1, 2), (2, 1), (2, 2)}
+    pair_off, mean_off = [], []
+    for seed in split_towns("validation", 2):
+        for key, radii in junction_samples(generate_town(TownConfig.of_style("suburb"), seed=seed)).items():
+            if key.startswith("radius:"):
+                pair = (int(key.split(":")[1]), int(key.split(":")[2]))
+                pair_off += [abs(r - by_pair[pair]) for r in radii]
+                mean_off += [abs(r - road.right_turn_radius_m) for r in radii]
+    assert len(pair_off) > 20 and max(pair_off) < 0.2
+    assert float(np.median(mean_off)) > 0.7
+    assert road.right_turn_radius(2, {1: 0.3, 2: 0.7}) == pytest.approx(0.3 * by_pair[2, 1] + 0.7 * by_pair[2, 2])
+    assert road.right_turn_radius(None, {1: 1.0}) == road.right_turn_radius_m
+    partial = replace(road, right_turn_radii=(TurnRadius(1, 1, 11.0),))
+    assert partial.right_turn_radius(1, {1: 0.5, 2: 0.5}) == pytest.approx(0.5 * 11.0 + 0.5 * road.right_turn_radius_m)
+    assert ROAD.right_turn_radius(2, {1: 1.0}) is None  # the classic design's quarter circle
+
+
+def test_the_junction_guidance_begins_a_right_turn_s_arc_where_our_road_s_lanes_put_it() -> None:
+    """``JunctionGuidance.turn_steer``: from a two-lane road the right turn's arc, tighter than the style's mean,
+    begins later along the approach (the car's centre reaches it where the two-lane radius puts it)."""
+    from types import SimpleNamespace
+
+    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules, arc_placement
+    from towndrive.agent.perception.stop_line import StopLine
+    from towndrive.sim.spec import CrossStreetOdds, TurnRadius, TurnReach
+
+    road = replace(road_priors("suburb"), turn_reaches=(TurnReach(1, 14.4, 10.8), TurnReach(2, 15.7, 8.6)),
+                   cross_street_odds=(CrossStreetOdds("signal", 2, 1.0, 50),), right_turn_radius_m=9.5,
+                   right_turn_radii=(TurnRadius(2, 2, 8.6), TurnRadius(1, 1, 10.8)))
+    line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
+                           config=SimpleNamespace(camera_to_front_m=2.0))
+    odo = approach_odometry()
+    g = JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
+    g.note(StopLine(8.0, 0.5, 0.9, 0), 8.0 + 0.5 + 6.0, road.lane_width_m, None, "signal", 2)
+    assert g.junction is not None
+    reach, bar_x = g.turn_reach_m(2), g.junction[0]
+    _, start = arc_placement(reach, road.stop_bar_depth_m, 8.6, 90.0)
+    _, mean_start = arc_placement(reach, road.stop_bar_depth_m, 9.5, 90.0)
+    assert start > mean_start + 0.8
+    odo.pos = np.array([bar_x + start - 0.3, 0.0])
+    assert g.turn_steer(2, 3.0) is not None and g._arc_start_m is None  # past the mean's start, short of its own
+    odo.pos = np.array([bar_x + start + 0.05, 0.0])
+    g.turn_steer(2, 3.0)
+    assert g._arc_start_m == pytest.approx(start)
+
+
+def test_a_profile_sets_the_turn_reaches_the_right_turn_radii_and_the_cross_street_odds() -> None:
     from towndrive.agent.deploy.profiles import ProfileError, profile_from_dict
 
     road = profile_from_dict({"road": {"turn_reaches": [{"cross_lanes": 2, "left_m": 15.0, "right_m": 9.0}],
                                        "cross_street_odds": [{"control": "stop", "our_lanes": 1,
-                                                              "two_lane_share": 1.0}]}}).road
+                                                              "two_lane_share": 1.0}],
+                                       "right_turn_radius_m": 9.0,
+                                       "right_turn_radii": [{"our_lanes": 2, "cross_lanes": 1, "right_m": 8.0}]}}).road
     assert road.turn_reach(False, road.two_lane_share("stop", 1)) == 9.0
+    assert road.right_turn_radius(2, {1: 1.0}) == 8.0 and road.right_turn_radius(2, {2: 1.0}) == 9.0
     for bad, words in (({"turn_reaches": {"left_m": 3}}, "must be a list"),
                        ({"cross_street_odds": [{"control": "lights"}]}, "control must be one of"),
-                       ({"turn_reaches": [{"right_m": 90}]}, "right_m")):
+                       ({"turn_reaches": [{"right_m": 90}]}, "right_m"),
+                       ({"right_turn_radii": [{"right_m": 1.0}]}, "turn radius right_m")):
         with pytest.raises(ProfileError, match=words):
             profile_from_dict({"road": bad})
 

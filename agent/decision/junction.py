@@ -380,6 +380,14 @@ class JunctionGuidance:
         total = sum(math.exp(v - top) for v in counts.values())
         return {n: math.exp(v - top) / total for n, v in counts.items()}
 
+    def cross_odds(self) -> dict[int, float]:
+        """How likely the cross street has one lane each way or two: as the road turned into tells once read
+        (``exit_odds``), else as the kind of junction seen does (``RoadDesign.two_lane_share``)."""
+        if self._exit_fix is not None and self.road.turn_reaches:
+            return self.exit_odds()
+        share = self.road.two_lane_share(self.control, self.our_lanes)
+        return {1: 1.0 - share, 2: share}
+
     def turn_angle_deg(self, command: int) -> float:
         """The turn's heading change: as read from the road turned into, else from the cross street's angle read
         from the zebra (90 degrees in a square junction)."""
@@ -540,7 +548,8 @@ class JunctionGuidance:
         # car's heading on a curve of curvature tan(delta) / length
         along, across = self._in_bar_frame(odo.pos)
         here = np.array([along - half * math.cos(heading), across - half * math.sin(heading)])
-        radius = self.road.left_turn_radius_m if command == 1 else self.road.right_turn_radius_m
+        radius = (self.road.left_turn_radius_m if command == 1
+                  else self.road.right_turn_radius(self.our_lanes, self.cross_odds()))
         angle = round(self.turn_angle_deg(command), 1)
         half_turn = math.radians(angle) / 2
         if command == 2 and radius is not None:  # the design's is the kerb lane's: a lane farther out, a lane wider;

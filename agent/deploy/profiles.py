@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any, get_type_hints
 
 from towndrive.agent.shipped import ROOT
-from towndrive.sim.spec import ROAD, CrossStreetOdds, RoadDesign, SignalMount, TurnReach
+from towndrive.sim.spec import ROAD, CrossStreetOdds, RoadDesign, SignalMount, TurnRadius, TurnReach
 
 PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
 
@@ -318,6 +318,7 @@ def profile_from_dict(data: Any, source: str = "<dict>", default_name: str = "cp
 _ROAD_LISTS: dict[str, Any] = {
     "other_signal_mounts": SignalMount(0.0, 0.0, ROAD.signal_head_height_m),
     "turn_reaches": TurnReach(1, 15.0, 10.0),
+    "right_turn_radii": TurnRadius(1, 1, 10.0),
     "cross_street_odds": CrossStreetOdds("signal", 1, 0.5, 1),
 }
 
