@@ -202,6 +202,7 @@ class AgentView:
     lane_centre: np.ndarray | None
     lane_width_m: float
     blind_spot: tuple[bool, bool] = (False, False)  # a vehicle in the left, right mirror camera's zone lately
+    steered_path: np.ndarray | None = None  # a junction arc's path where one steers (Scene.steered_path)
 
 
 @dataclass
@@ -600,7 +601,8 @@ class AgentDriver:
         if st.turn_end.ended:
             self.controller.line.leave_junction(self.config.turn_end.light_ignore_m)
         turn = st.junction.turn_steer(net_command, speed)  # no new arc once the turn is over
-        decision = self._decide(speed, command, pilot, hold, turn, held, objects, light, stop, lanes, centre)
+        steered = st.junction.steered_path(self.controller.config.lookahead_m) if turn is not None else None
+        decision = self._decide(speed, command, pilot, hold, turn, held, objects, light, stop, lanes, centre, steered)
         if net_command != command and not held and hold is None and turn is None:
             decision.reason += "; the turn is over: PilotNet follows the road turned into"
         # as measured this frame, where the car is
@@ -618,7 +620,7 @@ class AgentDriver:
         times["total"] = (self._now() - t_start) * 1000.0
         view = AgentView(image, t, speed, command, lanes, stop, objects, tracks, light, decision, warnings,
                          centre, lanes.lane_width_m,
-                         (st.blind_spot.holding(t, "left"), st.blind_spot.holding(t, "right")))
+                         (st.blind_spot.holding(t, "left"), st.blind_spot.holding(t, "right")), steered)
         self._last_view = view
         if self._threads is not None:
             self._threads.took(threads, time.perf_counter() - t_wall)
@@ -642,9 +644,9 @@ class AgentDriver:
 
     def _decide(self, speed: float, command: int, pilot: float, hold: float | None, turn: float | None,
                 held: str | None, objects: list[PerceivedObject], light: LightSeen | None, stop: StopLine | None,
-                lanes: LaneResult, centre: np.ndarray | None) -> Decision:
+                lanes: LaneResult, centre: np.ndarray | None, steered: np.ndarray | None = None) -> Decision:
         """The controller's decision on this frame's scene, with the junction's steering in place of PilotNet's
-        where it applies, and the reason saying so."""
+        where it applies (its arc, ``steered``, is then the car's path), and the reason saying so."""
         net_steer = pilot
         if hold is not None:
             pilot = hold
@@ -658,7 +660,8 @@ class AgentDriver:
                       stop.distance_m if stop is not None else None, centre, max(lane_range, 8.0),
                       turning=command in (1, 2), turn_left=command == 1, turned_rad=self.stages.odometry.turned,
                       speed_caps=caps, signs=self._signs,
-                      lanes_each_way=lanes_each_way(lanes), light_in_view_m=light.in_view_m if light else 0.0)
+                      lanes_each_way=lanes_each_way(lanes), light_in_view_m=light.in_view_m if light else 0.0,
+                      steered_path=steered)
         decision = self.controller.step(scene, pilot, self.dt)
         if hold is not None:  # the steering was overridden too: say so, and keep what PilotNet proposed
             decision.pilot_steer = net_steer

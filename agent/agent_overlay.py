@@ -30,14 +30,22 @@ FONT = cv2.FONT_HERSHEY_SIMPLEX
 
 
 def lane_polygon(view: AgentView, birdseye: BirdsEye) -> np.ndarray | None:
-    """Image polygon (N x 2) of the lane area the controller uses: the lane found, or the steering arc."""
+    """Image polygon (N x 2) of the lane area the controller uses: a junction arc's path where one steers, else the
+    lane found, or the steering arc."""
     lanes = view.lanes
     cfg = birdseye.config
     far = cfg.z_max_m
     if lanes is not None and lanes.left is not None and lanes.right is not None:
         far = min(far, max(lanes.left.z_range_m[1], lanes.right.z_range_m[1], 12.0))
     zz = np.linspace(cfg.z_min_m, far, 24)
-    if view.lane_centre is not None:
+    if view.steered_path is not None:  # a junction's arc steers: its path (as the controller takes it)
+        from towndrive.agent.decision.controller import ControllerConfig
+
+        x, z = view.steered_path[:, 0], view.steered_path[:, 1]
+        zz = np.linspace(max(cfg.z_min_m, float(z[0])), max(cfg.z_min_m + 1.0, min(cfg.z_max_m, float(z[-1]))), 24)
+        centre = np.interp(zz, z, x)
+        half = ControllerConfig().path_half_width_m
+    elif view.lane_centre is not None:
         centre = np.polyval(view.lane_centre, zz)
         half = view.lane_width_m / 2
     else:  # no lane: the corridor the current steering drives (as the controller assumes)

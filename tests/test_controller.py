@@ -278,6 +278,26 @@ def test_lane_centre_decides_what_is_in_our_lane() -> None:
     assert ctrl.step(scene, 0.0, DT).in_path == [1]
 
 
+def test_a_junction_arc_s_path_not_the_lane_fit_decides_what_is_in_our_way() -> None:
+    """Mid-junction the lane lines the camera sees may be the road turned into, across the corner: where an arc
+    steers the car (``Scene.steered_path``), a car standing on it is in our way and one on the lane fit beside it,
+    left of a right turn, is not."""
+    radius = 8.3
+    z = np.linspace(-2.0, 7.5, 40)
+    arc = np.stack([radius - np.sqrt(radius ** 2 - np.clip(z, 0.0, None) ** 2), z], axis=1)  # a right turn's
+    on_arc = lead(6.5, 0.0, float(np.interp(6.5, z, arc[:, 0])), tid=2)
+    beside = lead(5.0, 0.0, -1.4, tid=1)
+    straight = np.array((0.0, 0.0, 0.0))
+    assert Controller(CFG).step(Scene(3.0, objects=[beside, on_arc], lane_centre=straight), 0.7, DT).in_path == [1]
+    steered = Scene(3.0, objects=[beside, on_arc], lane_centre=straight, steered_path=arc)
+    assert Controller(CFG).step(steered, 0.7, DT).in_path == [2]
+    # past the path's end: the lane fit, or with none the path continued straight on along its direction
+    assert Controller(CFG).path_centre(steered, 9.5, 0.7) == 0.0
+    alone = Scene(3.0, steered_path=arc)
+    beyond = Controller(CFG).path_centre(alone, 9.5, 0.7)
+    assert beyond == pytest.approx(arc[-1, 0] + 2.0 * (arc[-1, 0] - arc[-2, 0]) / (z[-1] - z[-2]))
+
+
 def test_pedestrian_in_path_stop_then_resume_when_clear() -> None:
     def scene(s: float, v: float, t: float) -> Scene:
         x = -5.0 + 1.2 * t  # walks from the left kerb across, at 1.2 m/s; ped is 0.5 m wide
@@ -398,6 +418,31 @@ def test_light_flicker_is_debounced_and_red_is_remembered() -> None:
     for _ in range(int(2.0 / DT)):  # the light unseen for 2 s: still red
         d = ctrl.step(Scene(3.0), 0.0, DT)
     assert d.light == "red" and d.reason.startswith("red light")
+
+
+def test_a_green_flicker_during_a_yellow_does_not_undo_the_decision_to_stop() -> None:
+    """A light runs green, yellow, red: a green read for a few frames during a yellow is a misread, and the car
+    that decided to stop for the yellow still stops before the line (decided afresh metres from it, the yellow
+    would have been driven into its red). A change against the cycle seen long enough is taken."""
+    flickered = []
+
+    def scene(s: float, v: float, t: float) -> Scene:  # before a commanded turn, slowing to the turn speed
+        green = 2.0 < 20.0 - s < 3.0 and len(flickered) < 3
+        flickered.extend([t] if green else [])
+        out = light_scene(20.0, lambda t: "green" if green else "yellow" if t < 6.0 else "red")(s, v, t)
+        out.turning = True
+        return out
+
+    run = drive(scene, 10.0, v0=7.0)
+    assert len(flickered) == 3 and run.speed[-1] == 0.0 and 0.0 <= 20.0 - run.travelled <= 2.5
+    assert all(d.light != "green" for d in run.decisions)
+    ctrl = Controller(CFG)
+    for k in range(CFG.light_out_of_cycle_frames + 4):  # a yellow, then a green seen for long: a green
+        d = ctrl.step(Scene(3.0, light="yellow" if k < 3 else "green", stop_line_m=12.0), 0.0, DT)
+    assert d.light == "green"
+    for _ in range(CFG.light_confirm_frames):  # a red straight after a green (its yellow missed) at once
+        d = ctrl.step(Scene(3.0, light="red", stop_line_m=12.0), 0.0, DT)
+    assert d.light == "red"
 
 
 def test_commanded_turn_inside_a_junction_is_taken_slowly() -> None:

@@ -579,6 +579,13 @@ def test_the_junction_guidance_begins_a_right_turn_s_arc_where_our_road_s_lanes_
     odo.pos = np.array([bar_x + start + 0.05, 0.0])
     g.turn_steer(2, 3.0)
     assert g._arc_start_m == pytest.approx(start)
+    # the path it steers along, in the camera's ground frame (the camera 1 m ahead of the centre): from the car's
+    # centre, bending right, until it would run back towards the camera
+    path = g.steered_path(30.0)
+    assert path is not None and path[0, 1] == pytest.approx(-1.0, abs=0.2) and abs(path[0, 0]) < 0.2
+    assert np.all(np.diff(path[:, 1]) > 0) and np.all(np.diff(path[:, 0]) >= -1e-9) and path[-1, 0] > 5.0
+    odo.pos = np.array([bar_x - 20.0, 0.0])
+    assert g.turn_steer(2, 3.0) is None and g.steered_path(30.0) is None
 
 
 def test_a_profile_sets_the_turn_reaches_the_right_turn_radii_and_the_cross_street_odds() -> None:

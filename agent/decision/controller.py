@@ -16,8 +16,9 @@ Why it is built this way:
   reason says "hard brake"), steering changes at most ``steer_rate_per_s`` per second.
 - **Stop lines by odometry**: the stop bar ahead is one track (``agent.decision.stop_line_track``), counted
   down by the car's own travel between readings and shared with the junction guidance.
-- **Lights are debounced** (a state needs ``light_confirm_frames`` frames; a light unseen for
-  ``light_memory_s`` is forgotten), and the yellow decision is taken once, when the yellow appears:
+- **Lights are debounced** (a state needs ``light_confirm_frames`` frames, one against the cycle's order, green,
+  yellow, red, that lets the car go ``light_out_of_cycle_frames``; a light unseen for ``light_memory_s`` is
+  forgotten), and the yellow decision is taken once, when the yellow appears:
   stop if the stop needs no more than the comfortable deceleration, else go on (before a commanded turn,
   which brings the car down to the turn speed before the line, stop unless even the full brake cannot or
   the line is a second away at turn speed); a red after a "go on"
@@ -67,7 +68,7 @@ import numpy as np
 
 from towndrive.agent.decision.odometry import in_approach_frame
 from towndrive.agent.decision.signs import SignControl, SignControlRules
-from towndrive.agent.decision.stop_line_track import LIGHT_STATES, StopLineTrack, camera_to_bar_m
+from towndrive.agent.decision.stop_line_track import LIGHT_STATES, NEXT_IN_CYCLE, StopLineTrack, camera_to_bar_m
 from towndrive.agent.perception.objects import PerceivedObject
 from towndrive.agent.perception.signs import SignSeen
 from towndrive.sim.idm import idm_acceleration
@@ -126,6 +127,10 @@ class ControllerConfig:
     min_lateral_speed_mps: float = 0.3  # slower lateral motion is not "entering" (box jitter)
     lookahead_m: float = 45.0  # objects farther than this are ignored
     light_confirm_frames: int = 2
+    # A light runs green, yellow, red, green: a change against that order that lets the car go (a green read during
+    # a yellow) is a misread until seen this many frames in a row (a flicker of green in a yellow had the car decide
+    # the yellow afresh, metres from the line, and go on into the red); a red is taken as soon as ever
+    light_out_of_cycle_frames: int = 8
     line_jump_m: float = 1.5  # a stop-line reading this much farther than the tracked line is suspect ...
     line_jump_frames: int = 3  # ... until seen this many frames in a row where odometry puts it
     line_unseen_forget_s: float = 1.0  # a tracked bar still this far off (below) and unseen this long was not one:
@@ -167,6 +172,10 @@ class Scene:
     stop_line_m: float | None = None  # camera to the stop bar's near edge, when seen this frame
     lane_centre: np.ndarray | None = None  # (a, b, c): lane centre x = a z^2 + b z + c, camera ground frame
     lane_range_m: float = 30.0  # how far the lane fit is valid; beyond, it is continued straight
+    # Where the car is steered along something other than its lane (a junction's turn arc): that path's centre as
+    # (x, z) points in the camera ground frame, z increasing; it, not the lane fit, is then our path as far as it
+    # goes.
+    steered_path: np.ndarray | None = None
     turning: bool = False  # the route command asks for a left or right turn at the next junction
     turn_left: bool = False  # ... a left turn
     turned_rad: float = 0.0  # heading change since the car last drove along its lane (odometry; positive right)
@@ -273,8 +282,17 @@ class Controller:
 
     # ------------------------------------------------------------------ geometry
     def path_centre(self, scene: Scene, z_m: float, steer: float) -> float:
-        """Lateral position of our path's centre at ``z_m`` ahead of the camera."""
+        """Lateral position of our path's centre at ``z_m`` ahead of the camera: along the path steered where there
+        is one, else (and beyond its end) the lane fit, else the steered path continued straight, else the arc the
+        steering drives."""
         cfg = self.config
+        path = scene.steered_path
+        if path is not None and (z_m <= path[-1, 1] or scene.lane_centre is None):
+            x, z = path[:, 0], path[:, 1]
+            if z_m <= z[-1]:
+                return float(np.interp(z_m, z, x))
+            slope = (x[-1] - x[-2]) / max(z[-1] - z[-2], 1e-6)
+            return float(x[-1] + slope * (z_m - z[-1]))
         if scene.lane_centre is not None:
             a, b, c = (float(v) for v in scene.lane_centre)
             z0 = min(z_m, scene.lane_range_m)
@@ -411,7 +429,9 @@ class Controller:
             self._light_count += 1
         else:
             self._light_candidate, self._light_count = seen, 1
-        if self._light_count >= cfg.light_confirm_frames:
+        # a red is taken at once whatever it follows; a state against the cycle that lets the car go is suspect
+        suspect = self.light_state not in (None, seen) and NEXT_IN_CYCLE[self.light_state] != seen and seen != "red"
+        if self._light_count >= (cfg.light_out_of_cycle_frames if suspect else cfg.light_confirm_frames):
             if seen == "green":
                 self._yellow_go = None  # a new cycle: the next yellow is decided afresh
             self.light_state = seen

@@ -194,6 +194,9 @@ class JunctionGuidance:
         self._exit_fix: tuple[float, float] | None = None  # ... their medians, once there are enough readings
         self._fills: list[float] = []  # the white line beside it: how much of it is painted (ExitLine.divider_fill)
         self._arc_start_m: float | None = None  # where the arc begins (approach frame), once the car is on it
+        # the path the arc steered along on the last frame (to the arc's end), the car's centre and heading on it
+        # (approach frame)
+        self._steered: tuple[np.ndarray, np.ndarray, float] | None = None
 
     @property
     def skew_rad(self) -> float:
@@ -529,6 +532,7 @@ class JunctionGuidance:
         """Turning at a junction, the steer that keeps the car's centre on the turn arc from our lane to the same
         lane of the road we turn into; None when this does not apply."""
         cfg, odo = self.rules, self.odo
+        self._steered = None
         if self.junction is None or not cfg.turn_guidance:
             return None
         _, _, road_yaw, started = self.junction
@@ -580,7 +584,28 @@ class JunctionGuidance:
             if along >= start:  # the car's centre, which the arc leads, has reached it
                 self._arc_start_m = start
         delta = self._centre_on_path(path, np.array([along, across]), heading)
+        self._steered = (path[:int(arc_end / step) + 1], np.array([along, across]), heading)
         return float(np.clip(delta / VEHICLE.max_steer_rad, -1.0, 1.0))
+
+    def steered_path(self, ahead_m: float) -> np.ndarray | None:
+        """The turn's path the car is steered along this frame (``turn_steer``) as (x, z) points in the camera's
+        ground frame, from the car's centre on to the arc's end, at most ``ahead_m`` along it, or until it runs back
+        towards the camera; None when no arc steers. What lies on it, not on the lane lines the camera sees
+        mid-junction (the road turned into, seen across the corner), is in the car's way; beyond the arc the road
+        turned into is the camera's to see (a winding street does not run on along the arc's end)."""
+        if self._steered is None:
+            return None
+        path, centre, heading = self._steered
+        nearest = int(np.argmin(np.sum((path - centre) ** 2, axis=1)))
+        step = float(np.hypot(*(path[1] - path[0])))
+        d = path[nearest:nearest + int(ahead_m / step) + 1] - centre
+        z = d[:, 0] * math.cos(heading) + d[:, 1] * math.sin(heading) - self.camera_to_centre_m
+        x = -d[:, 0] * math.sin(heading) + d[:, 1] * math.cos(heading)
+        rising = np.diff(z) > 1e-6
+        end = len(z) if rising.all() else int(np.argmin(rising)) + 1
+        if end < 2:
+            return None
+        return np.stack([x[:end], z[:end]], axis=1)
 
     def _turned_off(self) -> None:
         """The turn is done with: the approach road it was planned on is behind the car (``Odometry.leave_road``)."""

@@ -19,6 +19,7 @@ if TYPE_CHECKING:
     from towndrive.agent.decision.controller import ControllerConfig
 
 LIGHT_STATES = ("red", "yellow", "green")
+NEXT_IN_CYCLE = {"green": "yellow", "yellow": "red", "red": "green"}  # what a light's state changes to
 
 
 def camera_to_bar_m(line: StopLineTrack) -> float:
