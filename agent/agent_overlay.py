@@ -32,6 +32,8 @@ FONT = cv2.FONT_HERSHEY_SIMPLEX
 def lane_polygon(view: AgentView, birdseye: BirdsEye) -> np.ndarray | None:
     """Image polygon (N x 2) of the lane area the controller uses: a junction arc's path where one steers, else the
     lane found, or the steering arc."""
+    from towndrive.agent.decision.controller import ControllerConfig
+
     lanes = view.lanes
     cfg = birdseye.config
     far = cfg.z_max_m
@@ -39,8 +41,6 @@ def lane_polygon(view: AgentView, birdseye: BirdsEye) -> np.ndarray | None:
         far = min(far, max(lanes.left.z_range_m[1], lanes.right.z_range_m[1], 12.0))
     zz = np.linspace(cfg.z_min_m, far, 24)
     if view.steered_path is not None:  # a junction's arc steers: its path (as the controller takes it)
-        from towndrive.agent.decision.controller import ControllerConfig
-
         x, z = view.steered_path[:, 0], view.steered_path[:, 1]
         zz = np.linspace(max(cfg.z_min_m, float(z[0])), max(cfg.z_min_m + 1.0, min(cfg.z_max_m, float(z[-1]))), 24)
         centre = np.interp(zz, z, x)
@@ -50,8 +50,6 @@ def lane_polygon(view: AgentView, birdseye: BirdsEye) -> np.ndarray | None:
         half = view.lane_width_m / 2
     else:  # no lane: the corridor the current steering drives (as the controller assumes)
         ctrl = view.decision
-        from towndrive.agent.decision.controller import ControllerConfig
-
         c = ControllerConfig()
         curvature = np.tan(ctrl.steer * c.max_steer_rad) / c.wheelbase_m
         centre = 0.5 * curvature * zz ** 2
