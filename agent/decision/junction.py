@@ -194,8 +194,8 @@ class JunctionGuidance:
         self._exit_fix: tuple[float, float] | None = None  # ... their medians, once there are enough readings
         self._fills: list[float] = []  # the white line beside it: how much of it is painted (ExitLine.divider_fill)
         self._arc_start_m: float | None = None  # where the arc begins (approach frame), once the car is on it
-        # the path the arc steered along on the last frame (to the arc's end), the car's centre and heading on it
-        # (approach frame)
+        # the path the arc steered along on the last frame, from the point nearest the car's centre to the arc's
+        # end, and the car's centre and heading (approach frame)
         self._steered: tuple[np.ndarray, np.ndarray, float] | None = None
 
     @property
@@ -583,8 +583,8 @@ class JunctionGuidance:
             _, start = arc_placement(reach, self.road.stop_bar_depth_m, radius, angle)
             if along >= start:  # the car's centre, which the arc leads, has reached it
                 self._arc_start_m = start
-        delta = self._centre_on_path(path, np.array([along, across]), heading)
-        self._steered = (path[:int(arc_end / step) + 1], np.array([along, across]), heading)
+        delta, on = self._centre_on_path(path, np.array([along, across]), heading)
+        self._steered = (path[on:int(arc_end / step) + 1], np.array([along, across]), heading)
         return float(np.clip(delta / VEHICLE.max_steer_rad, -1.0, 1.0))
 
     def steered_path(self, ahead_m: float) -> np.ndarray | None:
@@ -593,12 +593,11 @@ class JunctionGuidance:
         towards the camera; None when no arc steers. What lies on it, not on the lane lines the camera sees
         mid-junction (the road turned into, seen across the corner), is in the car's way; beyond the arc the road
         turned into is the camera's to see (a winding street does not run on along the arc's end)."""
-        if self._steered is None:
+        if self._steered is None or len(self._steered[0]) < 2:
             return None
-        path, centre, heading = self._steered
-        nearest = int(np.argmin(np.sum((path - centre) ** 2, axis=1)))
+        path, centre, heading = self._steered  # from the point nearest the car's centre on
         step = float(np.hypot(*(path[1] - path[0])))
-        d = path[nearest:nearest + int(ahead_m / step) + 1] - centre
+        d = path[:int(ahead_m / step) + 1] - centre
         z = d[:, 0] * math.cos(heading) + d[:, 1] * math.sin(heading) - self.camera_to_centre_m
         x = -d[:, 0] * math.sin(heading) + d[:, 1] * math.cos(heading)
         rising = np.diff(z) > 1e-6
@@ -612,16 +611,17 @@ class JunctionGuidance:
         self.odo.leave_road()
         self.forget()
 
-    def _centre_on_path(self, path: np.ndarray, centre: np.ndarray, heading: float) -> float:
+    def _centre_on_path(self, path: np.ndarray, centre: np.ndarray, heading: float) -> tuple[float, int]:
         """The wheel angle that keeps the car's centre on ``path``. In the bicycle model the centre moves at the
         slip angle beta off the heading, tan(beta) = tan(delta) / 2, so the wheels set its direction of travel at
         once: along the path where it is nearest, turned back towards it by the centre's offset from it. On an arc
         the heading then lags the path's by beta and the rear axle runs inside the arc; pursuing the arc with the
-        rear axle instead puts the centre outside it by (length / 2)^2 / (2 x radius)."""
+        rear axle instead puts the centre outside it by (length / 2)^2 / (2 x radius). Also the index of the path's
+        point nearest the centre."""
         i = min(len(path) - 2, int(np.argmin(np.sum((path - centre) ** 2, axis=1))))
         d = path[i + 1] - path[i]
         tangent = math.atan2(d[1], d[0])
         offset = float((centre - path[i]) @ _right_of(tangent))  # right of the path
         course = tangent - math.atan(self.rules.turn_offset_gain * offset)
         beta = math.remainder(course - heading, 2 * math.pi)
-        return math.atan(2.0 * math.tan(float(np.clip(beta, -MAX_SLIP_RAD, MAX_SLIP_RAD))))
+        return math.atan(2.0 * math.tan(float(np.clip(beta, -MAX_SLIP_RAD, MAX_SLIP_RAD)))), i
