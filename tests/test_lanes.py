@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from towndrive.agent.perception.lanes import BirdsEye, BirdsEyeConfig, LaneDetector, ground_homography
+from towndrive.agent.perception.lanes import BirdsEye, BirdsEyeConfig, LaneDetector, LaneLine, ground_homography
 from towndrive.agent.perception.lanes_hough import HoughLaneDetector
 from towndrive.agent.perception.stop_line import StopLineDetector
 from towndrive.envs.perception_truth import lane_z_range_rows, tusimple_frame
@@ -227,6 +227,19 @@ def test_lane_centre_from_marking_conventions(lane: str, car_offset_m: float) ->
     assert abs(res.offset_m - (car_offset_m - painted_centre)) < 0.05  # the painted centre, as before
     assert abs(res.boundary_width_m - 3.5) < 0.1
     assert res.centre_coeffs is not None and abs(-np.polyval(res.centre_coeffs, -CAM.mount_forward_m) - car_offset_m) < 0.05
+
+
+def test_a_pair_of_lines_that_does_not_straddle_the_car_is_not_our_lane() -> None:
+    """Following the last frame's lines can keep a pair the car is not between (the lane beside ours, taken after
+    a turn): told the lines of the lane on its left, the car finds its own lane's again, at once (the lines it
+    finds are not smoothed towards the ones it was told)."""
+    img = synthetic_road([(0, 0, -5.25), (0, 0, -1.75), (0, 0, 1.75)])
+    det = LaneDetector(CAM)
+    det._prev = (LaneLine(np.array([0.0, 0.0, -5.25]), (3.0, 30.0), 1.0, 100, "white"),
+                 LaneLine(np.array([0.0, 0.0, -1.75]), (3.0, 30.0), 1.0, 100, "white"))
+    res = det.detect(img)
+    assert res.left is not None and res.right is not None
+    assert abs(res.left.x_at(0.0) + 1.75) < 0.1 and abs(res.right.x_at(0.0) - 1.75) < 0.1
 
 
 def test_lane_centre_from_one_line_with_the_car_turned() -> None:

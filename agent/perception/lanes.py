@@ -436,7 +436,9 @@ class LaneDetector:
             a, b = (sol[0], sol[1]) if quad else (0.0, sol[0])
             c_l, c_r = sol[-2], sol[-1]
             width = c_r - c_l
-            if cfg.lane_width_range_m[0] <= width <= cfg.lane_width_range_m[1]:
+            # our lane: as wide as a lane and on both sides of the car (a pair followed from the last frames can
+            # be the lane beside ours once the car has left it, or after a turn mistook a line for another)
+            if cfg.lane_width_range_m[0] <= width <= cfg.lane_width_range_m[1] and c_l < 0.0 < c_r:
                 for k, (z, x, conf, col), c in ((0, sides[0], c_l), (1, sides[1], c_r)):
                     coeffs = np.array([a, b, c])
                     rms = float(np.sqrt(np.mean((np.polyval(coeffs, z) - x) ** 2)))
@@ -476,9 +478,13 @@ class LaneDetector:
     # ------------------------------------------------------------------ smoothing and summary
     def _smooth(self, left: LaneLine | None, right: LaneLine | None) -> tuple[LaneLine | None, LaneLine | None]:
         alpha = self.config.smoothing
+        z_car = -self.camera.mount_forward_m
         out = []
         for new, old in zip((left, right), self._prev, strict=True):
-            if new is not None and old is not None:
+            # only the same line is smoothed (at the car, within a third of a lane of where it was): another one
+            # found afresh is taken as it is
+            if new is not None and old is not None \
+                    and abs(float(new.x_at(z_car)) - float(old.x_at(z_car))) < self.lane_width_m / 3:
                 new = LaneLine(alpha * new.coeffs + (1 - alpha) * old.coeffs, new.z_range_m, new.confidence,
                                new.n_pixels, new.color)
             out.append(new)
