@@ -449,6 +449,35 @@ def test_a_green_flicker_during_a_yellow_does_not_undo_the_decision_to_stop() ->
     assert d.light == "red"
 
 
+def test_a_green_straight_after_a_red_only_just_taken_does_not_undo_the_decision_to_stop() -> None:
+    """A yellow read red for two frames and then green for two is in the cycle's order, but a phase lasts seconds:
+    the green is a misread until seen ``light_out_of_cycle_frames``, and the car that decided to stop for the
+    yellow stops before the line (decided afresh metres from it, the yellow was driven into its red)."""
+    misread: list[str] = []
+
+    def scene(s: float, v: float, t: float) -> Scene:  # before a commanded turn, slowing to the turn speed
+        to_line = 20.0 - s
+        seen = None
+        if 2.5 < to_line < 4.0 and len(misread) < 4:
+            seen = "red" if len(misread) < 2 else "green"
+            misread.append(seen)
+        out = light_scene(20.0, lambda t: seen or ("yellow" if t < 6.0 else "red"))(s, v, t)
+        out.turning = True
+        return out
+
+    run = drive(scene, 10.0, v0=7.0)
+    assert misread == ["red", "red", "green", "green"]
+    assert run.speed[-1] == 0.0 and 0.0 <= 20.0 - run.travelled <= 2.5
+    assert all(d.light != "green" for d in run.decisions)
+    ctrl = Controller(CFG)  # a red held longer than a phase's minimum turns green as before
+    for _ in range(round(CFG.light_min_phase_s / DT) + CFG.light_confirm_frames + 1):
+        d = ctrl.step(Scene(0.0, light="red", stop_line_m=4.0), 0.0, DT)
+    assert d.light == "red"
+    for _ in range(CFG.light_confirm_frames):
+        d = ctrl.step(Scene(0.0, light="green", stop_line_m=4.0), 0.0, DT)
+    assert d.light == "green"
+
+
 def test_commanded_turn_inside_a_junction_is_taken_slowly() -> None:
     run = drive(lambda s, v, t: Scene(v, turning=True), 8.0, v0=8.0, steer=0.6)
     assert run.speed[-1] == pytest.approx(CFG.junction_turn_speed_mps, abs=0.2)

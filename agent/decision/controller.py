@@ -17,8 +17,9 @@ Why it is built this way:
 - **Stop lines by odometry**: the stop bar ahead is one track (``agent.decision.stop_line_track``), counted
   down by the car's own travel between readings and shared with the junction guidance.
 - **Lights are debounced** (a state needs ``light_confirm_frames`` frames, one against the cycle's order, green,
-  yellow, red, that lets the car go ``light_out_of_cycle_frames``; a light unseen for ``light_memory_s`` is
-  forgotten), and the yellow decision is taken once, when the yellow appears:
+  yellow, red, that lets the car go ``light_out_of_cycle_frames``, and so does a green after a red taken less than
+  ``light_min_phase_s`` before: a phase lasts seconds; a light unseen for ``light_memory_s`` is forgotten), and
+  the yellow decision is taken once, when the yellow appears:
   stop if the stop needs no more than the comfortable deceleration, else go on (before a commanded turn,
   which brings the car down to the turn speed before the line, stop unless even the full brake cannot or
   the line is a second away at turn speed); a red after a "go on"
@@ -131,6 +132,8 @@ class ControllerConfig:
     # a yellow) is a misread until seen this many frames in a row (a flicker of green in a yellow had the car decide
     # the yellow afresh, metres from the line, and go on into the red); a red is taken as soon as ever
     light_out_of_cycle_frames: int = 8
+    light_min_phase_s: float = 1.0  # a green after a red taken less than this before is as doubtful (a yellow misread
+    #                                 red for two frames, then green for two, undid the decision to stop for it)
     line_jump_m: float = 1.5  # a stop-line reading this much farther than the tracked line is suspect ...
     line_jump_frames: int = 3  # ... until seen this many frames in a row where odometry puts it
     line_unseen_forget_s: float = 1.0  # a tracked bar still this far off (below) and unseen this long was not one:
@@ -263,6 +266,7 @@ class Controller:
         self._light_candidate: str | None = None
         self._light_count = 0
         self._light_unseen_s = math.inf
+        self._light_age_s = math.inf  # how long the light's state has been the one taken
         self._yellow_go: bool | None = None  # the yellow decision, taken once per yellow
         self._view_back_m = 0.0  # stop this far before the line to keep our light's head in the picture
         self.note = ""  # why a seen light does not stop the car (shown as the reason when nothing else acts)
@@ -409,6 +413,7 @@ class Controller:
     def _update_light(self, scene: Scene, dt: float) -> None:
         cfg = self.config
         seen = scene.light if scene.light in LIGHT_STATES else None
+        self._light_age_s += dt
         if seen is not None and scene.light_distance_m is not None and self.stop_line is not None:
             # Where the car may stop and still see the head (it turns green while the car waits): the head stands
             # (camera distance - bumper distance to the line) past the line, which travel does not change.
@@ -432,11 +437,16 @@ class Controller:
             self._light_count += 1
         else:
             self._light_candidate, self._light_count = seen, 1
-        # a red is taken at once whatever it follows; a state against the cycle that lets the car go is suspect
-        suspect = self.light_state not in (None, seen) and NEXT_IN_CYCLE[self.light_state] != seen and seen != "red"
+        # a red is taken at once whatever it follows; a state against the cycle that lets the car go is suspect, and
+        # so is a green straight after a red only just taken (a phase lasts seconds)
+        against_cycle = self.light_state not in (None, seen) and NEXT_IN_CYCLE[self.light_state] != seen
+        too_soon = self.light_state == "red" and self._light_age_s < cfg.light_min_phase_s
+        suspect = seen != "red" and (against_cycle or (seen == "green" and too_soon))
         if self._light_count >= (cfg.light_out_of_cycle_frames if suspect else cfg.light_confirm_frames):
             if seen == "green":
                 self._yellow_go = None  # a new cycle: the next yellow is decided afresh
+            if seen != self.light_state:
+                self._light_age_s = 0.0
             self.light_state = seen
 
     def _light_constraint(self, speed: float, turning: bool = False) -> Constraint | None:
