@@ -661,7 +661,7 @@ class AgentDriver:
                       turning=command in (1, 2), turn_left=command == 1, turned_rad=self.stages.odometry.turned,
                       speed_caps=caps, signs=self._signs,
                       lanes_each_way=lanes_each_way(lanes), light_in_view_m=light.in_view_m if light else 0.0,
-                      steered_path=steered)
+                      steered_path=steered, arc_ahead_m=self.stages.junction.arc_ahead_m)
         decision = self.controller.step(scene, pilot, self.dt)
         if hold is not None:  # the steering was overridden too: say so, and keep what PilotNet proposed
             decision.pilot_steer = net_steer

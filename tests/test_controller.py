@@ -487,6 +487,24 @@ def test_commanded_turn_inside_a_junction_is_taken_slowly() -> None:
     assert min(ahead.speed) > 7.5
 
 
+def test_a_planned_turn_arc_is_approached_at_speed_and_entered_at_the_turn_speed() -> None:
+    """Where the junction's arc is planned, the car slows only as much as braking by the arc's start needs (the
+    autopilot's curve-speed profile), not from where the lane lines end: a wide junction's mouth is crossed at
+    speed. On the arc, the turn speed."""
+    start = 30.0  # the arc begins this far ahead of the car's centre; no lane lines from the start
+
+    def scene(s: float, v: float, t: float) -> Scene:
+        return Scene(v, turning=True, arc_ahead_m=start - s)
+
+    run = drive(scene, 12.0, v0=8.0)
+    at = np.asarray(run.speed)
+    travelled = np.cumsum(at) * DT
+    assert at[travelled < start - 12.0].min() > 5.5  # 12 m before the arc, still faster than 5.5 m/s
+    assert at[np.argmax(travelled >= start)] <= CFG.junction_turn_speed_mps + 0.3
+    assert run.speed[-1] == pytest.approx(CFG.junction_turn_speed_mps, abs=0.2)
+    assert run.decisions[-1].reason.startswith("turning at a junction")
+
+
 def test_a_red_light_on_a_post_beside_the_line_is_waited_for_where_its_head_stays_in_the_picture() -> None:
     """A near-side head (1.5 m before the line, beside the lane) leaves the 90-degree view before the car reaches
     the line, and then its change to green would never be seen: the car stops where the head is still in the

@@ -147,6 +147,8 @@ class ControllerConfig:
     junction_turn_speed_mps: float = 3.0  # turning at a junction: the 90-degree camera sees the crosswalk of the
     #                                       arm we turn into only when the car already points at it
     junction_turn_steer: float = 0.25  # |steer| above which a commanded turn counts as under way
+    turn_approach_brake_mps2: float = CURVE_BRAKE_MPS2  # the slowing before a planned turn arc (_turn_cap) ...
+    turn_approach_lead_s: float = 1.0  # ... to the turn speed this long before the arc at that speed
     junction_ignore_m: float = 30.0  # after crossing the stop line, the junction's light no longer applies
     wheelbase_m: float = VEHICLE.length_m  # highway-env's bicycle model: curvature = tan(delta) / length
     half_width_m: float = VEHICLE.width_m / 2
@@ -180,6 +182,7 @@ class Scene:
     # goes.
     steered_path: np.ndarray | None = None
     turning: bool = False  # the route command asks for a left or right turn at the next junction
+    arc_ahead_m: float | None = None  # the car's centre to where the junction's planned turn arc begins (<0: on it)
     turn_left: bool = False  # ... a left turn
     turned_rad: float = 0.0  # heading change since the car last drove along its lane (odometry; positive right)
     speed_caps: list[tuple[str, float]] = field(default_factory=list)  # other limits: (reason, m/s)
@@ -469,7 +472,7 @@ class Controller:
         need = speed * speed / (2.0 * max(gap, 0.05))  # deceleration to stop at the point
         if state == "yellow":
             if self._yellow_go is None:
-                # Turning, the car slows to the turn speed before the line anyway, and would cross it on red:
+                # Turning, the car slows for the turn at or past the line anyway, and would cross it on red:
                 # it stops unless even the full brake cannot, or the line is less than ``yellow_commit_s`` away at
                 # the turn speed, or at its own speed when slower (a car standing at the line stays there).
                 commit_m = min(speed, cfg.junction_turn_speed_mps) * cfg.yellow_commit_s
@@ -616,8 +619,9 @@ class Controller:
         bend = self._bend_cap(scene, dt)
         if bend < self._cruise:
             caps.append((f"bend ahead: {bend:.1f} m/s", bend))
-        if scene.turning and (scene.lane_centre is None or abs(steer) > cfg.junction_turn_steer):
-            caps.insert(0, (f"turning at a junction: {cfg.junction_turn_speed_mps:.1f} m/s", cfg.junction_turn_speed_mps))
+        turn = self._turn_cap(scene, steer)
+        if turn < self._cruise:
+            caps.insert(0, (f"turning at a junction: {turn:.1f} m/s", turn))
         constraints += [self._cap(why, cap, speed, target) for why, cap in caps]
         light = self._light_constraint(speed, scene.turning)
         note = self.note
@@ -704,6 +708,21 @@ class Controller:
         return Decision(steer, float(np.clip(throttle, -1.0, 1.0)), float(accel), float(target), float(pilot_steer),
                         reason, constraints, self.light_state if self.ignore_light_m <= 0 else None,
                         self.stop_line, in_path, ids.get(governing) if governing is not None else None, holding)
+
+    def _turn_cap(self, scene: Scene, steer: float) -> float:
+        """The speed of a commanded turn: ``junction_turn_speed_mps`` on the junction's arc, and before it, where
+        the arc is planned, at most what braking at ``turn_approach_brake_mps2`` brings down to it by the arc's
+        start (the autopilot's curve-speed profile). With no arc planned, the turn speed once the lane lines end or
+        the car steers into the turn."""
+        cfg = self.config
+        if not scene.turning:
+            return math.inf
+        if scene.arc_ahead_m is not None:  # (the speed follows its cap a moment late: at the turn speed a second early)
+            room = scene.arc_ahead_m - cfg.junction_turn_speed_mps * cfg.turn_approach_lead_s
+            return math.sqrt(cfg.junction_turn_speed_mps ** 2 + 2.0 * cfg.turn_approach_brake_mps2 * max(0.0, room))
+        if scene.lane_centre is None or abs(steer) > cfg.junction_turn_steer:
+            return cfg.junction_turn_speed_mps
+        return math.inf
 
     def _cap(self, reason: str, cap_mps: float, speed: float, target: float, unconfirmed: bool = False,
              grazing: bool = False) -> Constraint:

@@ -197,6 +197,7 @@ class JunctionGuidance:
         # the path the arc steered along on the last frame, from the point nearest the car's centre to the arc's
         # end, and the car's centre and heading (approach frame)
         self._steered: tuple[np.ndarray, np.ndarray, float] | None = None
+        self.arc_ahead_m: float | None = None  # the car's centre to where the planned arc begins (negative: on it)
 
     @property
     def skew_rad(self) -> float:
@@ -532,7 +533,7 @@ class JunctionGuidance:
         """Turning at a junction, the steer that keeps the car's centre on the turn arc from our lane to the same
         lane of the road we turn into; None when this does not apply."""
         cfg, odo = self.rules, self.odo
-        self._steered = None
+        self._steered, self.arc_ahead_m = None, None
         if self.junction is None or not cfg.turn_guidance:
             return None
         _, _, road_yaw, started = self.junction
@@ -565,6 +566,10 @@ class JunctionGuidance:
             radius = round(max(VEHICLE.min_turn_radius_m,
                                (self.road.stop_bar_depth_m + reach - self._arc_start_m) / math.tan(half_turn)), 2)
         path, arc_end = turn_path(command, round(reach, 2), self.road.stop_bar_depth_m, radius, angle_deg=angle)
+        start = self._arc_start_m
+        if start is None:
+            _, start = arc_placement(reach, self.road.stop_bar_depth_m, radius, angle)
+        self.arc_ahead_m = start - along
         lookahead = cfg.turn_lookahead_m + cfg.turn_lookahead_s * speed
         if here[0] < self.road.stop_bar_depth_m - lookahead:  # not yet: the lookahead point is still before the arc
             return None
@@ -579,10 +584,8 @@ class JunctionGuidance:
             return None
         if not started:
             self.junction = (self.junction[0], self.junction[1], road_yaw, command)
-        if self._arc_start_m is None and self.design_spreads:  # (an exact design's arc never moves)
-            _, start = arc_placement(reach, self.road.stop_bar_depth_m, radius, angle)
-            if along >= start:  # the car's centre, which the arc leads, has reached it
-                self._arc_start_m = start
+        if self._arc_start_m is None and self.design_spreads and along >= start:  # the car's centre, which the
+            self._arc_start_m = start  # arc leads, has reached it (an exact design's arc never moves)
         delta, on = self._centre_on_path(path, np.array([along, across]), heading)
         self._steered = (path[on:int(arc_end / step) + 1], np.array([along, across]), heading)
         return float(np.clip(delta / VEHICLE.max_steer_rad, -1.0, 1.0))
