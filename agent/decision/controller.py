@@ -21,7 +21,7 @@ Why it is built this way:
   ``light_min_phase_s`` before: a phase lasts seconds; a light unseen for ``light_memory_s`` is forgotten), and
   the yellow decision is taken once, when the yellow appears:
   stop if the stop needs no more than the comfortable deceleration, else go on (before a commanded turn,
-  which brings the car down to the turn speed before the line, stop unless even the full brake cannot or
+  which slows the car for the turn at or past the line, stop unless even the full brake cannot or
   the line is a second away at turn speed); a red after a "go on"
   yellow, or a red that could not be stopped for even with the full brake, is driven through
   (the car is already committed), and the reason says so.
@@ -55,6 +55,9 @@ Why it is built this way:
 - **Bends ahead**: the lane fit's curvature, where the fit reaches ``bend_min_range_m``, caps the speed at
   sqrt(a_lat / curvature) (a_lat: ``sim.spec.CURVE_LATERAL_ACCEL_MPS2``, the autopilot's) before the car steers
   into the bend; a curvature that grows is taken at what it grows to in ``bend_horizon_s``.
+- **Commanded turns** at ``junction_turn_speed_mps`` on the junction's arc, and before a planned arc no slower
+  than braking by its start needs (``Controller._turn_cap``): the autopilot's curve profile, so a wide junction's
+  mouth is crossed at speed.
 
 Distances in ``Scene`` are measured from the camera along the ground; the controller converts them to
 the gap ahead of the front bumper with ``camera_to_front_m``.
