@@ -601,7 +601,7 @@ class AgentDriver:
         if st.turn_end.ended:
             self.controller.line.leave_junction(self.config.turn_end.light_ignore_m)
         turn = st.junction.turn_steer(net_command, speed)  # no new arc once the turn is over
-        steered = st.junction.steered_path(self.controller.config.lookahead_m) if turn is not None else None
+        steered = st.junction.steered_path(self.controller.config.lookahead_m)  # None unless the arc steers
         decision = self._decide(speed, command, pilot, hold, turn, held, objects, light, stop, lanes, centre, steered)
         if net_command != command and not held and hold is None and turn is None:
             decision.reason += "; the turn is over: PilotNet follows the road turned into"
