@@ -20,11 +20,14 @@ The rules:
 - **Priority.** At STOP and YIELD entries, a vehicle goes only when no vehicle on a PRIORITY arm would
   reach its own line within the accepted gap (``YIELD_GAP_S``) or stands at it. Turning right, traffic
   arriving from the right does not conflict (it keeps to the far side of the road).
-- **Failed to yield (the ego's infraction)**, sharply: when the ego's front bumper crosses the line of a
-  STOP or YIELD entry, a vehicle on a priority arm of that junction, heading into it, moving faster than
-  ``CONFLICT_MIN_SPEED_MPS``, has its front bumper 0 to ``PRIORITY_LOOK_M`` before its own line and would
-  reach it within ``YIELD_CONFLICT_S``: it would have to brake for the ego, or hit it. Drivers accept gaps
-  of ``YIELD_GAP_S`` (longer), so a driver that yields never comes near the line of the infraction.
+- **Failed to yield (the ego's infraction)**, sharply: having crossed the line of a STOP or YIELD entry,
+  when the ego's front bumper enters a lane of a priority arm's traffic (``in_priority_lane``), a vehicle
+  in it, heading into the junction, moving faster than ``CONFLICT_MIN_SPEED_MPS``, has its front bumper 0 to
+  ``PRIORITY_LOOK_M`` before that point and would reach it within ``YIELD_CONFLICT_S``: it would have to brake
+  for the ego, or hit it. Charged where the paths meet, not at our line: where buildings stand at the
+  corner, a driver sees the cross street only after edging past the line towards it, as the rules of the road
+  expect, and a car that stops short of the priority traffic's lane has yielded. Drivers accept gaps of
+  ``YIELD_GAP_S`` (longer), so a driver that yields never comes near the line of the infraction.
 """
 
 from __future__ import annotations
@@ -61,28 +64,54 @@ def front_to_line(entry: Entry, position: np.ndarray, heading: float, half_lengt
     return float((entry.line_center - front) @ t)
 
 
+def priority_arms(town: Town, entry: Entry, turn: Command | None) -> list[Entry]:
+    """The priority arms of ``entry``'s junction whose traffic crosses or joins our way; turning right, arms
+    whose traffic comes from the right are left out (it keeps to the far side)."""
+    if entry.control not in GIVE_WAY_CONTROLS:
+        return []
+    mine = travel_vector(entry)
+    return [other for other in town.entries_at(entry.node) if other.control == Control.PRIORITY
+            and not (turn == Command.RIGHT and float(travel_vector(other) @ right_of(mine)) < -0.5)]
+
+
+def _lanes_half_band(town: Town, arm: Entry) -> float:
+    return arm.lane_count * town.lane_width / 2 + 0.6
+
+
+def _lateral(arm: Entry, points: np.ndarray) -> np.ndarray:
+    """Across ``arm``'s travel (positive to its right), from the middle of its incoming lanes."""
+    return (points - arm.line_center) @ right_of(travel_vector(arm))
+
+
+def lane_offsets(town: Town, arm: Entry) -> list[float]:
+    """The middles of ``arm``'s incoming lanes across its travel, as ``_lateral`` measures."""
+    n = arm.lane_count
+    return [(k - (n - 1) / 2) * town.lane_width for k in range(n)]
+
+
+def in_priority_lane(town: Town, arm: Entry, offset: float, point: np.ndarray) -> bool:
+    """Whether ``point`` lies in one of ``arm``'s incoming lanes (the one ``offset`` across), carried on through
+    the junction."""
+    return abs(float(_lateral(arm, point)) - offset) < town.lane_width / 2
+
+
+def _on_arm(town: Town, arm: Entry, positions: np.ndarray, headings: np.ndarray) -> np.ndarray:
+    """Which of the vehicles (rows) head into the junction by ``arm`` within the band of its incoming lanes."""
+    heading_ok = np.abs((headings - arm.travel_heading + np.pi) % (2 * np.pi) - np.pi) < HEADING_TOLERANCE_RAD
+    return heading_ok & (np.abs(_lateral(arm, positions)) < _lanes_half_band(town, arm))
+
+
 def priority_vehicles(town: Town, entry: Entry, positions: np.ndarray, headings: np.ndarray, half_lengths: np.ndarray,
                       turn: Command | None) -> list[tuple[int, float]]:
     """For the vehicles given (rows of the arrays), those on a priority arm of ``entry``'s junction heading into
-    it, laterally within that arm's incoming lanes: (row, front bumper's distance before that arm's line).
-    Turning right, arms whose traffic comes from the right are left out (it keeps to the far side)."""
-    if entry.control not in GIVE_WAY_CONTROLS or len(positions) == 0:
+    it (``priority_arms``), laterally within that arm's incoming lanes: (row, front bumper's distance before that
+    arm's line)."""
+    if len(positions) == 0:
         return []
-    mine = travel_vector(entry)
     out: list[tuple[int, float]] = []
-    for other in town.entries_at(entry.node):
-        if other.control != Control.PRIORITY:
-            continue
-        t = travel_vector(other)
-        if turn == Command.RIGHT and float(t @ right_of(mine)) < -0.5:
-            continue  # from our right, driving to our left: its lanes are not the ones we turn into
-        side = right_of(t)
-        rel = positions - other.line_center
-        lateral = rel @ side
-        half_band = other.lane_count * town.lane_width / 2 + 0.6
-        heading_ok = np.abs((headings - other.travel_heading + np.pi) % (2 * np.pi) - np.pi) < HEADING_TOLERANCE_RAD
-        before = -(rel @ t) - half_lengths
-        keep = heading_ok & (np.abs(lateral) < half_band) & (before > -half_lengths) & (before < PRIORITY_LOOK_M)
+    for other in priority_arms(town, entry, turn):
+        before = -((positions - other.line_center) @ travel_vector(other)) - half_lengths
+        keep = _on_arm(town, other, positions, headings) & (before > -half_lengths) & (before < PRIORITY_LOOK_M)
         out += [(int(k), float(before[k])) for k in np.nonzero(keep)[0]]
     return out
 
@@ -98,15 +127,48 @@ def priority_conflict(town: Town, entry: Entry, positions: np.ndarray, headings:
     return False
 
 
-def failed_to_yield_by(town: Town, entry: Entry, positions: np.ndarray, headings: np.ndarray, speeds: np.ndarray,
-                       half_lengths: np.ndarray, turn: Command | None) -> int:
-    """The row of a priority vehicle the ego failed to yield to on crossing ``entry``'s line now (see the
-    module docstring), or -1."""
-    for k, before in priority_vehicles(town, entry, positions, headings, half_lengths, turn):
-        v = float(speeds[k])
-        if before >= 0.0 and v > CONFLICT_MIN_SPEED_MPS and before / v < YIELD_CONFLICT_S:
-            return k
+def failed_to_yield_by(town: Town, lanes: list[tuple[Entry, float]], point: np.ndarray, positions: np.ndarray,
+                       headings: np.ndarray, speeds: np.ndarray, half_lengths: np.ndarray) -> int:
+    """The row of a priority vehicle in one of ``lanes`` (arm, lane offset) the ego failed to yield to, its front
+    bumper entering that lane at ``point`` now (see the module docstring), or -1: one whose front bumper is 0 to
+    ``PRIORITY_LOOK_M`` before that point and would reach it within ``YIELD_CONFLICT_S``."""
+    if len(positions) == 0:
+        return -1
+    for arm, offset in lanes:
+        to_point = (point - positions) @ travel_vector(arm) - half_lengths
+        in_lane = np.abs(_lateral(arm, positions) - offset) < town.lane_width / 2 + 0.3
+        keep = _on_arm(town, arm, positions, headings) & in_lane & (to_point >= 0.0) & (to_point < PRIORITY_LOOK_M)
+        for k in np.nonzero(keep)[0]:
+            v = float(speeds[k])
+            if v > CONFLICT_MIN_SPEED_MPS and to_point[k] / v < YIELD_CONFLICT_S:
+                return int(k)
     return -1
+
+
+@dataclass
+class YieldCrossing:
+    """The ego past a give-way line: the priority arms' lanes it has not entered yet, judged as it enters
+    each (``failed_to_yield_by``); over once its front bumper leaves the circle of the junction's lines."""
+
+    pending: list[tuple[Entry, float]]  # (arm, lane offset)
+    centre: np.ndarray
+    reach_m: float
+
+    @classmethod
+    def start(cls, town: Town, entry: Entry, turn: Command | None) -> YieldCrossing:
+        centre = town.node_position(entry.node)
+        reach = max(float(np.linalg.norm(e.line_center - centre)) for e in town.entries_at(entry.node))
+        lanes = [(arm, offset) for arm in priority_arms(town, entry, turn) for offset in lane_offsets(town, arm)]
+        return cls(lanes, centre, reach + 1.0)
+
+    def near(self, front: np.ndarray) -> bool:
+        return bool(self.pending) and float(np.linalg.norm(front - self.centre)) <= self.reach_m
+
+    def entering(self, town: Town, front: np.ndarray) -> list[tuple[Entry, float]]:
+        """The priority lanes the front bumper is in now and was not before (each is given once)."""
+        entered = [lane for lane in self.pending if in_priority_lane(town, *lane, front)]
+        self.pending = [lane for lane in self.pending if all(lane is not e for e in entered)]
+        return entered
 
 
 @dataclass

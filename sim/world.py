@@ -28,6 +28,7 @@ from towndrive.sim.rules import (
     STOP_CONTROLS,
     JunctionRules,
     VehicleAt,
+    YieldCrossing,
     failed_to_yield_by,
     front_to_line,
     turn_after,
@@ -232,6 +233,7 @@ class World:
         self._entry_visit: int | None = None  # the stop or give-way entry whose road the ego is on
         self._entry_stopped = False  # ... and whether it made a full stop at its line on this visit
         self._entry_to_line: float | None = None  # the front bumper's distance to that line a step ago
+        self._yielding: YieldCrossing | None = None  # a give-way line crossed: the priority lanes not yet entered
         self._over_limit_s = 0.0  # how long the ego has been over the posted limit (plus tolerance)
         self._speeding = False  # a speeding stretch is on (charged once)
         assert len(town.parked_cars) < SIGN_ID_BASE - PARKED_ID_BASE
@@ -476,6 +478,7 @@ class World:
         self._wrong_way = False
         self._previous_front = None  # the car was carried: it crossed no bar on the way
         self._entry_visit, self._entry_to_line, self._entry_stopped = None, None, False
+        self._yielding = None
         self._over_limit_s, self._speeding = 0.0, False
         self.ego_lane = self.town.locate(self.ego.position, self.ego.heading)
         self._contacts = set()
@@ -556,16 +559,17 @@ class World:
     def _check_junction_rules(self) -> list[Infraction]:
         """Stop signs and give-way lines (``sim.rules``): entering the junction (the front bumper past the line's
         far edge) from a STOP or ALL_WAY_STOP entry without a full stop at its line on this visit is a
-        ``stop_sign``; entering from a STOP or YIELD entry in front of priority traffic that would reach its
-        line within ``YIELD_CONFLICT_S`` is ``failed_to_yield``. The entry is the one whose road the car's
-        centre is on, found afresh each step."""
+        ``stop_sign``; having entered from a STOP or YIELD entry, entering a priority arm's lanes in front of
+        its traffic that would reach its line within ``YIELD_CONFLICT_S`` is ``failed_to_yield``. The entry is
+        the one whose road the car's centre is on, found afresh each step."""
+        out = self._check_yielding()
         ego = self.ego
         entry: Entry | None = None
         if self.ego_lane is not None:
             entry = self.town.entry_for_edge(self.ego_lane[0][:2])
         if entry is None or entry.control not in (Control.STOP, Control.ALL_WAY_STOP, Control.YIELD):
             self._entry_visit, self._entry_to_line, self._entry_stopped = None, None, False
-            return []
+            return out
         if entry.index != self._entry_visit:
             self._entry_visit, self._entry_to_line, self._entry_stopped = entry.index, None, False
         to_line = front_to_line(entry, ego.position, float(ego.heading), ego.LENGTH / 2)
@@ -574,20 +578,37 @@ class World:
         previous, self._entry_to_line = self._entry_to_line, to_line
         inside = -ROAD.stop_bar_depth_m  # the line's far edge: the junction begins
         if previous is None or not (previous > inside >= to_line):
-            return []
-        out: list[Infraction] = []
+            return out
         if entry.control in STOP_CONTROLS and not self._entry_stopped:
             out.append(self._record("stop_sign", entry.index, "stop_sign"))
-        if entry.control in GIVE_WAY_CONTROLS and self.npcs:
+        if entry.control in GIVE_WAY_CONTROLS:
             turn = turn_after(self.town, self.route, self.route_index) if self.route[self.route_index] == entry.edge \
                 else None
-            npcs = self.npcs
-            k = failed_to_yield_by(self.town, entry, np.array([n.position for n in npcs]),
-                                   np.array([float(n.heading) for n in npcs]), np.array([n.speed for n in npcs]),
-                                   np.array([n.LENGTH / 2 for n in npcs]), turn)
-            if k >= 0:
-                out.append(self._record("failed_to_yield", npcs[k].object_id, SemanticClass(npcs[k].kind).name.lower()))
+            self._yielding = YieldCrossing.start(self.town, entry, turn)
+            out += self._check_yielding()
         return out
+
+    def _check_yielding(self) -> list[Infraction]:
+        """After a give-way line: ``failed_to_yield`` when the front bumper enters a priority arm's lanes in front
+        of its traffic (``sim.rules.failed_to_yield_by``); each arm is judged once, as it is entered."""
+        crossing = self._yielding
+        if crossing is None:
+            return []
+        ego = self.ego
+        front = ego.position + ego.LENGTH / 2 * np.array([math.cos(ego.heading), math.sin(ego.heading)])
+        if not crossing.near(front):
+            self._yielding = None
+            return []
+        entered = crossing.entering(self.town, front)
+        npcs = self.npcs
+        if not entered or not npcs:
+            return []
+        k = failed_to_yield_by(self.town, entered, front, np.array([n.position for n in npcs]),
+                               np.array([float(n.heading) for n in npcs]), np.array([n.speed for n in npcs]),
+                               np.array([n.LENGTH / 2 for n in npcs]))
+        if k < 0:
+            return []
+        return [self._record("failed_to_yield", npcs[k].object_id, SemanticClass(npcs[k].kind).name.lower())]
 
     def speed_limit_here_kmh(self) -> int | None:
         """The posted limit of the road (or junction) the ego is on; None where nothing is posted."""

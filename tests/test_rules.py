@@ -16,7 +16,7 @@ import pytest
 from towndrive.envs.metrics import PENALTY
 from towndrive.sim.objects import SemanticClass
 from towndrive.sim.pedestrians import PedestrianCrowd
-from towndrive.sim.rules import STOP_ZONE_M, front_to_line
+from towndrive.sim.rules import STOP_ZONE_M, front_to_line, in_priority_lane, lane_offsets
 from towndrive.sim.town import Control, Entry, SignKind, Town, TownConfig
 from towndrive.sim.world import PARKED_ID_BASE, World, WorldConfig, cached_town
 
@@ -265,23 +265,58 @@ def test_stop_sign_run_is_charged_a_full_stop_is_not():
     assert lane.length > 0
 
 
-def test_failed_to_yield_in_front_of_priority_traffic():
+def _priority_setup(gap_m: float) -> tuple[World, Entry, Entry, object]:
     town = _town(1000)
     entry = _entry(town, Control.YIELD, 30.0)
     priority = next(e for e in town.entries_at(entry.node) if e.control == Control.PRIORITY
                     and town.lane((*e.edge, 0)).length > 60)
-    for gap_m, charged in ((15.0, True), (60.0, False)):
-        world = _world(town, entry, 12.0)
-        lane_p = town.lane((*priority.edge, 0))
-        major = world.spawn_npc((*priority.edge, 0), lane_p.length - gap_m - major_half(), SemanticClass.CAR,
-                                target_speed=0.0)
-        assert major is not None
-        kinds = []
-        for _ in range(60):
+    world = _world(town, entry, 12.0)
+    lane_p = town.lane((*priority.edge, 0))
+    major = world.spawn_npc((*priority.edge, 0), lane_p.length - gap_m - major_half(), SemanticClass.CAR,
+                            target_speed=0.0)
+    assert major is not None
+    return world, entry, priority, major
+
+
+def _in_lanes_of(world: World, arm: Entry, point: np.ndarray) -> bool:
+    return any(in_priority_lane(world.town, arm, offset, point) for offset in lane_offsets(world.town, arm))
+
+
+def test_failed_to_yield_in_front_of_priority_traffic():
+    """Charged as the front bumper enters a priority lane with a car in it under YIELD_CONFLICT_S away; the
+    same car farther off, or gone by before we get there, is no infraction."""
+    for gap_m, charged in ((30.0, True), (70.0, False), (8.0, False)):
+        world, entry, priority, major = _priority_setup(gap_m)
+        kinds, entered = [], False
+        for _ in range(100):  # the ego's front bumper 21 m past its line
             major.speed = 8.0  # the priority car keeps coming (it would have to brake)
             major.target_speed = 8.0
             kinds += _drive(world, 0.05, speed=6.0)
+            ego = world.ego
+            front = ego.position + ego.LENGTH / 2 * np.array([math.cos(ego.heading), math.sin(ego.heading)])
+            entered = entered or _in_lanes_of(world, priority, front)
+        assert entered
         assert ("failed_to_yield" in kinds) == charged, (gap_m, kinds)
+
+
+def test_edging_past_the_give_way_line_to_look_is_no_failure_to_yield():
+    """A car that crosses its give-way line and stops short of the priority lanes while priority traffic goes by
+    has yielded (where buildings stand at the corner, that is where the cross street can be seen from)."""
+    world, entry, priority, major = _priority_setup(40.0)
+    kinds: list[str] = []
+    ego = world.ego
+    while front_to_line(entry, ego.position, float(ego.heading), ego.LENGTH / 2) > -2.0:
+        major.speed = major.target_speed = 8.0
+        kinds += _drive(world, 0.05, speed=3.0)
+    assert 0.0 < front_to_line(priority, major.position, float(major.heading), major.LENGTH / 2) < 3.0 * 8.0
+    for _ in range(100):
+        major.speed = major.target_speed = 8.0
+        kinds += _drive(world, 0.05, speed=0.0)
+    front = ego.position + ego.LENGTH / 2 * np.array([math.cos(ego.heading), math.sin(ego.heading)])
+    assert not _in_lanes_of(world, priority, front)
+    assert front_to_line(priority, major.position, float(major.heading), major.LENGTH / 2) < -10.0  # gone by
+    kinds += _drive(world, 3.0, speed=5.0)
+    assert "failed_to_yield" not in kinds
 
 
 def major_half() -> float:
