@@ -53,8 +53,9 @@ from typing import Any
 import numpy as np
 
 from towndrive.agent.decision.adas import Adas, AdasConfig
-from towndrive.agent.decision.blind_spot import VEHICLES, BlindSpot, BlindSpotConfig, MirrorMount
+from towndrive.agent.decision.blind_spot import VEHICLES, BlindSpot, BlindSpotConfig, SideMount
 from towndrive.agent.decision.controller import Controller, ControllerConfig, Decision, Scene
+from towndrive.agent.decision.cross_traffic import CrossTraffic, CrossTrafficConfig
 from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
 from towndrive.agent.decision.odometry import Odometry
 from towndrive.agent.decision.our_light import LightRules, LightSeen, OurLight
@@ -76,12 +77,12 @@ from towndrive.agent.perception.tracking import Sort, SortConfig, Track
 from towndrive.agent.perception.zebra import ZebraDetector
 from towndrive.agent.shipped import DETECTOR_ONNX, REFINER_ONNX
 from towndrive.envs.driver_context import DriverContext
-from towndrive.sim.spec import CAMERA, MIRRORS, ROAD, VEHICLE, CameraConfig, RoadDesign
+from towndrive.sim.spec import CAMERA, CORNERS, MIRRORS, ROAD, VEHICLE, CameraConfig, RoadDesign
 
 DEFAULT_DETECTOR = DETECTOR_ONNX
 DEFAULT_REFINER = REFINER_ONNX
 DEFAULT_SIGN_READER = None  # SIGN_READER_ONNX goes with the sign-class detector (shipped.DETECTOR_SIGNS_ONNX)
-STAGES = ("blind_spot", "pilotnet", "detector", "tracking", "lanes", "stop_line", "distance", "control", "adas",
+STAGES = ("blind_spot", "cross_traffic", "pilotnet", "detector", "tracking", "lanes", "stop_line", "distance", "control", "adas",
           "wait")  # wait: the calling thread waiting for the worker's stages (stage_threads > 1)
 
 
@@ -148,6 +149,7 @@ class AgentConfig:
     road: RoadDesign = ROAD  # road-design priors (sim.spec): a deployment profile may set a real road's
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     blind_spot: BlindSpotConfig = field(default_factory=BlindSpotConfig)
+    cross_traffic: CrossTrafficConfig = field(default_factory=CrossTrafficConfig)  # the corner cameras at lines
     turn_end: TurnEndRules = field(default_factory=TurnEndRules)  # PilotNet follows the road once a turn is over
     signs: SignRules = field(default_factory=SignRules)  # which detected signs address the car
     adas: AdasConfig = field(default_factory=AdasConfig)
@@ -219,6 +221,7 @@ class Stages:
     junction: JunctionGuidance
     blind_spot: BlindSpot
     turn_end: TurnEnd
+    cross_traffic: CrossTraffic
     stereo: Any = None  # agent.perception.stereo.StereoDepth with distance="stereo"
     signs: SignLocator | None = None  # the road signs addressing the car (agent.perception.signs)
     zebra: ZebraDetector | None = None  # the zebra beyond the stop bar, where the road design's setback may vary
@@ -274,6 +277,9 @@ class AgentDriver:
         self._look: Callable[[str], np.ndarray] | None = None  # the blind-spot camera, where there is one
         self.stage_hook = stage_hook  # wraps the stages once built (a profile's module rates)
         self._mirror_camera = MIRRORS.camera
+        self._corner: Callable[[str], np.ndarray] | None = None  # the cross-traffic cameras, where there are some
+        self._corner_camera = CORNERS.camera
+        self._cross = ("", False)  # this frame's cross traffic (Scene.cross_traffic, cross_unknown)
         self._model_view: ModelView | None = None  # a camera unlike the trained rig, warped into its view
         self._pools: dict[str, ThreadPoolExecutor] = {}  # made on first use, in the process that uses them
         self._pool_pid = -1
@@ -302,6 +308,7 @@ class AgentDriver:
             turn_bar_seen_m=cfg.turn_bar_seen_m, turn_handover_deg=cfg.turn_handover_deg),
             self.controller.line, odometry, camera.mount_forward_m, cfg.road)
         mirror = BoxGeometry(self._mirror_camera, cfg.row_sigma_px, cfg.prior_sigma)
+        corner = BoxGeometry(self._corner_camera, cfg.row_sigma_px, cfg.prior_sigma)
         return Stages(
             lanes=LaneDetector(camera, LaneConfig(lane_width_prior_m=cfg.road.lane_width_m)),
             stop=StopLineDetector(camera), geometry=geometry,
@@ -314,7 +321,9 @@ class AgentDriver:
             light=OurLight(geometry, LightRules(cfg.light_score_threshold, cfg.light_max_lateral_m,
                                                 cfg.light_line_tolerance_m, cfg.light_box_pad_px), cfg.road),
             odometry=odometry, junction=junction, turn_end=TurnEnd(cfg.turn_end),
-            blind_spot=BlindSpot(mirror, MirrorMount(MIRRORS.ahead_m, MIRRORS.out_m, MIRRORS.yaw_deg), cfg.blind_spot),
+            cross_traffic=CrossTraffic(corner, SideMount(CORNERS.ahead_m, CORNERS.out_m, CORNERS.yaw_deg),
+                                       cfg.cross_traffic),
+            blind_spot=BlindSpot(mirror, SideMount(MIRRORS.ahead_m, MIRRORS.out_m, MIRRORS.yaw_deg), cfg.blind_spot),
             stereo=stereo, signs=SignLocator(geometry, cfg.signs, cfg.road),
             zebra=ZebraDetector(camera) if cfg.road.stop_line_setback_sd_m > 0 else None,
             exit_line=ExitLineFinder(camera) if junction.design_spreads else None)
@@ -335,6 +344,8 @@ class AgentDriver:
         # The mirror cameras, where the env has them (a recorded episode or a plain camera source has not).
         self._mirror_camera = context.mirror_camera or MIRRORS.camera
         self._look = context.mirror_frame if self.config.blind_spot.enabled else None
+        self._corner_camera = context.corner_camera or CORNERS.camera
+        self._corner = context.corner_frame if self.config.cross_traffic.enabled else None
         view = ModelView(context.camera) if self.config.model_view else None
         self._model_view = view if view is not None and view.needed else None
         self._setup(view.camera if view is not None else context.camera, context.dt_s)
@@ -368,7 +379,7 @@ class AgentDriver:
         self.controller.reset()
         self.sort.reset()
         st = self.stages
-        for stage in (st.blind_spot, st.objects, st.memory, st.odometry, st.junction, st.turn_end):
+        for stage in (st.blind_spot, st.cross_traffic, st.objects, st.memory, st.odometry, st.junction, st.turn_end):
             stage.reset()
         self._lights: list[Detection] = []
         self._signs: list[SignSeen] = []
@@ -394,7 +405,7 @@ class AgentDriver:
     # ------------------------------------------------------------------ the driver
     def act(self, observation: dict[str, Any]) -> np.ndarray:
         if not self.config.pipeline:
-            return self._finish(*self._act(observation, self._look))
+            return self._finish(*self._act(observation, self._look, self._corner))
         # Pipelined: the frame before must be done (its state is this frame's); the mirror frame this frame will
         # look at is rendered here, on the caller's thread; the frame is worked on while the caller steps, and
         # the action decided on the frame before is returned. The first frame of an episode is decided at once,
@@ -407,7 +418,11 @@ class AgentDriver:
                                          self._last_view.lanes if self._last_view is not None else None)
             frame = look(side) if side is not None else None
             look = (lambda _side: frame) if frame is not None else self._refuse_look
-        job = self._pool("pipeline").submit(self._act, observation, look)
+        corner = self._corner
+        if corner is not None:
+            seen = corner(CrossTraffic.side_to_look(self._frame)) if self._cross_wanted() else None
+            corner = (lambda _side: seen) if seen is not None else None
+        job = self._pool("pipeline").submit(self._act, observation, look, corner)
         if earlier is not None:
             self._pending = job
             return self._finish(*earlier)
@@ -496,8 +511,28 @@ class AgentDriver:
                                             self._read_count))
         return lanes, stop
 
-    def _act(self, observation: dict[str, Any],
-             look: Callable[[str], np.ndarray] | None) -> tuple[np.ndarray, AgentView, dict[str, float]]:
+    def _cross_wanted(self) -> bool:
+        """Whether to look through a corner camera this frame: a stop or give-way line within ``look_from_m``, or
+        the car past one edging to where the cross street is seen (``agent.decision.cross_traffic``)."""
+        signs = self.controller.signs
+        if signs.edging_m is not None:
+            return True
+        gap = signs.line_gap(self.controller.stop_line)
+        return gap is not None and gap <= self.config.cross_traffic.look_from_m
+
+    def _look_across(self, t: float, corner: Callable[[str], np.ndarray] | None) -> None:
+        """The corner cameras' look, when wanted: one side a frame, in turn; this frame's cross traffic."""
+        st, odo = self.stages, self.stages.odometry
+        if corner is None or not self._cross_wanted():
+            self._cross = ("", False)
+            return
+        pose = (float(odo.pos[0]), float(odo.pos[1]), float(odo.yaw))
+        side = CrossTraffic.side_to_look(self._frame)
+        st.cross_traffic.update(t, side, self._detect_vehicles(corner(side)), pose)
+        self._cross = (st.cross_traffic.priority(t, pose), st.cross_traffic.unknown(t, pose))
+
+    def _act(self, observation: dict[str, Any], look: Callable[[str], np.ndarray] | None,
+             corner: Callable[[str], np.ndarray] | None = None) -> tuple[np.ndarray, AgentView, dict[str, float]]:
         t_start, t_wall = self._now(), time.perf_counter()
         times: dict[str, float] = {}
         clock = t_start
@@ -546,6 +581,8 @@ class AgentDriver:
                                            self._last_view.lanes if self._last_view is not None else None, look,
                                            self._detect_vehicles)
             lap("blind_spot")
+            self._look_across(t, corner)
+            lap("cross_traffic")
             seen = self._model_view.for_pilotnet(image) if self._model_view is not None else image
             last = self._last_view
             net_command = st.turn_end.command(command, odo.turned, last.lanes if last is not None else None,
@@ -661,7 +698,9 @@ class AgentDriver:
                       turning=command in (1, 2), turn_left=command == 1, turned_rad=self.stages.odometry.turned,
                       speed_caps=caps, signs=self._signs,
                       lanes_each_way=lanes_each_way(lanes), light_in_view_m=light.in_view_m if light else 0.0,
-                      steered_path=steered, arc_ahead_m=self.stages.junction.arc_ahead_m)
+                      steered_path=steered, arc_ahead_m=self.stages.junction.arc_ahead_m,
+                      cross_traffic=self._cross[0], cross_unknown=self._cross[1],
+                      cross_street_m=self.stages.junction.cross_street_m)
         decision = self.controller.step(scene, pilot, self.dt)
         if hold is not None:  # the steering was overridden too: say so, and keep what PilotNet proposed
             decision.pilot_steer = net_steer

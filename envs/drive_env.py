@@ -10,6 +10,8 @@ Observation (a Dict):
   as NVIDIA's data-collection car had, for behavioural-cloning data with a steering correction).
   ``DriveEnv.blind_spot_frame(side)`` renders, on request, the camera under the left or right door mirror
   looking back along the car's side (a blind-spot camera): drivers that change lanes look before they do.
+  ``DriveEnv.corner_frame(side)`` renders the cross-traffic camera at the left or right front corner, looking
+  along the cross street (``sim.spec.CornerRig``): drivers at give-way and stop lines look before they go.
 
 Action: Box([-1, -1], [1, 1]) = ``[steer, throttle_brake]``.
 
@@ -39,7 +41,7 @@ from towndrive.sim.checks import check_number
 from towndrive.sim.objects import LIGHT_ID_BASE, LightState, SemanticClass
 from towndrive.sim.render import LIGHTING_PRESETS, CameraConfig, CameraFrame, SceneRenderer
 from towndrive.sim.render_kernels import object_boxes
-from towndrive.sim.spec import EPISODE_S, MIRRORS
+from towndrive.sim.spec import CORNERS, EPISODE_S, MIRRORS
 from towndrive.sim.topdown import TopDownMap
 from towndrive.sim.town import Command, Control, SignKind, TownConfig
 from towndrive.sim.world import TERMINAL_INFRACTIONS, World, WorldConfig, cached_town
@@ -63,16 +65,27 @@ BLIND_SPOT_MOUNT_M = (MIRRORS.ahead_m, MIRRORS.out_m)  # (ahead of the car's cen
 BLIND_SPOT_YAW_DEG = MIRRORS.yaw_deg
 
 
-def blind_spot_pose(pose: tuple[float, float, float], side: str) -> tuple[float, float, float]:
-    """The (x, y, heading) of the blind-spot camera on ``side`` ("left" or "right") of a car at ``pose``;
-    the heading turns towards the side (right is +90 degrees, as ``SceneRenderer.camera_position`` has it)."""
+def side_camera_pose(pose: tuple[float, float, float], side: str, ahead_m: float, out_m: float,
+                     yaw_deg: float) -> tuple[float, float, float]:
+    """The (x, y, heading) of a camera ``ahead_m`` ahead of the centre of a car at ``pose`` and ``out_m`` out to
+    ``side`` ("left" or "right"), turned ``yaw_deg`` towards that side (right is +90 degrees, as
+    ``SceneRenderer.camera_position`` has it)."""
     if side not in ("left", "right"):
         raise ValueError(f"Unknown side {side!r}; use 'left' or 'right'.")
     x, y, h = pose
     sign = 1.0 if side == "right" else -1.0
-    ahead, out = BLIND_SPOT_MOUNT_M
-    return (x + ahead * math.cos(h) - sign * out * math.sin(h), y + ahead * math.sin(h) + sign * out * math.cos(h),
-            h + sign * math.radians(BLIND_SPOT_YAW_DEG))
+    return (x + ahead_m * math.cos(h) - sign * out_m * math.sin(h),
+            y + ahead_m * math.sin(h) + sign * out_m * math.cos(h), h + sign * math.radians(yaw_deg))
+
+
+def blind_spot_pose(pose: tuple[float, float, float], side: str) -> tuple[float, float, float]:
+    """The (x, y, heading) of the blind-spot camera on ``side`` of a car at ``pose``."""
+    return side_camera_pose(pose, side, *BLIND_SPOT_MOUNT_M, BLIND_SPOT_YAW_DEG)
+
+
+def corner_pose(pose: tuple[float, float, float], side: str) -> tuple[float, float, float]:
+    """The (x, y, heading) of the cross-traffic camera at the front corner on ``side`` of a car at ``pose``."""
+    return side_camera_pose(pose, side, CORNERS.ahead_m, CORNERS.out_m, CORNERS.yaw_deg)
 
 
 @dataclass(frozen=True)
@@ -92,6 +105,7 @@ class DriveConfig:
     observe_side_cameras: bool = False
     side_camera_offset_m: float = 0.6
     blind_spot_camera: CameraConfig = field(default_factory=lambda: BLIND_SPOT_CAMERA)
+    corner_camera: CameraConfig = field(default_factory=lambda: CORNERS.camera)
     max_time_s: float = EPISODE_S
     max_distance_m: float = 3000.0
     terminate_on_route_deviation: bool = True
@@ -229,11 +243,18 @@ class DriveEnv(gym.Env):
     def blind_spot_frame(self, side: str) -> np.ndarray:
         """RGB from the blind-spot camera on ``side`` ("left" or "right") now, for a driver about to change
         lanes (rendered on request: most frames need no look). The next step's own frame is the same as without it."""
+        return self._side_frame(blind_spot_pose(self._pose(), side), self.config.blind_spot_camera, "blind-spot")
+
+    def corner_frame(self, side: str) -> np.ndarray:
+        """RGB from the cross-traffic camera at the front corner on ``side`` ("left" or "right") now, for a driver
+        at a give-way or stop line (rendered on request, as ``blind_spot_frame``)."""
+        return self._side_frame(corner_pose(self._pose(), side), self.config.corner_camera, "cross-traffic")
+
+    def _side_frame(self, at: tuple[float, float, float], cam: CameraConfig, name: str) -> np.ndarray:
         world = self._require_world()
         if self.renderer is None:
-            raise RuntimeError("The blind-spot camera needs the renderer: DriveConfig(render_camera=True).")
-        cam = self.config.blind_spot_camera
-        x, y, heading = blind_spot_pose(self._pose(), side)
+            raise RuntimeError(f"The {name} camera needs the renderer: DriveConfig(render_camera=True).")
+        x, y, heading = at
         self.renderer.sync(world.object_snapshots(), world.lights.states, view=(x, y, heading, cam.hfov_deg, cam.far_m))
         return self.renderer.render((x, y, heading), cam, self.weather).rgb
 

@@ -38,10 +38,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from towndrive.sim.geometry import right_of
-from towndrive.sim.spec import STOP_SPEED_MPS, STOP_ZONE_M  # noqa: F401 (re-exported: the world's full stop)
+from towndrive.sim.spec import (  # noqa: F401 (STOP_SPEED_MPS, STOP_ZONE_M re-exported: the world's full stop)
+    STOP_SPEED_MPS,
+    STOP_ZONE_M,
+    YIELD_GAP_S,
+)
 from towndrive.sim.town import Command, Control, Edge, Entry, LaneIndex, Town
 
-YIELD_GAP_S = 5.0  # the gap a driver at a stop or give-way line accepts in priority traffic
 YIELD_CONFLICT_S = 3.0  # the failed-to-yield threshold: a priority vehicle this close in time had to brake
 CONFLICT_MIN_SPEED_MPS = 1.0  # ... and moving at least this fast
 PRIORITY_LOOK_M = 70.0  # how far up a priority arm drivers look

@@ -83,6 +83,22 @@ class MirrorRig:
 
 
 @dataclass(frozen=True)
+class CornerRig:
+    """The cross-traffic cameras at the front corners: where they sit on the car and where they look.
+
+    Turned 75 degrees from straight ahead with a 60-degree view, they see from 45 degrees off the car's axis
+    (where the forward camera's view ends) round to 105 degrees: the cross street either way, from a give-way
+    or stop line and while edging towards it, where a car coming 30 m down it stands 70-85 degrees off the axis.
+    A narrower view than the mirror cameras' gives such a car the pixels to be detected."""
+
+    camera: CameraConfig = CameraConfig(hfov_deg=60.0, mount_height_m=1.0, mount_forward_m=0.0, pitch_deg=-2.0,
+                                        far_m=90.0)
+    ahead_m: float = 2.1  # ahead of the car's centre (the front bumper is 2.3 m ahead)
+    out_m: float = 0.8  # out to the side
+    yaw_deg: float = 75.0  # from straight ahead, towards the side
+
+
+@dataclass(frozen=True)
 class VehicleSpec:
     """The ego car: highway-env's kinematic bicycle model with these dimensions and limits."""
 
@@ -347,6 +363,7 @@ class RoadDesign:
 STOP_SPEED_MPS = 0.1  # under this a vehicle stands (a full stop)
 STOP_ZONE_M = 3.0  # a full stop counts with the front bumper this far before the line, at most
 YIELD_APPROACH_MPS = 4.0  # the speed at a give-way line a driver can still stop from (and look)
+YIELD_GAP_S = 5.0  # the gap a driver at a stop or give-way line accepts in priority traffic
 CURVE_LATERAL_ACCEL_MPS2 = 2.0  # comfortable lateral acceleration in turns and bends
 CURVE_BRAKE_MPS2 = 2.5  # how hard one slows down ahead of a turn or a lower limit
 KMH = 1 / 3.6  # m/s per km/h
@@ -360,6 +377,7 @@ STEP_S = 0.05  # the simulation's time step (WorldConfig.dt_s)
 EPISODE_S = 180.0  # an episode's time limit (DriveConfig.max_time_s)
 CAMERA = CameraConfig()
 MIRRORS = MirrorRig()
+CORNERS = CornerRig()
 VEHICLE = VehicleSpec()
 ROAD = RoadDesign()
 # The forward camera to the front bumper along the car's axis (1.3 m with the default rig).

@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 
 from towndrive.agent.agent_driver import DEFAULT_DETECTOR, BoxGeometry
-from towndrive.agent.decision.blind_spot import BlindSpot, BlindSpotConfig, MirrorMount
+from towndrive.agent.decision.blind_spot import BlindSpot, BlindSpotConfig, SideMount
 from towndrive.agent.perception.classes import CLASSES
 from towndrive.agent.perception.detector import Detection
 from towndrive.agent.perception.pilotnet import DEFAULT_MODEL
 from towndrive.envs.drive_env import BLIND_SPOT_CAMERA, BLIND_SPOT_MOUNT_M, BLIND_SPOT_YAW_DEG, DriveConfig, DriveEnv
 from towndrive.sim.render import CameraConfig
 
-MOUNT = MirrorMount(*BLIND_SPOT_MOUNT_M, BLIND_SPOT_YAW_DEG)
+MOUNT = SideMount(*BLIND_SPOT_MOUNT_M, BLIND_SPOT_YAW_DEG)
 
 
 def mirror_box(spot: BlindSpot, side: str, ahead: float, out: float) -> Detection:

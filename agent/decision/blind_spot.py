@@ -55,19 +55,34 @@ class BlindSpotConfig:
 
 
 @dataclass(frozen=True)
-class MirrorMount:
-    """Where the blind-spot camera sits (``envs.drive_env.blind_spot_pose``): ahead of the car's centre,
-    out to the side, and turned this far from the car's axis towards the side."""
+class SideMount:
+    """Where a camera turned to the side sits (the blind-spot cameras, ``envs.drive_env.blind_spot_pose``; the
+    cross-traffic cameras, ``corner_pose``): ahead of the car's centre, out to the side, and turned this far from
+    the car's axis towards the side."""
 
     ahead_m: float
     out_m: float
     yaw_deg: float
 
 
+def side_camera_ground(geometry: BoxGeometry, mount: SideMount, det: Detection, side: str) -> tuple[float, float]:
+    """A vehicle detected by a camera turned to ``side``: its near face on the ground, in the car's frame (metres
+    ahead of the car's centre, metres out from its centre line on ``side``)."""
+    x0, _, x1, _ = det.box
+    z = geometry.distance(det.box, det.name)
+    x = geometry.lateral(0.5 * (x0 + x1), z)  # right of the camera's axis
+    a = math.radians(mount.yaw_deg)
+    # Looking out at angle a from the car's axis, the right camera's right-hand side points back (and in); the
+    # left camera is its mirror image, so its picture's left points back.
+    if side == "left":
+        x = -x
+    return mount.ahead_m + z * math.cos(a) - x * math.sin(a), mount.out_m + z * math.sin(a) + x * math.cos(a)
+
+
 class BlindSpot:
     """Vehicles in the zone beside and behind the car, from detections in a blind-spot camera frame."""
 
-    def __init__(self, geometry: BoxGeometry, mount: MirrorMount, config: BlindSpotConfig | None = None) -> None:
+    def __init__(self, geometry: BoxGeometry, mount: SideMount, config: BlindSpotConfig | None = None) -> None:
         self.geometry = geometry
         self.mount = mount
         self.config = config or BlindSpotConfig()
@@ -78,19 +93,8 @@ class BlindSpot:
         self.nearest: dict[str, tuple[float, float]] = {}  # (ahead, out) of the last vehicle seen in each zone
 
     def position(self, det: Detection, side: str) -> tuple[float, float]:
-        """The detected vehicle's near face on the ground, in the car's frame: (metres ahead of its centre,
-        metres out from its centre line on ``side``)."""
-        x0, _, x1, _ = det.box
-        z = self.geometry.distance(det.box, det.name)
-        x = self.geometry.lateral(0.5 * (x0 + x1), z)  # right of the camera's axis
-        a = math.radians(self.mount.yaw_deg)
-        # Looking out and back at angle a from the car's axis, the right camera's right-hand side points back (and
-        # in); the left camera is its mirror image, so its picture's left points back.
-        if side == "left":
-            x = -x
-        ahead = self.mount.ahead_m + z * math.cos(a) - x * math.sin(a)
-        out = self.mount.out_m + z * math.sin(a) + x * math.cos(a)
-        return ahead, out
+        """The detected vehicle's near face on the ground, in the car's frame (``side_camera_ground``)."""
+        return side_camera_ground(self.geometry, self.mount, det, side)
 
     def in_zone(self, ahead: float, out: float) -> bool:
         cfg = self.config

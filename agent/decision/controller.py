@@ -108,6 +108,10 @@ class ControllerConfig:
     priority_speed_sigmas: float = 2.0  # ... its speeds taken this many standard errors nearer zero (the fit's
     #                                     scatter: a standing car 20 m off reads 1 m/s from its box's jitter)
     yield_settle_m: float = 3.0  # at a give-way line, down to YIELD_APPROACH_MPS this far before the stop point
+    edge_speed_mps: float = 2.0  # past a stop or give-way line, reach where the cross street is seen this slowly
+    edge_looks: int = 4  # ... and look through the corner cameras this many frames there (both sides) before going
+    edge_settle_s: float = 0.6  # ... waiting at most this long there for a vehicle whose motion is not told yet
+    edge_arrived_m: float = 0.5  # ... "there": within this of the place
     crossing_depth_m: float = 8.0  # a person within this beyond the line, across the road, is on the crossing
     oncoming_horizon_s: float = 5.0  # a left turn waits while oncoming traffic would reach the camera within this
     oncoming_commit_deg: float = 20.0  # ... until the car has turned this far (then it clears the junction)
@@ -192,6 +196,12 @@ class Scene:
     signs: list[SignSeen] = field(default_factory=list)  # signs addressing us this frame (nearest first)
     lanes_each_way: int | None = None  # the kind of street the lane lines tell (agent.decision.signs)
     light_in_view_m: float = 0.0  # camera to the light head below which it leaves the picture
+    # Past a stop or give-way line (agent.decision.cross_traffic): what the corner cameras say forbids crossing
+    # ("" when nothing), whether a vehicle is seen there whose motion is not told yet, and the stop bar's far edge
+    # to where the cross street's nearest lane begins (where to look from, JunctionGuidance.cross_street_m).
+    cross_traffic: str = ""
+    cross_unknown: bool = False
+    cross_street_m: float | None = None
 
 
 @dataclass
@@ -275,6 +285,7 @@ class Controller:
         self._light_age_s = math.inf  # how long the light's state has been the one taken
         self._yellow_go: bool | None = None  # the yellow decision, taken once per yellow
         self._view_back_m = 0.0  # stop this far before the line to keep our light's head in the picture
+        self._edge_s, self._edge_frames = 0.0, 0  # time and frames spent where the cross street is seen
         self.note = ""  # why a seen light does not stop the car (shown as the reason when nothing else acts)
         self.unconfirmed_clock = HoldClock()  # standstill for unconfirmed objects in our path (module docstring)
         self.grazed_clock = HoldClock()  # standstill for still vehicles grazing the corridor (``grazes``)
@@ -520,11 +531,43 @@ class Controller:
         self.note = "stop sign: full stop made, clear: going"
         return None
 
+    def _edge_constraint(self, scene: Scene, speed: float, dt: float) -> Constraint | None:
+        """Past a stop or give-way line, towards where the cross street is seen (``SignControl.edging_m``): slow
+        enough to stop there; once the corner cameras see priority traffic, stopped where comfortable braking
+        does (that place then ends the edging), and done once they have looked ``edge_looks`` frames there and
+        seen none (module docstring)."""
+        cfg, signs = self.config, self.signs
+        ahead = signs.edging_m
+        if ahead is None:
+            return None
+        if scene.cross_traffic:
+            # Seen: no need to edge on (farther on, a car turning out of the cross street needs the room); stop
+            # where comfortable braking does.
+            stop_m = min(max(ahead, 0.0), speed * speed / (2.0 * cfg.comfortable_brake_mps2))
+            signs.edging_m = stop_m
+            return Constraint(f"give way: {scene.cross_traffic}, waiting where it is seen",
+                              stop_m + cfg.stop_line_min_gap_m, 0.0, cfg.stop_line_min_gap_m, 0.5)
+        if ahead > cfg.edge_arrived_m:
+            self._edge_s, self._edge_frames = 0.0, 0
+        else:
+            self._edge_s += dt
+            self._edge_frames += 1
+            settled = not scene.cross_unknown or self._edge_s >= cfg.edge_settle_s
+            if self._edge_frames >= cfg.edge_looks and settled:
+                signs.edging_m = None
+                self.note = "give way: the cross street is clear, going"
+                return None
+        cap = math.sqrt(cfg.edge_speed_mps ** 2 + 2.0 * CURVE_BRAKE_MPS2 * max(ahead, 0.0))
+        return Constraint(f"give way: {min(cap, self._cruise):.1f} m/s to where the cross street is seen, looking",
+                          math.inf, cap, 0.0, 0.0)
+
     def _priority_traffic(self, scene: Scene, gap: float, steer: float) -> str:
         """What forbids going from a stop or give-way line now ("" when nothing): a vehicle near that moves and
         is not driving away ahead of us (crossing, or coming towards us), or a person on the crossing beyond the
         line (across the road: our lanes and the oncoming ones). Only what the detector confirms counts."""
         cfg = self.config
+        if scene.cross_traffic:
+            return scene.cross_traffic
         line_cam = gap + cfg.camera_to_front_m
         lanes = self.signs.lanes_each_way or 2
         left = -(2 * lanes - 0.5) * self.road.lane_width_m  # the road's far kerb, from our lane's centre
@@ -607,9 +650,9 @@ class Controller:
                             self._bar_hidden(scene, steer)):
             self.light_state, self._light_candidate, self._yellow_go = None, None, None  # in the junction
             self._view_back_m = 0.0
-            self.signs.entered()
+            self.signs.entered(scene.cross_street_m)
         elif self.signs.passed(self.stop_line):
-            self.signs.entered()
+            self.signs.entered(scene.cross_street_m)
 
         limit_why, limit = self.signs.limit()
         self._cruise = min(cfg.speed_limit_mps, limit)  # the cruise speed under the limit that applies
@@ -630,7 +673,9 @@ class Controller:
         note = self.note
         sign = self._sign_constraint(scene, speed, steer)
         self.note = note or self.note
-        for c in (light, sign, self._oncoming_constraint(scene, speed)):
+        edge = self._edge_constraint(scene, speed, dt)
+        self.note = note or self.note
+        for c in (light, sign, edge, self._oncoming_constraint(scene, speed)):
             if c is None:
                 continue
             if math.isinf(c.gap_m):  # a speed cap, not a point to stop at

@@ -408,6 +408,16 @@ class JunctionGuidance:
         """How far the car's centre may be off its lane's centre with the car still inside the lane."""
         return max(0.0, (self.lane_width_m - VEHICLE.width_m) / 2)
 
+    @property
+    def cross_street_m(self) -> float:
+        """The stop bar's far edge to where the cross street's nearest lane begins (the kerb lane a right turn goes
+        into, less half a lane): beyond the zebra measured here by the nearest the design's lane counts put that
+        lane, else by the kerb lane's prior."""
+        if self._zebra_m and self.road.turn_reaches:
+            beyond = min(r.right_m for r in self.road.turn_reaches)
+            return float(np.median(self._zebra_m)) + beyond - 0.5 * self.lane_width_m
+        return self.road.kerb_lane_reach - 0.5 * self.lane_width_m
+
     def planned_reach_m(self, command: int) -> float:
         """The reach planned before the turn: beyond the zebra measured here by the design's reach expected over
         the cross street's lane count, kept where it can be within ``lane_room_m`` of each count's lanes (either

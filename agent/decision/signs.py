@@ -4,7 +4,9 @@
   the one the stop-line track follows, or, with no bar seen, the line where the road design puts it
   (``RoadDesign.sign_before_stop_line_m`` beyond the sign), dead-reckoned by the car's travel. A stop is *made*
   once the car stands (under the world's full-stop speed, ``sim.spec.STOP_SPEED_MPS``) within ``full_stop_m`` of
-  the line; the control ends when the car crosses the line (``entered``).
+  the line; the control ends when the car crosses the line (``entered``). Past it the car edges on to where the
+  cross street is seen, short of its nearest lane (``edging_m``; buildings at the corner hide it from the line),
+  and gives way there to what the corner cameras see (``agent.decision.cross_traffic``).
 - **Signs are read with the car lined up on its road** (turned at most ``max_turned_deg`` from the lane it last
   drove along): which plates address the car is told by where they stand beside its road, and turning through a
   junction the camera sweeps across the plates of the junction's other arms, one of which stands where ours would
@@ -33,6 +35,8 @@ class SignControlRules:
     confirm_frames: int = 2  # a sign counts once seen this many frames in a row
     full_stop_m: float = 2.0  # a full stop is made standing at most this far before the line (the world: STOP_ZONE_M)
     line_lost_m: float = 1.0  # a sign-inferred line this far behind the bumper is passed
+    edge_margin_m: float = 2.0  # past the line, look from this far short of the cross street's nearest lane
+    edge_lost_m: float = 10.0  # ... and stop edging this far past that place (the crossing is long over)
     max_turned_deg: float = 5.0  # signs are read only with the car turned at most this from its lane (a turn's sweep)
 
     def __post_init__(self) -> None:
@@ -109,6 +113,7 @@ class SignControl:
         self.control: str | None = None  # "stop" or "yield": what the next stop line asks
         self.sign_line_m: float | None = None  # bumper to the line the sign puts, dead-reckoned
         self.stopped = False  # the full stop at this line is made
+        self.edging_m: float | None = None  # past the line: bumper to where the cross street is seen from
         self.limit_kmh: float | None = None  # the last limit sign seen
         self.lanes_each_way: int | None = None  # the last kind of street measured
         self._seen: tuple[str, int] | None = None
@@ -120,6 +125,10 @@ class SignControl:
         car turned ``turned_rad`` from the lane it last drove along (``Odometry.turned``)."""
         if self.sign_line_m is not None:
             self.sign_line_m -= speed_mps * dt
+        if self.edging_m is not None:
+            self.edging_m -= speed_mps * dt
+            if self.edging_m < -self.rules.edge_lost_m:
+                self.edging_m = None
         if lanes_each_way is not None:
             self.lanes_each_way = lanes_each_way
         lined_up = abs(turned_rad) <= math.radians(self.rules.max_turned_deg)
@@ -154,8 +163,11 @@ class SignControl:
         return (self.control is not None and tracked_m is None and self.sign_line_m is not None
                 and self.sign_line_m < -self.rules.line_lost_m)
 
-    def entered(self) -> None:
-        """The car crossed the line: the stop or give-way is done."""
+    def entered(self, cross_street_m: float | None = None) -> None:
+        """The car crossed the line: the stop or give-way is done, and the car edges on to where the cross street
+        is seen (``cross_street_m`` beyond the line, less ``edge_margin_m``) to give way there."""
+        if self.control is not None and cross_street_m is not None:
+            self.edging_m = max(cross_street_m - self.rules.edge_margin_m, 0.0)
         self.control, self.sign_line_m, self.stopped = None, None, False
 
     def limit(self) -> tuple[str, float]:
