@@ -77,7 +77,6 @@ class CrossTraffic:
 
     def reset(self) -> None:
         self.tracks: list[CrossTrack] = []
-        self.last_look_s = {side: -math.inf for side in SIDES}
 
     @staticmethod
     def side_to_look(frame: int) -> str:
@@ -86,7 +85,6 @@ class CrossTraffic:
     def update(self, t: float, side: str, detections: list[Detection], pose: tuple[float, float, float]) -> None:
         """Take one look on ``side`` with the car at ``pose`` (x, y, yaw in the odometry's frame; yaw turns right)."""
         cfg = self.config
-        self.last_look_s[side] = t
         self.tracks = [k for k in self.tracks if k.seen[-1][0] >= t - cfg.forget_s]
         x, y, yaw = pose
         ahead_v = np.array([math.cos(yaw), math.sin(yaw)])
@@ -115,10 +113,6 @@ class CrossTraffic:
             else:
                 self.tracks[best].seen.append((t, float(p[0]), float(p[1])))
                 taken.add(best)
-
-    def looked_both_since(self, t: float) -> bool:
-        """Whether both corner cameras have been looked through at or after ``t``."""
-        return all(s >= t for s in self.last_look_s.values())
 
     def unknown(self, t: float, pose: tuple[float, float, float]) -> bool:
         """Whether a vehicle is seen within ``unknown_near_m`` whose motion is not told yet (a track too young)."""
