@@ -77,10 +77,6 @@ def priority_arms(town: Town, entry: Entry, turn: Command | None) -> list[Entry]
             and not (turn == Command.RIGHT and float(travel_vector(other) @ right_of(mine)) < -0.5)]
 
 
-def _lanes_half_band(town: Town, arm: Entry) -> float:
-    return arm.lane_count * town.lane_width / 2 + 0.6
-
-
 def _lateral(arm: Entry, points: np.ndarray) -> np.ndarray:
     """Across ``arm``'s travel (positive to its right), from the middle of its incoming lanes."""
     return (points - arm.line_center) @ right_of(travel_vector(arm))
@@ -92,16 +88,16 @@ def lane_offsets(town: Town, arm: Entry) -> list[float]:
     return [(k - (n - 1) / 2) * town.lane_width for k in range(n)]
 
 
-def in_priority_lane(town: Town, arm: Entry, offset: float, point: np.ndarray) -> bool:
-    """Whether ``point`` lies in one of ``arm``'s incoming lanes (the one ``offset`` across), carried on through
-    the junction."""
-    return abs(float(_lateral(arm, point)) - offset) < town.lane_width / 2
+def in_priority_lane(town: Town, arm: Entry, offset: float, points: np.ndarray, margin_m: float = 0.0) -> np.ndarray:
+    """Whether ``points`` (one, or rows) lie in one of ``arm``'s incoming lanes (the one ``offset`` across), carried
+    on through the junction, widened by ``margin_m`` either side."""
+    return np.abs(_lateral(arm, points) - offset) < town.lane_width / 2 + margin_m
 
 
 def _on_arm(town: Town, arm: Entry, positions: np.ndarray, headings: np.ndarray) -> np.ndarray:
     """Which of the vehicles (rows) head into the junction by ``arm`` within the band of its incoming lanes."""
     heading_ok = np.abs((headings - arm.travel_heading + np.pi) % (2 * np.pi) - np.pi) < HEADING_TOLERANCE_RAD
-    return heading_ok & (np.abs(_lateral(arm, positions)) < _lanes_half_band(town, arm))
+    return heading_ok & (np.abs(_lateral(arm, positions)) < arm.lane_count * town.lane_width / 2 + 0.6)
 
 
 def priority_vehicles(town: Town, entry: Entry, positions: np.ndarray, headings: np.ndarray, half_lengths: np.ndarray,
@@ -139,7 +135,7 @@ def failed_to_yield_by(town: Town, lanes: list[tuple[Entry, float]], point: np.n
         return -1
     for arm, offset in lanes:
         to_point = (point - positions) @ travel_vector(arm) - half_lengths
-        in_lane = np.abs(_lateral(arm, positions) - offset) < town.lane_width / 2 + 0.3
+        in_lane = in_priority_lane(town, arm, offset, positions, margin_m=0.3)
         keep = _on_arm(town, arm, positions, headings) & in_lane & (to_point >= 0.0) & (to_point < PRIORITY_LOOK_M)
         for k in np.nonzero(keep)[0]:
             v = float(speeds[k])
@@ -169,7 +165,7 @@ class YieldCrossing:
 
     def entering(self, town: Town, front: np.ndarray) -> list[tuple[Entry, float]]:
         """The priority lanes the front bumper is in now and was not before (each is given once)."""
-        entered = [lane for lane in self.pending if in_priority_lane(town, *lane, front)]
+        entered = [lane for lane in self.pending if bool(in_priority_lane(town, *lane, front))]
         self.pending = [lane for lane in self.pending if all(lane is not e for e in entered)]
         return entered
 

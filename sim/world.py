@@ -559,8 +559,8 @@ class World:
     def _check_junction_rules(self) -> list[Infraction]:
         """Stop signs and give-way lines (``sim.rules``): entering the junction (the front bumper past the line's
         far edge) from a STOP or ALL_WAY_STOP entry without a full stop at its line on this visit is a
-        ``stop_sign``; having entered from a STOP or YIELD entry, entering a priority arm's lanes in front of
-        its traffic that would reach its line within ``YIELD_CONFLICT_S`` is ``failed_to_yield``. The entry is
+        ``stop_sign``; having entered from a STOP or YIELD entry, entering a priority arm's lane in front of
+        its traffic that would reach that point within ``YIELD_CONFLICT_S`` is ``failed_to_yield``. The entry is
         the one whose road the car's centre is on, found afresh each step."""
         out = self._check_yielding()
         ego = self.ego

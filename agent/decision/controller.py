@@ -672,7 +672,6 @@ class Controller:
         light = self._light_constraint(speed, scene.turning)
         note = self.note
         sign = self._sign_constraint(scene, speed, steer)
-        self.note = note or self.note
         edge = self._edge_constraint(scene, speed, dt)
         self.note = note or self.note
         for c in (light, sign, edge, self._oncoming_constraint(scene, speed)):

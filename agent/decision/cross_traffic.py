@@ -54,9 +54,17 @@ class CrossTrack:
     side: str
     seen: list[tuple[float, float, float]] = field(default_factory=list)
     came_s: float = -math.inf  # when it was last seen moving towards our way
+    _fit: tuple[tuple[float, int], tuple[np.ndarray, np.ndarray] | None] | None = None  # (now, sightings) -> fit
 
     def velocity(self, now_s: float, config: CrossTrafficConfig) -> tuple[np.ndarray, np.ndarray] | None:
-        """Its latest position and its velocity (a straight-line fit), when seen long enough to tell."""
+        """Its latest position and its velocity (a straight-line fit), when seen long enough to tell (fitted once
+        per time and sightings: matching, ``unknown`` and ``priority`` ask on the same look)."""
+        key = (now_s, len(self.seen))
+        if self._fit is None or self._fit[0] != key:
+            self._fit = key, self._fitted(now_s, config)
+        return self._fit[1]
+
+    def _fitted(self, now_s: float, config: CrossTrafficConfig) -> tuple[np.ndarray, np.ndarray] | None:
         recent = [s for s in self.seen if s[0] >= now_s - config.history_s]
         if len(recent) < 3 or recent[-1][0] - recent[0][0] < config.min_span_s:
             return None
@@ -64,6 +72,11 @@ class CrossTrack:
         vx, x0 = np.polyfit(t - t[-1], x, 1)
         vy, y0 = np.polyfit(t - t[-1], y, 1)
         return np.array([x0, y0]), np.array([vx, vy])
+
+
+def _axes(yaw: float) -> tuple[np.ndarray, np.ndarray]:
+    """The car's ahead and right unit vectors in the odometry's frame (yaw turns right)."""
+    return np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
 
 
 class CrossTraffic:
@@ -87,8 +100,7 @@ class CrossTraffic:
         cfg = self.config
         self.tracks = [k for k in self.tracks if k.seen[-1][0] >= t - cfg.forget_s]
         x, y, yaw = pose
-        ahead_v = np.array([math.cos(yaw), math.sin(yaw)])
-        right_v = np.array([-math.sin(yaw), math.cos(yaw)])
+        ahead_v, right_v = _axes(yaw)
         taken: set[int] = set()
         for d in detections:
             if d.name not in VEHICLES or d.score < cfg.score_threshold:
@@ -127,8 +139,7 @@ class CrossTraffic:
         it within ``gap_s``, or one in our way ahead."""
         cfg = self.config
         x, y, yaw = pose
-        ahead_v = np.array([math.cos(yaw), math.sin(yaw)])
-        right_v = np.array([-math.sin(yaw), math.cos(yaw)])
+        ahead_v, right_v = _axes(yaw)
         for k in self.tracks:
             if k.seen[-1][0] < t - cfg.forget_s:
                 continue
