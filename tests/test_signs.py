@@ -181,6 +181,22 @@ def test_default_limit_by_the_street_the_lane_lines_tell() -> None:
     assert d.target_speed_mps == pytest.approx(ROAD.single_lane_limit_kmh * KMH)
 
 
+def test_a_few_frames_of_a_line_ending_ahead_do_not_change_the_street() -> None:
+    """Near a stop bar the solid edge line ends within the view and reads as dashed for a few frames: the street
+    stays the single-lane one most readings told, until a second's worth of readings tell otherwise."""
+    ctrl = Controller(ControllerConfig(speed_limit_mps=20.0))
+    for _ in range(40):
+        ctrl.step(Scene(10.0, lanes_each_way=1), 0.0, DT)
+    for kind in (2, None, 2, None, 2):
+        d = ctrl.step(Scene(10.0, lanes_each_way=kind), 0.0, DT)
+    assert ctrl.signs.lanes_each_way == 1
+    assert d.target_speed_mps == pytest.approx(ROAD.single_lane_limit_kmh * KMH)
+    for _ in range(ctrl.signs.rules.street_readings):
+        d = ctrl.step(Scene(10.0, lanes_each_way=2), 0.0, DT)
+    assert ctrl.signs.lanes_each_way == 2  # a street that does have two lanes is told once it is seen a while
+    assert d.target_speed_mps == pytest.approx(ROAD.multi_lane_limit_kmh * KMH)
+
+
 def test_slows_for_a_bend_seen_ahead_before_steering_into_it() -> None:
     radius = 22.0  # the town's corner bends
     ctrl = Controller(CFG)

@@ -16,13 +16,17 @@
   default for the kind of street, which the car measures from its lane lines: a dashed white line beside its
   lane means another lane in its direction (a multi-lane street: ``RoadDesign.multi_lane_limit_kmh``); a yellow
   centre line on its left and a solid edge line on its right mean one lane each way
-  (``RoadDesign.single_lane_limit_kmh``); the last kind measured holds while neither is seen, and the lower
-  default before any is measured.
+  (``RoadDesign.single_lane_limit_kmh``); the kind most often measured over the last ``street_readings``
+  readings holds while neither is seen, and the lower default before any is measured. One reading is not enough:
+  where the lines end ahead (at a stop bar) a solid edge line is painted over only part of the view and is read
+  as dashed, and a few such frames before the bar would make a single-lane street a two-lane one just when the
+  junction's turn is placed by it (``JunctionGuidance``: the right turn's radius, the cross street's odds).
 """
 
 from __future__ import annotations
 
 import math
+from collections import Counter, deque
 from dataclasses import dataclass
 
 from towndrive.agent.perception.lanes import LaneResult
@@ -38,6 +42,7 @@ class SignControlRules:
     edge_margin_m: float = 2.0  # past the line, look from this far short of the cross street's nearest lane
     edge_lost_m: float = 10.0  # ... and stop edging this far past that place (the crossing is long over)
     max_turned_deg: float = 5.0  # signs are read only with the car turned at most this from its lane (a turn's sweep)
+    street_readings: int = 20  # the kind of street is the one most of this many last readings told (a second or so)
 
     def __post_init__(self) -> None:
         if self.full_stop_m > STOP_ZONE_M:
@@ -115,7 +120,8 @@ class SignControl:
         self.stopped = False  # the full stop at this line is made
         self.edging_m: float | None = None  # past the line: bumper to where the cross street is seen from
         self.limit_kmh: float | None = None  # the last limit sign seen
-        self.lanes_each_way: int | None = None  # the last kind of street measured
+        self.lanes_each_way: int | None = None  # the kind of street most of the last readings told
+        self._streets: deque[int] = deque(maxlen=self.rules.street_readings)
         self._seen: tuple[str, int] | None = None
         self._count = 0
 
@@ -130,7 +136,9 @@ class SignControl:
             if self.edging_m < -self.rules.edge_lost_m:
                 self.edging_m = None
         if lanes_each_way is not None:
-            self.lanes_each_way = lanes_each_way
+            self._streets.append(lanes_each_way)
+            counts = Counter(self._streets)  # a tie goes to the latest reading
+            self.lanes_each_way = max(counts, key=lambda kind: (counts[kind], kind == lanes_each_way))
         lined_up = abs(turned_rad) <= math.radians(self.rules.max_turned_deg)
         sign = signs[0] if signs and lined_up else None
         key = (sign.kind, sign.limit_kmh) if sign is not None else None
