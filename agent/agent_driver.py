@@ -86,6 +86,21 @@ STAGES = ("blind_spot", "cross_traffic", "pilotnet", "detector", "tracking", "la
           "wait")  # wait: the calling thread waiting for the worker's stages (stage_threads > 1)
 
 
+def _once_a_frame(render: Callable[[str], np.ndarray | None] | None) -> Callable[[str], np.ndarray | None] | None:
+    """A corner camera's frames rendered at most once a side in a frame (the cross-traffic look and the look down
+    the road turned into may both want one)."""
+    if render is None:
+        return None
+    frames: dict[str, np.ndarray | None] = {}
+
+    def frame(side: str) -> np.ndarray | None:
+        if side not in frames:
+            frames[side] = render(side)
+        return frames[side]
+
+    return frame
+
+
 @dataclass(frozen=True)
 class AgentConfig:
     detect_every: int = 1  # run the detector on every k-th frame (SORT predicts in between)
@@ -226,6 +241,7 @@ class Stages:
     signs: SignLocator | None = None  # the road signs addressing the car (agent.perception.signs)
     zebra: ZebraDetector | None = None  # the zebra beyond the stop bar, where the road design's setback may vary
     exit_line: ExitLineFinder | None = None  # the road turned into, read in a turn where the design spreads
+    exit_corner: ExitLineFinder | None = None  # ... and through the corner camera on the turn's side
 
 
 class AgentDriver:
@@ -326,7 +342,8 @@ class AgentDriver:
             blind_spot=BlindSpot(mirror, SideMount(MIRRORS.ahead_m, MIRRORS.out_m, MIRRORS.yaw_deg), cfg.blind_spot),
             stereo=stereo, signs=SignLocator(geometry, cfg.signs, cfg.road),
             zebra=ZebraDetector(camera) if cfg.road.stop_line_setback_sd_m > 0 else None,
-            exit_line=ExitLineFinder(camera) if junction.design_spreads else None)
+            exit_line=ExitLineFinder(camera) if junction.design_spreads else None,
+            exit_corner=ExitLineFinder(self._corner_camera) if junction.design_spreads else None)
 
     def _setup(self, camera: CameraConfig, dt: float) -> None:
         self.camera = camera
@@ -357,6 +374,7 @@ class AgentDriver:
         self._bar_tracked_m: float | None = None  # camera to the tracked bar this frame (the zebra's look, unread)
         self._exit_expected: float | None = None  # in a turn, the direction the road turned into should run
         self._exit_seen: ExitLine | None = None  # ... and its centre line as seen this frame
+        self._exit_cornered: ExitLine | None = None  # ... and through the corner camera
         self._far_corridor: tuple[float, float, float] | None = None  # going straight, where the far side's lies
         self._read_count = False  # in a right turn: the road turned into's lane count is read too
         self._frame = 0
@@ -420,8 +438,9 @@ class AgentDriver:
             look = (lambda _side: frame) if frame is not None else self._refuse_look
         corner = self._corner
         if corner is not None:
-            seen = corner(CrossTraffic.side_to_look(self._frame)) if self._cross_wanted() else None
-            corner = (lambda _side: seen) if seen is not None else None
+            side = self._corner_side()
+            seen = corner(side) if side is not None else None
+            corner = (lambda asked: seen if asked == side else None) if seen is not None else None
         job = self._pool("pipeline").submit(self._act, observation, look, corner)
         if earlier is not None:
             self._pending = job
@@ -511,6 +530,30 @@ class AgentDriver:
                                             self._read_count))
         return lanes, stop
 
+    def _corner_side(self) -> str | None:
+        """The corner camera looked through this frame: the cross-traffic look's side while that is wanted, else
+        the turn's side while the road turned into is looked for (``JunctionGuidance.exit_look``), else none."""
+        if self._cross_wanted():
+            return CrossTraffic.side_to_look(self._frame)
+        look = self.stages.junction.exit_look() if self.stages.exit_corner is not None else None
+        return look[0] if look is not None else None
+
+    def _look_down_exit(self, corner: Callable[[str], np.ndarray | None] | None) -> ExitLine | None:
+        """In a turn, the road turned into's centre line as the corner camera on the turn's side sees it, in the
+        forward camera's ground frame (None: not looked for, not in this frame, or not found)."""
+        finder, look = self.stages.exit_corner, self.stages.junction.exit_look()
+        if corner is None or finder is None or look is None:
+            return None
+        side, direction = look
+        frame = corner(side)
+        if frame is None:  # the frame rendered for the cross-traffic look is the other side's
+            return None
+        yaw = math.radians(CORNERS.yaw_deg) * (1.0 if side == "right" else -1.0)
+        line = finder.find(frame, direction - yaw, None, self._read_count)
+        if line is None:
+            return None
+        return line.seen_from(math.copysign(CORNERS.out_m, yaw), CORNERS.ahead_m - self.camera.mount_forward_m, yaw)
+
     def _cross_wanted(self) -> bool:
         """Whether to look through a corner camera this frame: a stop or give-way line within ``look_from_m``, or
         the car past one edging to where the cross street is seen (``agent.decision.cross_traffic``)."""
@@ -520,19 +563,20 @@ class AgentDriver:
         gap = signs.line_gap(self.controller.stop_line)
         return gap is not None and gap <= self.config.cross_traffic.look_from_m
 
-    def _look_across(self, t: float, corner: Callable[[str], np.ndarray] | None) -> None:
+    def _look_across(self, t: float, corner: Callable[[str], np.ndarray | None] | None) -> None:
         """The corner cameras' look, when wanted: one side a frame, in turn; this frame's cross traffic."""
         st, odo = self.stages, self.stages.odometry
-        if corner is None or not self._cross_wanted():
+        side = CrossTraffic.side_to_look(self._frame)
+        frame = corner(side) if corner is not None and self._cross_wanted() else None
+        if frame is None:
             self._cross = ("", False)
             return
         pose = (float(odo.pos[0]), float(odo.pos[1]), float(odo.yaw))
-        side = CrossTraffic.side_to_look(self._frame)
-        st.cross_traffic.update(t, side, self._detect_vehicles(corner(side)), pose)
+        st.cross_traffic.update(t, side, self._detect_vehicles(frame), pose)
         self._cross = (st.cross_traffic.priority(t, pose), st.cross_traffic.unknown(t, pose))
 
     def _act(self, observation: dict[str, Any], look: Callable[[str], np.ndarray] | None,
-             corner: Callable[[str], np.ndarray] | None = None) -> tuple[np.ndarray, AgentView, dict[str, float]]:
+             corner: Callable[[str], np.ndarray | None] | None = None) -> tuple[np.ndarray, AgentView, dict[str, float]]:
         t_start, t_wall = self._now(), time.perf_counter()
         times: dict[str, float] = {}
         clock = t_start
@@ -581,8 +625,11 @@ class AgentDriver:
                                            self._last_view.lanes if self._last_view is not None else None, look,
                                            self._detect_vehicles)
             lap("blind_spot")
+            corner = _once_a_frame(corner)
             self._look_across(t, corner)
             lap("cross_traffic")
+            self._exit_cornered = self._look_down_exit(corner)
+            lap("exit_corner")
             seen = self._model_view.for_pilotnet(image) if self._model_view is not None else image
             last = self._last_view
             net_command = st.turn_end.command(command, odo.turned, last.lanes if last is not None else None,
@@ -634,6 +681,7 @@ class AgentDriver:
         centre = lane_centre_of(lanes, z_car)
         odo.measure_road(centre, lanes.confidence, self.controller.line, z_car)
         st.junction.note_exit(self._exit_seen)
+        st.junction.note_exit(self._exit_cornered)
         hold = st.junction.hold(command)
         if st.turn_end.ended:
             self.controller.line.leave_junction(self.config.turn_end.light_ignore_m)

@@ -11,6 +11,7 @@ import pytest
 
 from towndrive.agent.perception.exit_line import ExitLineFinder
 from towndrive.envs.drive_env import DriveConfig, DriveEnv
+from towndrive.sim.spec import CORNERS
 from towndrive.sim.town import Command, TownConfig
 from towndrive.sim.world import World, WorldConfig, cached_town
 
@@ -157,3 +158,26 @@ def test_the_line_a_lane_right_of_the_centre_line_tells_one_lane_from_two(
     line = finder.find(rgb, math.atan2(b[0] - a[0], b[1] - a[1]), divider=True)
     assert line is not None and line.divider_fill is not None
     assert (line.divider_fill >= DIVIDER_SOLID_FILL) == (lanes == 1)
+
+
+@pytest.mark.parametrize("style, town_seed, entry_index, command, turned_deg, weather", [
+    ("suburb", 4000, 3, Command.RIGHT, 5.0, "night"),
+    ("downtown", 4001, 2, Command.LEFT, 10.0, "dusk"),
+    ("downtown", 4000, 5, Command.LEFT, 25.0, "night"),
+])
+def test_the_corner_camera_reads_the_road_turned_into_from_the_turns_start(
+        style: str, town_seed: int, entry_index: int, command: Command, turned_deg: float, weather: str) -> None:
+    """Barely into the turn, where the forward camera does not yet look down the road turned into, the corner
+    camera on the turn's side does: its reading, carried into the forward camera's ground frame
+    (``ExitLine.seen_from``, the corner camera's mount), lies on the town's centre line and runs its way."""
+    _, env, (a, b) = _in_turn(style, town_seed, entry_index, command, turned_deg, weather)
+    side = "right" if command == Command.RIGHT else "left"
+    frame = env.corner_frame(side)
+    env.close()
+    yaw = math.radians(CORNERS.yaw_deg) * (1.0 if side == "right" else -1.0)
+    runs = math.atan2(b[0] - a[0], b[1] - a[1])
+    line = ExitLineFinder(CORNERS.camera).find(frame, runs - yaw + math.radians(8.0))
+    assert line is not None
+    seen = line.seen_from(math.copysign(CORNERS.out_m, yaw), CORNERS.ahead_m - env.config.camera.mount_forward_m, yaw)
+    assert _off_line_m(seen.point, a, b) <= POSITION_TOLERANCE_M
+    assert abs(math.degrees(math.remainder(seen.direction_rad - runs, 2 * math.pi))) <= DIRECTION_TOLERANCE_DEG

@@ -687,6 +687,77 @@ def test_the_road_turned_into_read_in_the_turn_places_its_inner_lane_and_the_arc
     assert read.turn_steer(2, 3.0) is not None and unread.turn_steer(2, 3.0) is None
 
 
+def test_the_corner_camera_looks_down_the_road_turned_into_from_the_arcs_start() -> None:
+    """``JunctionGuidance.exit_look``: once a turn's arc leads, the corner camera on the turn's side is asked to look
+    for the road turned into, with the direction it should run from the car's axis, until the car has turned
+    ``exit_corner_max_turned_deg``; the forward camera only from ``exit_min_turned_deg``. A reading taken so,
+    before the forward camera can, places the lane turned into."""
+    from types import SimpleNamespace
+
+    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
+    from towndrive.agent.perception.stop_line import StopLine
+
+    road = road_priors("suburb")
+    rules = JunctionRules()
+    for command, side in ((2, "right"), (1, "left")):
+        sign = 1.0 if command == 2 else -1.0
+        line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
+                               config=SimpleNamespace(camera_to_front_m=2.0))
+        odo = approach_odometry()
+        g = JunctionGuidance(rules, line, odo, 1.0, road)
+        g.note(StopLine(8.0, 0.5, 0.9, 0))
+        assert g.exit_look() is None  # no turn under way yet
+        odo.pos = np.array([11.0, 0.0])
+        assert g.turn_steer(command, 3.0) is not None
+        for turned_deg, looks in ((0.0, True), (10.0, True), (rules.exit_corner_max_turned_deg + 5.0, False)):
+            odo.yaw = sign * math.radians(turned_deg)
+            look = g.exit_look()
+            assert (look is not None) == looks
+            if look is not None:
+                assert look[0] == side and look[1] == pytest.approx(sign * math.pi / 2 - odo.yaw)
+        odo.pos, odo.yaw = np.array([14.0, sign * 0.5]), sign * math.radians(10.0)
+        assert g.exit_expected_rad() is None  # the forward camera does not look yet
+        centre = g.planned_reach_m(command) + road.stop_bar_depth_m + 1.0
+        for _ in range(rules.exit_min_readings):
+            g.note_exit(cross_line_seen(odo, centre, sign * 90.0))  # as the corner camera reads it
+        assert g.exit_measured
+
+
+def test_a_reading_before_the_car_has_turned_much_moves_the_arcs_start_on() -> None:
+    """``JunctionRules.exit_restart_max_deg``: the arc's start is committed as the car's centre reaches it, often
+    before the road turned into is read. A reading that puts the start farther on moves it there while the car has
+    barely turned (it goes on straight to it); turned farther, the start stays and the reading moves the arc's end."""
+    from types import SimpleNamespace
+
+    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
+    from towndrive.agent.perception.stop_line import StopLine
+
+    road = road_priors("suburb")
+    rules = JunctionRules()
+    for turned_deg, moves in ((3.0, True), (rules.exit_restart_max_deg + 10.0, False)):
+        line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
+                               config=SimpleNamespace(camera_to_front_m=2.0))
+        odo = approach_odometry()
+        g = JunctionGuidance(rules, line, odo, 1.0, road)
+        g.note(StopLine(8.0, 0.5, 0.9, 0))  # the bar's near edge at x = 11 in the odometry frame
+        odo.pos = np.array([11.0, 0.0])
+        assert g.turn_steer(2, 3.0) is not None and g.arc_ahead_m is not None
+        start = g.arc_ahead_m  # the car's centre is at the bar's near edge
+        odo.pos = np.array([11.0 + start + 0.1, 0.0])
+        g.turn_steer(2, 3.0)
+        assert g._arc_start_m == pytest.approx(start)  # committed
+        odo.yaw = math.radians(turned_deg)
+        centre = g.planned_reach_m(2) + road.stop_bar_depth_m + 3.0  # the lane turned into lies 3 m farther on
+        for _ in range(rules.exit_min_readings):
+            g.note_exit(cross_line_seen(odo, centre, 90.0, fill=1.0))
+        assert g.exit_measured
+        g.turn_steer(2, 3.0)
+        if moves:
+            assert g._arc_start_m is None and g.arc_ahead_m > 0.5  # the start lies ahead now
+        else:
+            assert g._arc_start_m == pytest.approx(start)
+
+
 def test_a_right_turn_read_in_the_turn_keeps_within_reach_of_every_count_the_centre_line_leaves() -> None:
     """``JunctionGuidance.exit_odds``: the road turned into's centre line lies a lane farther beyond the zebra on
     a two-lane street than on a single-lane one (less its parking strip), so the reading tells the likelier count

@@ -15,9 +15,11 @@ measured, the lane turned into is placed from its far edge instead (the zebra li
 the design's reach for the cross street's lanes each way, a count not seen before the turn, so expected over its
 odds at the kind of junction the car sees (``RoadDesign.two_lane_share``: who stops enters a larger street).
 Where the design's numbers spread, a turn planned so still misses the lane turned into by a metre or two when the
-cross street's lane count was guessed wrong. So once the road turned into is in view (from 20 degrees of a right turn,
-50 of a left turn), it is read (``agent.perception.exit_line``): its centre line places its inner lane half a lane
-width to the line's right in the direction of travel, whatever the count, and the line's direction, weighed against
+cross street's lane count was guessed wrong. So once the road turned into is in view, it is read
+(``agent.perception.exit_line``): through the corner camera on the turn's side from the arc's start (``exit_look``),
+through the forward camera from 20 degrees of a right turn, 50 of a left turn (``exit_expected_rad``). Its centre
+line places its inner lane half a lane width to the line's right in the direction of travel, whatever the count,
+and the line's direction, weighed against
 the zebra's by how much of the line is in view, gives the turn's angle (a line seen short is far off, and its
 direction, carried back across the junction, would misplace the lane by a metre or more). A left turn goes into that
 lane; a right turn into the kerb lane, as many lanes short of it as the street has lanes beyond the first: the line's
@@ -29,9 +31,11 @@ connectors do (``sim.spec.right_turn_lanes_from_kerb``): from the inner lane of 
 held) it goes into the inner lane, whatever the count, on an arc a lane wider than the kerb lane's. The arc is
 re-placed on that lane and leads the whole turn; once the car is on it, a reading moves the arc's end and not where
 it began (an arc begun later, as a tighter radius would have it, lies beyond a car already turning, which steers
-back out and then cannot follow it round). Where the road turned into is never read, the arc leads only until
-the car faces that road (``turn_handover_deg``) and PilotNet, which sees it, finishes the turn. An exact design's
-arc leads to the end.
+back out and then cannot follow it round), unless the car has turned at most ``exit_restart_max_deg``: it then goes
+on straight to the later start (the arc's start is committed as the car reaches it, often before the road turned
+into is read, and from the priors it lies metres short when the cross street's lane count was guessed wrong).
+Where the road turned into is never read, the arc leads only until the car faces that road (``turn_handover_deg``)
+and PilotNet, which sees it, finishes the turn. An exact design's arc leads to the end.
 Where junctions are not square, the arc turns by the cross street's angle, read from the zebra beyond the bar (its
 edges run along the cross street), into the lane whose centre line crosses the approach lane's where the road
 design's reach puts it.
@@ -147,6 +151,10 @@ class JunctionRules:
     # are this many; a reading this far from the reach planned before the turn is something else.
     exit_min_turned_deg: float = 20.0
     exit_max_turned_deg: float = 80.0
+    exit_corner_max_turned_deg: float = 45.0  # the corner camera looks down the road turned into up to this far round
+    # A first reading of the road turned into that puts the arc's start farther on moves it there while the car has
+    # turned at most this (it goes on straight to it; farther round, it could not follow the later arc)
+    exit_restart_max_deg: float = 10.0
     exit_min_readings: int = 3
     exit_last_readings: int = 5
     exit_max_shift_m: float = 5.0
@@ -447,14 +455,35 @@ class JunctionGuidance:
         if self._reads_far_side:
             assert self.odo.road_yaw is not None
             return self.odo.road_yaw - self.odo.yaw  # going straight: the far side runs on as the approach did
+        planned = self._exit_planned()
+        if planned is None:
+            return None
+        direction, heading, _ = planned
+        if not math.radians(cfg.exit_min_turned_deg) <= abs(heading) <= math.radians(cfg.exit_max_turned_deg):
+            return None
+        return direction
+
+    def exit_look(self) -> tuple[str, float] | None:
+        """While a turn's arc leads with a design that spreads and the car has turned less than
+        ``exit_corner_max_turned_deg``: the side whose corner camera looks down the road turned into, and the
+        direction that road's centre line should run from the car's axis (positive right); else None. The forward
+        camera sees that road only once the car has turned ``exit_min_turned_deg`` (a left turn's, farther round,
+        later still); the corner camera on the turn's side is turned out towards it from the arc's start."""
+        planned = self._exit_planned()
+        if planned is None or abs(planned[1]) > math.radians(self.rules.exit_corner_max_turned_deg):
+            return None
+        direction, _, command = planned
+        return ("right" if command == 2 else "left"), direction
+
+    def _exit_planned(self) -> tuple[float, float, int] | None:
+        """While a turn's arc leads with a design that spreads: the direction the road turned into should run from
+        the car's axis (positive right), how far the car has turned and the turn's command; else None."""
         if not self.design_spreads or self.junction is None or not self.arc_leads:
             return None
         command = self.junction[3]
         heading = self.odo.yaw - self.junction[2]
-        if not math.radians(cfg.exit_min_turned_deg) <= abs(heading) <= math.radians(cfg.exit_max_turned_deg):
-            return None
         angle = math.radians(self.planned_angle_deg(command))
-        return (angle if command == 2 else -angle) - heading
+        return (angle if command == 2 else -angle) - heading, heading, command
 
     def far_corridor(self) -> tuple[float, float, float] | None:
         """Going straight under the hold with a design that spreads: where the far side's centre line should lie
@@ -571,6 +600,10 @@ class JunctionGuidance:
             # a reach hedged farther out moves the arc's end, not its start (a later start, on the kerb lane's
             # radius, lags the junction's lanes and runs wide of them in the turn)
             radius += self.lanes_to_kerb * self.lane_width_m + hedge / math.tan(half_turn)
+        if (self._arc_start_m is not None and self.exit_measured
+                and abs(heading) <= math.radians(cfg.exit_restart_max_deg)
+                and arc_placement(reach, self.road.stop_bar_depth_m, radius, angle)[1] > self._arc_start_m):
+            self._arc_start_m = None  # read before the car has turned much: it goes on straight to the later start
         if self._arc_start_m is not None:  # on the arc: a new reading moves its end, not where it began (a start
             # moved on lags the car already turning there, which steers back out and cannot catch the turn again)
             radius = round(max(VEHICLE.min_turn_radius_m,

@@ -4,7 +4,9 @@ Why: a junction turn's arc is placed before the turn, from the stop bar, the zeb
 priors, but where the lane turned into lies also depends on the cross street's lane count, which the camera does
 not see before the turn (the street's far side is hidden or too far to resolve). Once the car has turned 20 degrees
 (a right turn; a left turn's wider arc some 50), the camera looks down the road turned into and its centre line,
-the yellow boundary between its two directions, is in view 8-25 m ahead. Where that line lies places the lane
+the yellow boundary between its two directions, is in view 8-25 m ahead; the corner camera on the turn's side,
+turned out towards that road, sees it from the turn's start (``ExitLine.seen_from`` carries a line it reads into the
+forward camera's ground frame). Where that line lies places the lane
 turned into whatever the count: the inner lane is half a lane width to its right, in the direction of travel
 (``junction.JunctionGuidance``).
 
@@ -27,7 +29,7 @@ most, a solid one over nearly all.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -71,6 +73,13 @@ class ExitLine:
     # single lane's edge line is solid (about 1), the divider between two lanes dashed (about a third to a half);
     # None when no such line was found or less than ``divider_min_span_m`` of it was in view.
     divider_fill: float | None = None
+
+    def seen_from(self, x_m: float, z_m: float, yaw_rad: float) -> ExitLine:
+        """This line, read by a camera standing at (``x_m``, ``z_m``) in another camera's ground frame and turned
+        ``yaw_rad`` to the right of that camera's axis (a corner camera), in the other camera's ground frame."""
+        (x, z), c, s = self.point, math.cos(yaw_rad), math.sin(yaw_rad)
+        return replace(self, point=(x_m + z * s + x * c, z_m + z * c - x * s),
+                       direction_rad=math.remainder(self.direction_rad + yaw_rad, 2 * math.pi))
 
 
 class ExitLineFinder:
