@@ -152,7 +152,7 @@ class JunctionRules:
     exit_min_turned_deg: float = 20.0
     exit_max_turned_deg: float = 80.0
     exit_corner_max_turned_deg: float = 45.0  # the corner camera looks down the road turned into up to this far round
-    # A first reading of the road turned into that puts the arc's start farther on moves it there while the car has
+    # A reading of the road turned into that puts the arc's start farther on moves it there while the car has
     # turned at most this (it goes on straight to it; farther round, it could not follow the later arc)
     exit_restart_max_deg: float = 10.0
     exit_min_readings: int = 3
