@@ -548,11 +548,9 @@ class AgentDriver:
         frame = corner(side)
         if frame is None:  # the frame rendered for the cross-traffic look is the other side's
             return None
-        yaw = math.radians(CORNERS.yaw_deg) * (1.0 if side == "right" else -1.0)
+        x, z, yaw = self.stages.cross_traffic.mount.in_ground_frame(side, self.camera.mount_forward_m)
         line = finder.find(frame, direction - yaw, None, self._read_count)
-        if line is None:
-            return None
-        return line.seen_from(math.copysign(CORNERS.out_m, yaw), CORNERS.ahead_m - self.camera.mount_forward_m, yaw)
+        return line.seen_from(x, z, yaw) if line is not None else None
 
     def _cross_wanted(self) -> bool:
         """Whether to look through a corner camera this frame: a stop or give-way line within ``look_from_m``, or

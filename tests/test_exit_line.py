@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from towndrive.agent.decision.blind_spot import SideMount
 from towndrive.agent.perception.exit_line import ExitLineFinder
 from towndrive.envs.drive_env import DriveConfig, DriveEnv
 from towndrive.sim.spec import CORNERS
@@ -174,10 +175,11 @@ def test_the_corner_camera_reads_the_road_turned_into_from_the_turns_start(
     side = "right" if command == Command.RIGHT else "left"
     frame = env.corner_frame(side)
     env.close()
-    yaw = math.radians(CORNERS.yaw_deg) * (1.0 if side == "right" else -1.0)
+    x, z, yaw = SideMount(CORNERS.ahead_m, CORNERS.out_m, CORNERS.yaw_deg).in_ground_frame(
+        side, env.config.camera.mount_forward_m)
     runs = math.atan2(b[0] - a[0], b[1] - a[1])
     line = ExitLineFinder(CORNERS.camera).find(frame, runs - yaw + math.radians(8.0))
     assert line is not None
-    seen = line.seen_from(math.copysign(CORNERS.out_m, yaw), CORNERS.ahead_m - env.config.camera.mount_forward_m, yaw)
+    seen = line.seen_from(x, z, yaw)
     assert _off_line_m(seen.point, a, b) <= POSITION_TOLERANCE_M
     assert abs(math.degrees(math.remainder(seen.direction_rad - runs, 2 * math.pi))) <= DIRECTION_TOLERANCE_DEG

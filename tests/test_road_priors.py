@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
 
-from towndrive.agent.decision.junction import ZEBRA_SD_M, turn_path
+from towndrive.agent.decision.junction import ZEBRA_SD_M, JunctionRules, turn_path
 from towndrive.agent.decision.odometry import Odometry
 from towndrive.agent.decision.priors import fused
 from towndrive.sim.road_priors import road_priors
@@ -692,20 +693,10 @@ def test_the_corner_camera_looks_down_the_road_turned_into_from_the_arcs_start()
     for the road turned into, with the direction it should run from the car's axis, until the car has turned
     ``exit_corner_max_turned_deg``; the forward camera only from ``exit_min_turned_deg``. A reading taken so,
     before the forward camera can, places the lane turned into."""
-    from types import SimpleNamespace
-
-    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
-    from towndrive.agent.perception.stop_line import StopLine
-
-    road = road_priors("suburb")
-    rules = JunctionRules()
     for command, side in ((2, "right"), (1, "left")):
         sign = 1.0 if command == 2 else -1.0
-        line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
-                               config=SimpleNamespace(camera_to_front_m=2.0))
-        odo = approach_odometry()
-        g = JunctionGuidance(rules, line, odo, 1.0, road)
-        g.note(StopLine(8.0, 0.5, 0.9, 0))
+        g: Any = placed_turn()
+        odo, rules, road = g.odo, g.rules, g.road
         assert g.exit_look() is None  # no turn under way yet
         odo.pos = np.array([11.0, 0.0])
         assert g.turn_steer(command, 3.0) is not None
@@ -727,19 +718,9 @@ def test_a_reading_before_the_car_has_turned_much_moves_the_arcs_start_on() -> N
     """``JunctionRules.exit_restart_max_deg``: the arc's start is committed as the car's centre reaches it, often
     before the road turned into is read. A reading that puts the start farther on moves it there while the car has
     barely turned (it goes on straight to it); turned farther, the start stays and the reading moves the arc's end."""
-    from types import SimpleNamespace
-
-    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
-    from towndrive.agent.perception.stop_line import StopLine
-
-    road = road_priors("suburb")
-    rules = JunctionRules()
-    for turned_deg, moves in ((3.0, True), (rules.exit_restart_max_deg + 10.0, False)):
-        line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
-                               config=SimpleNamespace(camera_to_front_m=2.0))
-        odo = approach_odometry()
-        g = JunctionGuidance(rules, line, odo, 1.0, road)
-        g.note(StopLine(8.0, 0.5, 0.9, 0))  # the bar's near edge at x = 11 in the odometry frame
+    for turned_deg, moves in ((3.0, True), (JunctionRules().exit_restart_max_deg + 10.0, False)):
+        g: Any = placed_turn()  # the bar's near edge at x = 11 in the odometry frame
+        odo, rules, road = g.odo, g.rules, g.road
         odo.pos = np.array([11.0, 0.0])
         assert g.turn_steer(2, 3.0) is not None and g.arc_ahead_m is not None
         start = g.arc_ahead_m  # the car's centre is at the bar's near edge

@@ -64,6 +64,12 @@ class SideMount:
     out_m: float
     yaw_deg: float
 
+    def in_ground_frame(self, side: str, camera_ahead_m: float) -> tuple[float, float, float]:
+        """The camera on ``side`` in the forward camera's ground frame (that camera ``camera_ahead_m`` ahead of the
+        car's centre): metres right of it and ahead of it, and radians turned right of its axis."""
+        sign = 1.0 if side == "right" else -1.0
+        return sign * self.out_m, self.ahead_m - camera_ahead_m, sign * math.radians(self.yaw_deg)
+
 
 def side_camera_ground(geometry: BoxGeometry, mount: SideMount, det: Detection, side: str) -> tuple[float, float]:
     """A vehicle detected by a camera turned to ``side``: its near face on the ground, in the car's frame (metres
