@@ -338,7 +338,7 @@ class AgentDriver:
                                                 cfg.light_line_tolerance_m, cfg.light_box_pad_px), cfg.road),
             odometry=odometry, junction=junction, turn_end=TurnEnd(cfg.turn_end),
             cross_traffic=CrossTraffic(corner, SideMount(CORNERS.ahead_m, CORNERS.out_m, CORNERS.yaw_deg),
-                                       cfg.cross_traffic),
+                                       cfg.cross_traffic, cfg.road),
             blind_spot=BlindSpot(mirror, SideMount(MIRRORS.ahead_m, MIRRORS.out_m, MIRRORS.yaw_deg), cfg.blind_spot),
             stereo=stereo, signs=SignLocator(geometry, cfg.signs, cfg.road),
             zebra=ZebraDetector(camera) if cfg.road.stop_line_setback_sd_m > 0 else None,

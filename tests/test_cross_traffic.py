@@ -141,3 +141,44 @@ def test_a_car_that_came_and_stopped_near_our_way_goes_first_for_a_while(monkeyp
     assert all(v for t, v in zip(times, verdicts, strict=True) if 0.5 <= t <= 4.0)  # waited for, coming or stopped
     assert any("letting it go first" in v for v in verdicts)
     assert verdicts[-1] == ""  # it stood on: no more waiting for it
+
+
+def test_a_car_that_stopped_farther_off_is_let_go_first_and_has_priority_as_it_pulls_away(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A priority car that stops 24 m off (for a person on a crossing) and pulls away again 2 s later is there within
+    the gap once it goes, though at its speed of the moment it would take ten seconds: waited for throughout."""
+    stage = _stage(monkeypatch)
+
+    def where(t: float) -> tuple[float, float]:  # comes at 6 m/s, stops 24 m off at 1 s, goes at 3 m/s^2 from 3 s
+        if t < 1.0:
+            return 12.0, 30.0 - 6.0 * t
+        return 12.0, 24.0 - 1.5 * max(t - 3.0, 0.0) ** 2
+
+    verdicts = _watch(stage, "left", where, seconds=4.5)
+    times = [2 * k * DT for k in range(len(verdicts))]
+    assert all(v for t, v in zip(times, verdicts, strict=True) if t >= 0.5)  # coming, standing, and pulling away
+
+
+def test_how_soon_a_car_could_reach_our_way(monkeypatch: pytest.MonkeyPatch) -> None:
+    stage = _stage(monkeypatch)
+    a, top = stage.config.resume_accel_mps2, stage.street_speed_mps
+    assert stage.reach_s(6.0, 0.0) == pytest.approx(math.sqrt(2.0 * 6.0 / a))  # pulling away, under the street's speed
+    far = 40.0  # ... then at the street's speed
+    assert stage.reach_s(far, 0.0) == pytest.approx(top / a + (far - top * top / (2.0 * a)) / top)
+    assert stage.reach_s(30.0, 12.0) == pytest.approx(2.5)  # faster than the street's: its own speed
+    assert stage.reach_s(30.0, 2.0) < 30.0 / 2.0  # slower: sooner than at its speed of the moment
+
+
+def test_after_seeing_priority_traffic_both_sides_are_looked_at_afresh() -> None:
+    """Edging at a give-way line: the looks that count before going are ``edge_looks`` in a row with the cross
+    street clear; looks before a vehicle with priority was seen do not count."""
+    ctrl = Controller(CFG)
+    ctrl.signs.control, ctrl.signs.edging_m = "yield", 0.0  # standing where the cross street is seen
+    seen = "cross traffic from the left 20 m off, 2.0 s away"
+    pattern = [""] * (CFG.edge_looks - 1) + [seen] + [""] * (CFG.edge_looks + 2)
+    went = None
+    for k, cross in enumerate(pattern):
+        ctrl.step(Scene(0.0, cross_traffic=cross), 0.0, DT)
+        if went is None and ctrl.signs.edging_m is None:
+            went = k
+    assert went == CFG.edge_looks + CFG.edge_looks - 1  # the seen frame's index plus edge_looks clear looks

@@ -534,13 +534,14 @@ class Controller:
     def _edge_constraint(self, scene: Scene, speed: float, dt: float) -> Constraint | None:
         """Past a stop or give-way line, towards where the cross street is seen (``SignControl.edging_m``): slow
         enough to stop there; once the corner cameras see priority traffic, stopped where comfortable braking
-        does (that place then ends the edging), and done once they have looked ``edge_looks`` frames there and
-        seen none (module docstring)."""
+        does (that place then ends the edging), and done once they have looked ``edge_looks`` frames in a row there
+        and seen none (module docstring): after a vehicle with priority, both sides are looked at afresh."""
         cfg, signs = self.config, self.signs
         ahead = signs.edging_m
         if ahead is None:
             return None
         if scene.cross_traffic:
+            self._edge_s, self._edge_frames = 0.0, 0
             # Seen: no need to edge on (farther on, a car turning out of the cross street needs the room); stop
             # where comfortable braking does.
             stop_m = min(max(ahead, 0.0), speed * speed / (2.0 * cfg.comfortable_brake_mps2))

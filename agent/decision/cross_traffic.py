@@ -9,9 +9,13 @@ runs the vehicle detector on the picture, places each vehicle on the ground (``s
 odometry's frame, which the car's own motion does not move, and follows it from look to look. A vehicle that
 moves across our way towards it and would reach it within ``gap_s`` (the gap every driver at such a line gives,
 ``sim.spec.YIELD_GAP_S``) is priority traffic the car waits for; so, for ``stopped_wait_s``, is one that came
-so and stopped near our way (a car whose path our nose is near stops for it, and goes on as soon as we stand:
-going then puts us in front of it). Parked cars, cars that stand longer, and cars driving away from our way are
-not waited for.
+so and stopped or slowed to a crawl (a car whose path our nose is near stops for it, and goes on as soon as we
+stand; one stopped for a person on a crossing farther off goes on once they are over: going then puts us in front
+of it). "Would reach it" is judged as if a car slower than the street's speed pulled away again at once
+(``resume_accel_mps2``, up to ``RoadDesign.single_lane_limit_kmh``): our own car, starting from the line, needs
+three or four seconds to clear a two-lane street, and a car standing or slowing 25 m off is there in that time
+once it goes, while at its speed of the moment it would take ten. Parked cars, cars that stand longer, and cars
+driving away from our way are not waited for.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ import numpy as np
 from towndrive.agent.decision.blind_spot import VEHICLES, SideMount, side_camera_ground
 from towndrive.agent.perception.box_geometry import BoxGeometry
 from towndrive.agent.perception.detector import Detection
-from towndrive.sim.spec import VEHICLE, YIELD_GAP_S
+from towndrive.sim.spec import KMH, ROAD, VEHICLE, YIELD_GAP_S, RoadDesign
 
 SIDES = ("left", "right")
 
@@ -43,8 +47,9 @@ class CrossTrafficConfig:
     path_half_m: float = VEHICLE.width_m / 2 + 1.0  # our way: this far either side of the car's centre line
     range_m: float = 70.0  # sightings farther off are not placed well enough to count
     unknown_near_m: float = 45.0  # a vehicle this near whose motion is not told yet is waited for (briefly)
-    stopped_near_m: float = 15.0  # one that came towards our way and stopped this near it may have stopped for us:
-    stopped_wait_s: float = 3.0  # ... it is waited for this long after it came, to go on first (it has priority)
+    stopped_wait_s: float = 3.0  # one that came towards our way and stands is waited for this long after it came
+    resume_accel_mps2: float = 3.0  # how hard a car standing or slower than the street's speed may pull away
+    #                                 (highway-env's IDM a, the world's drivers' own)
 
 
 @dataclass
@@ -82,10 +87,12 @@ def _axes(yaw: float) -> tuple[np.ndarray, np.ndarray]:
 class CrossTraffic:
     """Vehicles on the cross street, from detections in the corner cameras' frames (module docstring)."""
 
-    def __init__(self, geometry: BoxGeometry, mount: SideMount, config: CrossTrafficConfig | None = None) -> None:
+    def __init__(self, geometry: BoxGeometry, mount: SideMount, config: CrossTrafficConfig | None = None,
+                 road: RoadDesign = ROAD) -> None:
         self.geometry = geometry
         self.mount = mount
         self.config = config or CrossTrafficConfig()
+        self.street_speed_mps = road.single_lane_limit_kmh * KMH  # what a slower car may speed up to
         self.reset()
 
     def reset(self) -> None:
@@ -134,9 +141,18 @@ class CrossTraffic:
                    and float(np.linalg.norm(np.array(k.seen[-1][1:]) - here)) <= cfg.unknown_near_m
                    for k in self.tracks)
 
+    def reach_s(self, distance_m: float, speed_mps: float) -> float:
+        """How soon a vehicle ``distance_m`` from our way, coming at ``speed_mps``, could be there: pulling away at
+        ``resume_accel_mps2`` from that speed up to the street's (a faster one keeps its own)."""
+        a, top = self.config.resume_accel_mps2, max(speed_mps, self.street_speed_mps)
+        to_top_m = (top * top - speed_mps * speed_mps) / (2.0 * a)
+        if distance_m <= to_top_m:
+            return (math.sqrt(speed_mps * speed_mps + 2.0 * a * distance_m) - speed_mps) / a
+        return (top - speed_mps) / a + (distance_m - to_top_m) / top
+
     def priority(self, t: float, pose: tuple[float, float, float]) -> str:
-        """What forbids crossing now ("" when nothing): a vehicle moving across our way towards it that would reach
-        it within ``gap_s``, or one in our way ahead."""
+        """What forbids crossing now ("" when nothing): a vehicle moving across our way towards it that could reach
+        it within ``gap_s`` (``reach_s``), or one that came so and stands or crawls, for ``stopped_wait_s``."""
         cfg = self.config
         x, y, yaw = pose
         ahead_v, right_v = _axes(yaw)
@@ -153,14 +169,15 @@ class CrossTraffic:
             if ahead < -VEHICLE.length_m / 2:
                 continue  # behind us
             where = "from the left" if right < 0 else "from the right"
+            to_way_m = max(0.0, abs(right) - cfg.path_half_m)
             if abs(v_right) < cfg.min_speed_mps:
-                if t - k.came_s < cfg.stopped_wait_s and abs(right) < cfg.stopped_near_m:
+                if t - k.came_s < cfg.stopped_wait_s and self.reach_s(to_way_m, 0.0) < cfg.gap_s:
                     return f"cross traffic {where} stopped {math.hypot(ahead, right):.0f} m off: letting it go first"
                 continue  # standing (or parked)
             if right * v_right > 0:
                 continue  # moving away from our way
             k.came_s = t
-            time_s = max(0.0, abs(right) - cfg.path_half_m) / abs(v_right)
+            time_s = self.reach_s(to_way_m, abs(v_right))
             if time_s < cfg.gap_s:
                 return f"cross traffic {where} {math.hypot(ahead, right):.0f} m off, {time_s:.1f} s away"
         return ""
