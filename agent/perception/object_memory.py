@@ -3,7 +3,9 @@
 Why: close in, the detector misses what fills much of the frame (a pedestrian a few metres ahead), and a car must
 not drive on because its detector blinked. An object lost while in our path and near stays where it was last seen
 (relative to the ground: the car's own travel brings it nearer and its turning moves it across) for
-``lost_memory_s``; a person lost close in, or at the image's edge (beside the car's front is outside the view), is
+``lost_memory_s`` (a vehicle keeps the speed it was seen to have along our heading: its gap closes as our own speed
+less that, so a car lost while we brake behind it does not come on at the speed we closed on it with);
+a person lost close in, or at the image's edge (beside the car's front is outside the view), is
 kept ``near_memory_s`` and does not drift. A person near the car who leaves the view at its side edge is
 remembered too, in or out of our path: a turn towards that side sweeps the car's body over where they went. A
 person seen only at the side edge is not remembered: nothing confirmed them.
@@ -36,6 +38,8 @@ class ObjectMemory:
 
     def reset(self) -> None:
         self.lost: dict[int, PerceivedObject] = {}  # objects lost in our path, remembered for a while
+        self._own_mps: dict[int, float] = {}  # a lost vehicle's own speed along our heading, when it was lost
+        self._speed: float | None = None  # our speed on the last frame (when what is lost now was last seen)
         self.in_path_seen: dict[int, PerceivedObject] = {}  # last frame's seen objects in our path
         self.at_side: dict[int, PerceivedObject] = {}  # last frame's near people at the image's side edge
 
@@ -48,12 +52,15 @@ class ObjectMemory:
         cos_t, sin_t = math.cos(turn_rad), math.sin(turn_rad)
         for tid in expired:
             self.lost.pop(tid, None)
+            self._own_mps.pop(tid, None)
             self.in_path_seen.pop(tid, None)
             self.at_side.pop(tid, None)
         seen = {o.track_id for o in objects}
+        self._speed, before = speed, self._speed
         for tid, o in self.in_path_seen.items():
             if tid not in seen and o.distance_m < cfg.lost_memory_m:
                 self.lost[tid] = o
+                self._own_mps[tid] = (speed if before is None else before) - o.closing_speed_mps
         for tid, o in self.at_side.items():  # walked out of view beside the car: where a turn's sweep goes
             if tid not in seen and tid not in self.lost:
                 self.lost[tid] = o
@@ -63,8 +70,12 @@ class ObjectMemory:
             near = o.kind == "pedestrian" and (o.distance_m < cfg.near_memory_m or self._at_border(o.box))
             if tid in seen or o.unseen_s + dt > (cfg.near_memory_s if near else cfg.lost_memory_s):
                 del self.lost[tid]
+                self._own_mps.pop(tid, None)
                 continue
-            along = speed * dt if o.kind == "pedestrian" else o.closing_speed_mps * dt
+            closing = o.closing_speed_mps
+            if o.kind != "pedestrian":
+                closing = speed - self._own_mps.setdefault(tid, speed - closing)
+            along = speed * dt if o.kind == "pedestrian" else closing * dt
             # Near, a person's box is cut or wrong and its sideways "speed" is perspective, not walking.
             shift = o.lateral_speed_mps * dt if o.kind == "pedestrian" and not near else 0.0
             # Our own turn moves it across the view: a point ahead drifts left as we turn right.
@@ -73,7 +84,7 @@ class ObjectMemory:
             shift += xc * cos_t - z * sin_t - xc
             z = xc * sin_t + z * cos_t
             ghost = PerceivedObject(tid, o.kind, z, o.lateral_left_m + shift, o.lateral_right_m + shift,
-                                    o.closing_speed_mps, o.lateral_speed_mps, o.box, o.unseen_s + dt,
+                                    closing, o.lateral_speed_mps, o.box, o.unseen_s + dt,
                                     closing_speed_sd_mps=o.closing_speed_sd_mps, lateral_speed_sd_mps=o.lateral_speed_sd_mps)
             self.lost[tid] = ghost
             out.append(ghost)
