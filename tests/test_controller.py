@@ -214,6 +214,31 @@ def test_one_frame_of_a_near_light_does_not_put_the_car_past_a_line_it_never_saw
     assert run.decisions[-1].reason.startswith("red light")
 
 
+def test_a_bar_read_ahead_just_after_a_line_inferred_from_the_light_was_passed_is_the_real_one() -> None:
+    """Queued behind a car, the bar hidden under it: a light taken for ours nearer than the design puts it gave a
+    line behind the bumper three frames running, and the car counted itself in the junction; the real bar, read 7 m
+    ahead a moment later, was ignored (no turn could be placed by it). Read in the first metres after such an
+    entry, it is taken: the car is not in the junction yet. After an entry by a bar it saw, a reading ahead is the
+    zebra beyond the bar, and changes nothing."""
+    ctrl = Controller(CFG)
+    entered = [ctrl.step(Scene(1.0, light="green", light_distance_m=5.0), 0.0, DT) for _ in range(CFG.line_jump_frames)]
+    assert ctrl.line.in_junction and entered  # the light's line put behind the bumper, three frames running
+    for k in range(CFG.line_jump_frames):
+        ctrl.step(Scene(1.0, light="green", stop_line_m=7.0 - k * DT + CAM), 0.0, DT)
+    assert not ctrl.line.in_junction
+    assert ctrl.stop_line is not None and abs(ctrl.stop_line - (7.0 - CFG.line_jump_frames * DT)) < 0.2
+    assert ctrl.stop_line_measured
+
+    seen = Controller(CFG)  # entered by a bar it read
+    seen.step(Scene(8.0, light="green", stop_line_m=1.0 + CAM), 0.0, DT)
+    for _ in range(10):
+        seen.step(Scene(8.0, light="green"), 0.0, DT)
+    assert seen.line.in_junction
+    for _ in range(CFG.line_jump_frames + 2):
+        seen.step(Scene(8.0, light="green", stop_line_m=3.0 + CAM), 0.0, DT)
+    assert seen.line.in_junction
+
+
 def test_red_light_seen_after_the_stop_line_is_ignored() -> None:
     ctrl = Controller(CFG)
     # bar seen 4 m ahead of the bumper, then passed; the light across the junction then shows red

@@ -145,6 +145,9 @@ class ControllerConfig:
     line_jump_frames: int = 3  # ... until seen this many frames in a row where odometry puts it
     line_unseen_forget_s: float = 1.0  # a tracked bar still this far off (below) and unseen this long was not one:
     line_unseen_far_m: float = 6.0  #    a real bar in range is found again frame after frame as the car nears it
+    line_inferred_revert_m: float = 3.0  # a bar read ahead (line_jump_frames in a row, at least line_jump_m off)
+    #                                      within this travel after the car "entered" a junction by a line only
+    #                                      inferred from the light is the real one: the car is not in it yet
     light_memory_s: float = 1.0
     red_memory_s: float = 4.0  # a red is kept longer: not seeing the light is no reason to go
     light_fallback_margin_m: float = 2.0  # stop this much earlier when the bar was never seen

@@ -5,7 +5,10 @@ measured distance is counted down by the car's own travel (speed x dt), exact en
 cannot move away: a reading more than ``line_jump_m`` farther than the tracked one (the zebra beyond it, caught
 for a frame) is believed only after ``line_jump_frames`` frames in a row that agree. With no bar seen, the
 distance falls back on the light's distance minus where the road design puts lights (across the junction).
-Once the bumper is past the bar, the junction's light is ignored for ``junction_ignore_m`` metres.
+Once the bumper is past the bar, the junction's light is ignored for ``junction_ignore_m`` metres. A junction
+entered by a line only inferred from the light (the bar hidden under a queue's cars, a light taken for ours that
+stands nearer than the design puts it) is left again when a bar is read ahead in the first metres: the inferred
+line was wrong, and the real bar, which a turn is placed by, would otherwise be ignored.
 """
 
 from __future__ import annotations
@@ -76,6 +79,8 @@ class StopLineTrack:
         self._hidden = False  # a vehicle in our path stood nearer than the bar since its last reading
         self._odd_light = Unconfirmed()  # a stop line inferred from a light, far from the tracked one
         self.ignore_light_m = 0.0  # travel left during which lights are ignored (inside a junction)
+        self._inferred_entry = False  # the junction was entered by a line inferred from the light, never read
+        self._bar_after_entry = Unconfirmed()  # a bar read ahead since then
 
     def leave_junction(self, within_m: float) -> None:
         """The car has left the junction (a turn is over): its light is ignored for at most ``within_m`` more."""
@@ -108,7 +113,14 @@ class StopLineTrack:
             self.stop_line -= travelled
         self._farther.travel(travelled)
         self._odd_light.travel(travelled)
+        self._bar_after_entry.travel(travelled)
         measured = None if stop_line_m is None else stop_line_m - cfg.camera_to_front_m
+        if self._inferred_entry and self.junction_ignore_m - self.ignore_light_m > cfg.line_inferred_revert_m:
+            self._inferred_entry = False  # far enough in: what is read now is inside the junction
+        if (self._inferred_entry and measured is not None and measured >= cfg.line_jump_m
+                and self._bar_after_entry.see(measured) >= cfg.line_jump_frames):
+            self.ignore_light_m, self._inferred_entry = 0.0, False  # the real bar is ahead: not in the junction
+            self._bar_after_entry.clear()
         if (measured is not None and self.stop_line_measured and self.stop_line is not None
                 and measured > self.stop_line + cfg.line_jump_m):
             # A bar cannot move away: a farther "bar" is the zebra beyond it (close in always; farther out
@@ -147,6 +159,8 @@ class StopLineTrack:
                 self.stop_line = inferred
                 self._odd_light.clear()
         if self.stop_line is not None and self.stop_line < -1.0:  # the bumper is past the line: in the junction
+            self._inferred_entry = not self.stop_line_measured
+            self._bar_after_entry.clear()
             self.stop_line, self.stop_line_measured = None, False
             self.ignore_light_m = self.junction_ignore_m
             return True
