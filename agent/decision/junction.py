@@ -600,18 +600,16 @@ class JunctionGuidance:
             # a reach hedged farther out moves the arc's end, not its start (a later start, on the kerb lane's
             # radius, lags the junction's lanes and runs wide of them in the turn)
             radius += self.lanes_to_kerb * self.lane_width_m + hedge / math.tan(half_turn)
+        _, planned_start = arc_placement(reach, self.road.stop_bar_depth_m, radius, angle)
         if (self._arc_start_m is not None and self.exit_measured
-                and abs(heading) <= math.radians(cfg.exit_restart_max_deg)
-                and arc_placement(reach, self.road.stop_bar_depth_m, radius, angle)[1] > self._arc_start_m):
+                and abs(heading) <= math.radians(cfg.exit_restart_max_deg) and planned_start > self._arc_start_m):
             self._arc_start_m = None  # read before the car has turned much: it goes on straight to the later start
         if self._arc_start_m is not None:  # on the arc: a new reading moves its end, not where it began (a start
             # moved on lags the car already turning there, which steers back out and cannot catch the turn again)
             radius = round(max(VEHICLE.min_turn_radius_m,
                                (self.road.stop_bar_depth_m + reach - self._arc_start_m) / math.tan(half_turn)), 2)
         path, arc_end = turn_path(command, round(reach, 2), self.road.stop_bar_depth_m, radius, angle_deg=angle)
-        start = self._arc_start_m
-        if start is None:
-            _, start = arc_placement(reach, self.road.stop_bar_depth_m, radius, angle)
+        start = self._arc_start_m if self._arc_start_m is not None else planned_start
         self.arc_ahead_m = start - along
         lookahead = cfg.turn_lookahead_m + cfg.turn_lookahead_s * speed
         if here[0] < self.road.stop_bar_depth_m - lookahead:  # not yet: the lookahead point is still before the arc

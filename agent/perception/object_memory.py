@@ -38,8 +38,7 @@ class ObjectMemory:
 
     def reset(self) -> None:
         self.lost: dict[int, PerceivedObject] = {}  # objects lost in our path, remembered for a while
-        self._own_mps: dict[int, float] = {}  # a lost vehicle's own speed along our heading, when it was lost
-        self._speed: float | None = None  # our speed on the last frame (when what is lost now was last seen)
+        self._speed: float | None = None  # our speed on the last frame, which the closing speeds kept were taken at
         self.in_path_seen: dict[int, PerceivedObject] = {}  # last frame's seen objects in our path
         self.at_side: dict[int, PerceivedObject] = {}  # last frame's near people at the image's side edge
 
@@ -52,7 +51,6 @@ class ObjectMemory:
         cos_t, sin_t = math.cos(turn_rad), math.sin(turn_rad)
         for tid in expired:
             self.lost.pop(tid, None)
-            self._own_mps.pop(tid, None)
             self.in_path_seen.pop(tid, None)
             self.at_side.pop(tid, None)
         seen = {o.track_id for o in objects}
@@ -60,7 +58,6 @@ class ObjectMemory:
         for tid, o in self.in_path_seen.items():
             if tid not in seen and o.distance_m < cfg.lost_memory_m:
                 self.lost[tid] = o
-                self._own_mps[tid] = (speed if before is None else before) - o.closing_speed_mps
         for tid, o in self.at_side.items():  # walked out of view beside the car: where a turn's sweep goes
             if tid not in seen and tid not in self.lost:
                 self.lost[tid] = o
@@ -70,12 +67,12 @@ class ObjectMemory:
             near = o.kind == "pedestrian" and (o.distance_m < cfg.near_memory_m or self._at_border(o.box))
             if tid in seen or o.unseen_s + dt > (cfg.near_memory_s if near else cfg.lost_memory_s):
                 del self.lost[tid]
-                self._own_mps.pop(tid, None)
                 continue
-            closing = o.closing_speed_mps
-            if o.kind != "pedestrian":
-                closing = speed - self._own_mps.setdefault(tid, speed - closing)
-            along = speed * dt if o.kind == "pedestrian" else closing * dt
+            if o.kind == "pedestrian":
+                closing, along = o.closing_speed_mps, speed * dt
+            else:  # its own speed along our heading (our speed then less its closing speed) is kept
+                closing = speed - ((speed if before is None else before) - o.closing_speed_mps)
+                along = closing * dt
             # Near, a person's box is cut or wrong and its sideways "speed" is perspective, not walking.
             shift = o.lateral_speed_mps * dt if o.kind == "pedestrian" and not near else 0.0
             # Our own turn moves it across the view: a point ahead drifts left as we turn right.
