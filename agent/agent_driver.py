@@ -57,6 +57,7 @@ from towndrive.agent.decision.blind_spot import VEHICLES, BlindSpot, BlindSpotCo
 from towndrive.agent.decision.controller import Controller, ControllerConfig, Decision, Scene
 from towndrive.agent.decision.cross_traffic import CrossTraffic, CrossTrafficConfig
 from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
+from towndrive.agent.decision.lane_keep import LaneKeepRules, kept_steer
 from towndrive.agent.decision.odometry import Odometry
 from towndrive.agent.decision.our_light import LightRules, LightSeen, OurLight
 from towndrive.agent.decision.signs import KerbLanes, lanes_each_way, lanes_to_kerb
@@ -165,6 +166,7 @@ class AgentConfig:
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     blind_spot: BlindSpotConfig = field(default_factory=BlindSpotConfig)
     cross_traffic: CrossTrafficConfig = field(default_factory=CrossTrafficConfig)  # the corner cameras at lines
+    lane_keep: LaneKeepRules = field(default_factory=LaneKeepRules)  # bounds on PilotNet's steering off its lane
     turn_end: TurnEndRules = field(default_factory=TurnEndRules)  # PilotNet follows the road once a turn is over
     signs: SignRules = field(default_factory=SignRules)  # which detected signs address the car
     adas: AdasConfig = field(default_factory=AdasConfig)
@@ -731,10 +733,18 @@ class AgentDriver:
         """The controller's decision on this frame's scene, with the junction's steering in place of PilotNet's
         where it applies (its arc, ``steered``, is then the car's path), and the reason saying so."""
         net_steer = pilot
+        guard = None
         if hold is not None:
             pilot = hold
         elif turn is not None:
             pilot = turn
+        else:
+            line = self.controller.line
+            turn_due = command in (1, 2) and (self.stages.junction.placed or (
+                line.stop_line is not None and line.stop_line < self.config.lane_keep.turn_bar_m))
+            guard = kept_steer(self.config.lane_keep, pilot, lanes, speed, turn_due)
+            if guard is not None:
+                pilot = guard[0]
         lane_range = min(30.0, max((ln.z_range_m[1] for ln in (lanes.left, lanes.right) if ln is not None), default=30.0))
         held_why = self.stages.blind_spot.reason(held) if held else ""
         caps = ([(held_why, self.config.blind_spot.yield_speed_mps)]
@@ -754,6 +764,9 @@ class AgentDriver:
         elif turn is not None:
             decision.pilot_steer = net_steer
             decision.reason += "; turning along the junction's arc"
+        elif guard is not None:
+            decision.pilot_steer = net_steer
+            decision.reason += f"; {guard[1]}: steered back along the lane"
         if held and not decision.reason.startswith(held_why):  # the cap did not govern: say why PilotNet followed
             decision.reason += f"; {held_why}"
         return decision
