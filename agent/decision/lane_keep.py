@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from towndrive.agent.decision.junction import JunctionRules
 from towndrive.agent.perception.lanes import LaneResult
 from towndrive.sim.spec import VEHICLE
 
@@ -30,8 +31,8 @@ class LaneKeepRules:
     max_heading_rad: float = 0.2  # about 11 degrees: more than a lane change needs
     crossing_s: float = 1.0  # the car's side would reach a solid edge or the centre line this soon ...
     margin_m: float = 0.2  # ... or come this near it (the painted line's middle, level with the camera)
-    heading_gain: float = 1.5  # steer per radian of heading off the lane (the junction hold's)
-    offset_gain: float = 0.3  # steer per metre off the lane's centre (the junction hold's)
+    heading_gain: float = JunctionRules.hold_heading_gain  # steer per radian of heading off the lane
+    offset_gain: float = JunctionRules.hold_offset_gain  # steer per metre off the lane's centre
     min_confidence: float = 0.25  # a lane fit at least this sure (one line seen well gives 0.5)
     min_reach_m: float = 8.0  # ... whose lines reach at least this far ahead
     turn_bar_m: float = 15.0  # a commanded turn's bar nearer than this: the lanes no longer lead
