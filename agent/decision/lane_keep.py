@@ -21,6 +21,7 @@ import math
 from dataclasses import dataclass
 
 from towndrive.agent.decision.junction import JunctionRules
+from towndrive.agent.decision.signs import lanes_to_kerb
 from towndrive.agent.perception.lanes import LaneResult
 from towndrive.sim.spec import VEHICLE
 
@@ -59,7 +60,7 @@ def kept_steer(rules: LaneKeepRules, steer: float, lanes: LaneResult | None, spe
         drift = -speed_mps * math.sin(heading)  # the car's speed to the right across the lane
         half = VEHICLE.width_m / 2
         right, left = lanes.right, lanes.left
-        if right is not None and right.color == "white" and right.style == "solid" and \
+        if right is not None and lanes_to_kerb(lanes) == 0 and \
                 float(right.x_at(0.0)) - half - drift * rules.crossing_s < rules.margin_m:
             why = "the road's edge is near"
         elif left is not None and left.color == "yellow" and \
