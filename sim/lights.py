@@ -12,6 +12,7 @@ import numba as nb
 import numpy as np
 
 from towndrive.sim.objects import LightState
+from towndrive.sim.spec import LIGHT_ALL_RED_S, LIGHT_GREEN_S, LIGHT_YELLOW_S
 from towndrive.sim.town import Arm, Town
 
 _GREEN, _YELLOW, _RED = int(LightState.GREEN), int(LightState.YELLOW), int(LightState.RED)  # the kernel's constants
@@ -19,9 +20,9 @@ _GREEN, _YELLOW, _RED = int(LightState.GREEN), int(LightState.YELLOW), int(Light
 
 @dataclass(frozen=True)
 class LightTiming:
-    green_s: float = 14.0
-    yellow_s: float = 3.0
-    all_red_s: float = 1.5
+    green_s: float = LIGHT_GREEN_S
+    yellow_s: float = LIGHT_YELLOW_S
+    all_red_s: float = LIGHT_ALL_RED_S
 
     @property
     def half_cycle_s(self) -> float:

@@ -220,6 +220,12 @@ class TurnRadius:
         check_number("turn radius right_m", self.right_m, 3.0, 60.0)
 
 
+# A signalled junction's cycle, each axis in turn: green, yellow, then red on both while the junction clears.
+LIGHT_GREEN_S = 14.0
+LIGHT_YELLOW_S = 3.0
+LIGHT_ALL_RED_S = 1.5
+
+
 @dataclass(frozen=True)
 class RoadDesign:
     """How the default towns are built, and so what the agent assumes of a road it has not measured."""
@@ -261,6 +267,9 @@ class RoadDesign:
     # number that spreads, so each kind is one mode of the prior.
     signal_head_height_m: float = 5.2  # signal heads hang this high above the road on mast arms
     signal_housing_height_m: float = 2.1  # a three-lamp head's housing
+    # A light stays red at most this long (the other axis's green and yellow, and both all-reds: ``sim.lights``):
+    # a red seen has ended by then, whether or not its head is still in view.
+    longest_red_s: float = LIGHT_GREEN_S + LIGHT_YELLOW_S + 2 * LIGHT_ALL_RED_S
     light_beyond_stop_line_m: float = 21.0  # our light stands across the junction (measured 21.4 m beyond the bar)
     light_lateral_m: float = 1.75  # our head right of our lane's centre (over the incoming lanes' middle)
     other_signal_mounts: tuple[SignalMount, ...] = ()
@@ -278,6 +287,7 @@ class RoadDesign:
         check_number("road stop_bar_depth_m", self.stop_bar_depth_m, 0.1, 2.0)
         check_number("road signal_head_height_m", self.signal_head_height_m, 2.0, 12.0)
         check_number("road signal_housing_height_m", self.signal_housing_height_m, 0.3, 3.0)
+        check_number("road longest_red_s", self.longest_red_s, 1.0, 600.0)
         check_number("road light_beyond_stop_line_m", self.light_beyond_stop_line_m, 0.0, 80.0)
         check_number("road sign_before_stop_line_m", self.sign_before_stop_line_m, 0.0, 20.0)
         check_number("road sign_plate_size_m", self.sign_plate_size_m, 0.2, 2.0)

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from towndrive.agent.decision.controller import Controller, ControllerConfig, Decision, PerceivedObject, Scene
+from towndrive.sim.spec import ROAD
 
 DT = 0.05
 CFG = ControllerConfig()
@@ -556,6 +557,51 @@ def test_a_red_light_on_a_post_beside_the_line_is_waited_for_where_its_head_stay
     assert later.travelled > 45.0  # it saw green and went through
     beyond = drive(light_scene(45.0, lambda t: "red"), 20.0)
     assert 0.0 <= 45.0 - beyond.travelled <= 2.0  # a far head: stop at the line
+
+
+def test_a_yellow_the_line_leaves_room_to_stop_for_is_stopped_for_even_where_the_head_would_leave_the_picture() -> None:
+    """Whether the car stops for a yellow is judged by the line. A near-side head first seen yellow with the line
+    16 m ahead at 7.85 m/s: stopping at the line needs 2.1 m/s², stopping where the head stays in the picture 8.5 m
+    before it needs 4.1 m/s², more than is comfortable. Judged by that point, the car went on and crossed the line
+    on red; it stops, there if the brake allows (the light then stays in view)."""
+    view_back = 8.5
+
+    def scene(s: float, v: float, t: float) -> Scene:
+        bumper_to_line = 16.0 - s
+        head = bumper_to_line + CAM - 1.5  # a post 1.5 m before the line
+        in_view = view_back + CAM - 1.5
+        seen = in_view <= head
+        state = "yellow" if t < 3.0 else "red"
+        return Scene(v, light=state if seen else None, light_distance_m=head if seen else None,
+                     stop_line_m=bar_seen(bumper_to_line + CAM), light_in_view_m=in_view if seen else 0.0)
+
+    run = drive(scene, 8.0, v0=7.85)
+    assert not any("going on" in d.reason for d in run.decisions)
+    assert run.speed[-1] == 0.0 and 16.0 - run.travelled >= view_back - 1.0, run.travelled
+    assert run.decisions[-1].reason.startswith("red light")
+
+
+def test_a_red_whose_head_left_the_picture_is_kept_until_it_has_surely_ended() -> None:
+    """A near-side head seen red only 10.5 m before the line at 7 m/s: stopping where it stays in view would take
+    more than the brake, so the car stops at the line and loses the head. Its red is kept until the longest red
+    (``RoadDesign.longest_red_s``) since it was seen has passed: forgetting it after ``red_memory_s`` sent the car
+    across the line on red. Then it goes (the head's green was never seen)."""
+    view_back = 7.5
+
+    def scene(s: float, v: float, t: float) -> Scene:
+        bumper_to_line = 10.5 - s
+        head = bumper_to_line + CAM - 1.5
+        in_view = view_back + CAM - 1.5
+        seen = in_view <= head
+        return Scene(v, light="red" if seen else None, light_distance_m=head if seen else None,
+                     stop_line_m=bar_seen(bumper_to_line + CAM), light_in_view_m=in_view if seen else 0.0)
+
+    run = drive(scene, 24.0, v0=7.0)
+    standing = [k for k, v in enumerate(run.speed) if v < 0.05]
+    assert standing and standing[0] * DT < 4.0 and 0.0 <= 10.5 - sum(run.speed[:standing[0]]) * DT <= 2.0  # at the line
+    moved = next(k * DT for k in range(standing[0], len(run.speed)) if run.speed[k] > 0.3)
+    assert ROAD.longest_red_s - 1.0 <= moved <= ROAD.longest_red_s + 2.0, moved
+    assert run.travelled > 10.5  # and went on
 
 
 def test_a_person_standing_still_beside_the_path_is_passed_and_one_on_the_move_there_is_stopped_for() -> None:

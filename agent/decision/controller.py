@@ -18,9 +18,12 @@ Why it is built this way:
   down by the car's own travel between readings and shared with the junction guidance.
 - **Lights are debounced** (a state needs ``light_confirm_frames`` frames, one against the cycle's order, green,
   yellow, red, that lets the car go ``light_out_of_cycle_frames``, and so does a green after a red taken less than
-  ``light_min_phase_s`` before: a phase lasts seconds; a light unseen for ``light_memory_s`` is forgotten), and
-  the yellow decision is taken once, when the yellow appears:
-  stop if the stop needs no more than the comfortable deceleration, else go on (before a commanded turn,
+  ``light_min_phase_s`` before: a phase lasts seconds; a light unseen for ``light_memory_s`` is forgotten, a red
+  whose head beside the line left the picture as the car stopped only once the longest red has surely passed,
+  ``RoadDesign.longest_red_s``), and
+  the yellow decision is taken once, when the yellow appears, by the line (where the car stops may be farther
+  back, ``near_side_head_m``): stop if the stop needs no more than the comfortable deceleration, else go on
+  (before a commanded turn,
   which slows the car for the turn at or past the line, stop unless even the full brake cannot or
   the line is a second away at turn speed); a red after a "go on"
   yellow, or a red that could not be stopped for even with the full brake, is driven through
@@ -445,6 +448,11 @@ class Controller:
             self._light_unseen_s += dt
             self._light_count = 0
             memory = cfg.red_memory_s if self.light_state == "red" else cfg.light_memory_s
+            # A head beside the line leaves the picture when the car stops nearer than it can be seen from (braking
+            # for a red seen late): its red is kept until it has surely ended (the longest red since it was seen).
+            out_of_view = self.light_state == "red" and self._view_back_m > 0.0 and self.stop_line is not None
+            if out_of_view:
+                memory = max(memory, self.road.longest_red_s - (self._light_age_s - self._light_unseen_s))
             if self._light_unseen_s > memory:
                 self.light_state, self._light_candidate, self._yellow_go = None, None, None
                 if not self.line.stop_line_measured:
@@ -482,18 +490,22 @@ class Controller:
                                   cfg.red_no_line_speed_mps, 0.0, 0.0)
             self.note = "yellow light, stop line not seen"
             return None
-        # The stop point: before the line, and far enough back that our light stays in the picture, unless the car
-        # is already past that point (then at the line, as before: the legal stop is the line).
-        back = self._view_back_m if self.stop_line - self._view_back_m > -1.0 else 0.0
-        gap = self.stop_line - max(cfg.stop_line_target_m, back)
-        need = speed * speed / (2.0 * max(gap, 0.05))  # deceleration to stop at the point
+        # Whether the car can stop for the light is judged by the line, the legal stop. Where it stops: before the
+        # line, far enough back that our light stays in the picture (it turns green while the car waits), braking
+        # harder than is comfortable if need be, unless the car is past that point or not even the brake stops it
+        # there (then at the line).
+        line_gap = self.stop_line - cfg.stop_line_target_m
+        need = speed * speed / (2.0 * max(line_gap, 0.05))  # deceleration to stop at the line
+        back = self.stop_line - self._view_back_m
+        fits = speed * speed / (2.0 * max(back, 0.05)) <= 0.9 * cfg.max_brake_mps2
+        gap = back if -1.0 < back < line_gap and fits else line_gap  # the stop point
         if state == "yellow":
             if self._yellow_go is None:
                 # Turning, the car slows for the turn at or past the line anyway, and would cross it on red:
                 # it stops unless even the full brake cannot, or the line is less than ``yellow_commit_s`` away at
                 # the turn speed, or at its own speed when slower (a car standing at the line stays there).
                 commit_m = min(speed, cfg.junction_turn_speed_mps) * cfg.yellow_commit_s
-                self._yellow_go = (need > 0.9 * cfg.max_brake_mps2 or (speed > STOP_SPEED_MPS and gap < commit_m)
+                self._yellow_go = (need > 0.9 * cfg.max_brake_mps2 or (speed > STOP_SPEED_MPS and line_gap < commit_m)
                                    if turning else need > cfg.comfortable_brake_mps2)
             if self._yellow_go:
                 self.note = "yellow light: too close to stop comfortably, going on"
