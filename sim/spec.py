@@ -270,6 +270,7 @@ class RoadDesign:
     # A light stays red at most this long (the other axis's green and yellow, and both all-reds: ``sim.lights``):
     # a red seen has ended by then, whether or not its head is still in view.
     longest_red_s: float = LIGHT_GREEN_S + LIGHT_YELLOW_S + 2 * LIGHT_ALL_RED_S
+    yellow_s: float = LIGHT_YELLOW_S  # and a yellow this long
     light_beyond_stop_line_m: float = 21.0  # our light stands across the junction (measured 21.4 m beyond the bar)
     light_lateral_m: float = 1.75  # our head right of our lane's centre (over the incoming lanes' middle)
     other_signal_mounts: tuple[SignalMount, ...] = ()
@@ -288,6 +289,7 @@ class RoadDesign:
         check_number("road signal_head_height_m", self.signal_head_height_m, 2.0, 12.0)
         check_number("road signal_housing_height_m", self.signal_housing_height_m, 0.3, 3.0)
         check_number("road longest_red_s", self.longest_red_s, 1.0, 600.0)
+        check_number("road yellow_s", self.yellow_s, 0.5, 30.0)
         check_number("road light_beyond_stop_line_m", self.light_beyond_stop_line_m, 0.0, 80.0)
         check_number("road sign_before_stop_line_m", self.sign_before_stop_line_m, 0.0, 20.0)
         check_number("road sign_plate_size_m", self.sign_plate_size_m, 0.2, 2.0)

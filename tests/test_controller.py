@@ -604,6 +604,27 @@ def test_a_red_whose_head_left_the_picture_is_kept_until_it_has_surely_ended() -
     assert run.travelled > 10.5  # and went on
 
 
+def test_a_yellow_stopped_for_at_the_line_out_of_view_is_kept_until_the_red_after_it_has_surely_ended() -> None:
+    """A near-side head turns yellow 12 m before the line at 7.5 m/s: the stop where it stays in view needs more
+    than the brake, the line 2.7 m/s², so the car stops at the line and loses the head. Forgetting the yellow after
+    ``light_memory_s`` let the car go while the red that follows it was on; it waits the yellow and the longest red."""
+    view_back = 8.7
+
+    def scene(s: float, v: float, t: float) -> Scene:
+        bumper_to_line = 12.0 - s
+        head = bumper_to_line + CAM - 1.5
+        in_view = view_back + CAM - 1.5
+        seen = in_view <= head
+        return Scene(v, light="yellow" if seen else None, light_distance_m=head if seen else None,
+                     stop_line_m=bar_seen(bumper_to_line + CAM), light_in_view_m=in_view if seen else 0.0)
+
+    run = drive(scene, 28.0, v0=7.5)
+    standing = [k for k, v in enumerate(run.speed) if v < 0.05]
+    assert standing and 0.0 <= 12.0 - sum(run.speed[:standing[0]]) * DT <= 2.0  # at the line
+    moved = next(k * DT for k in range(standing[0], len(run.speed)) if run.speed[k] > 0.3)
+    assert ROAD.yellow_s + ROAD.longest_red_s - 1.0 <= moved <= ROAD.yellow_s + ROAD.longest_red_s + 2.0, moved
+
+
 def test_a_person_standing_still_beside_the_path_is_passed_and_one_on_the_move_there_is_stopped_for() -> None:
     """A person waiting on the kerb 1.5-2.1 m right of the car's axis (inside the full pedestrian margin, clear of
     the car's width) does not hold it, as the world's drivers judge a standing person; one at the same place who

@@ -20,7 +20,7 @@ Why it is built this way:
   yellow, red, that lets the car go ``light_out_of_cycle_frames``, and so does a green after a red taken less than
   ``light_min_phase_s`` before: a phase lasts seconds; a light unseen for ``light_memory_s`` is forgotten, a red
   whose head beside the line left the picture as the car stopped only once the longest red has surely passed,
-  ``RoadDesign.longest_red_s``), and
+  ``RoadDesign.longest_red_s``, a yellow stopped for so once the red after it has), and
   the yellow decision is taken once, when the yellow appears, by the line (where the car stops may be farther
   back, ``near_side_head_m``): stop if the stop needs no more than the comfortable deceleration, else go on
   (before a commanded turn,
@@ -449,10 +449,12 @@ class Controller:
             self._light_count = 0
             memory = cfg.red_memory_s if self.light_state == "red" else cfg.light_memory_s
             # A head beside the line leaves the picture when the car stops nearer than it can be seen from (braking
-            # for a red seen late): its red is kept until it has surely ended (the longest red since it was seen).
-            out_of_view = self.light_state == "red" and self._view_back_m > 0.0 and self.stop_line is not None
-            if out_of_view:
-                memory = max(memory, self.road.longest_red_s - (self._light_age_s - self._light_unseen_s))
+            # for a light seen late): a red is kept until it has surely ended (the longest red since it was seen), a
+            # yellow stopped for until the red that follows it has (the yellow and the longest red).
+            stopping = self.light_state == "red" or (self.light_state == "yellow" and self._yellow_go is False)
+            if stopping and self._view_back_m > 0.0 and self.stop_line is not None:
+                lasts = self.road.longest_red_s + (self.road.yellow_s if self.light_state == "yellow" else 0.0)
+                memory = max(memory, lasts - (self._light_age_s - self._light_unseen_s))
             if self._light_unseen_s > memory:
                 self.light_state, self._light_candidate, self._yellow_go = None, None, None
                 if not self.line.stop_line_measured:
