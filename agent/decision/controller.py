@@ -20,7 +20,7 @@ Why it is built this way:
   yellow, red, that lets the car go ``light_out_of_cycle_frames``, and so does a green after a red taken less than
   ``light_min_phase_s`` before: a phase lasts seconds; a light unseen for ``light_memory_s`` is forgotten, a red
   whose head beside the line left the picture as the car stopped only once the longest red has surely passed,
-  ``RoadDesign.longest_red_s``, a yellow stopped for so once the red after it has), and
+  ``RoadDesign.longest_red_s``, and a yellow stopped for there only once the red after it has), and
   the yellow decision is taken once, when the yellow appears, by the line (where the car stops may be farther
   back, ``near_side_head_m``): stop if the stop needs no more than the comfortable deceleration, else go on
   (before a commanded turn,
