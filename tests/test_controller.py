@@ -559,25 +559,35 @@ def test_a_red_light_on_a_post_beside_the_line_is_waited_for_where_its_head_stay
     assert 0.0 <= 45.0 - beyond.travelled <= 2.0  # a far head: stop at the line
 
 
+def near_side_head(line_m: float, view_back_m: float,
+                   state: Callable[[float], str]) -> Callable[[float, float, float], Scene]:
+    """A stop line ``line_m`` ahead of the bumper at the start, our head on a post 1.5 m before it, in the picture
+    only while the car is at least ``view_back_m`` before the line (``Scene.light_in_view_m``)."""
+    def scene(s: float, v: float, t: float) -> Scene:
+        bumper_to_line = line_m - s
+        head = bumper_to_line + CAM - 1.5
+        in_view = view_back_m + CAM - 1.5
+        seen = in_view <= head
+        return Scene(v, light=state(t) if seen else None, light_distance_m=head if seen else None,
+                     stop_line_m=bar_seen(bumper_to_line + CAM), light_in_view_m=in_view if seen else 0.0)
+    return scene
+
+
+def stood_then_moved(run: Run) -> tuple[float, float]:
+    """Where the car first stood (bumper to its start, m) and when it moved off again (s)."""
+    first = next(k for k, v in enumerate(run.speed) if v < 0.05)
+    moved = next(k * DT for k in range(first, len(run.speed)) if run.speed[k] > 0.3)
+    return sum(run.speed[:first]) * DT, moved
+
+
 def test_a_yellow_the_line_leaves_room_to_stop_for_is_stopped_for_even_where_the_head_would_leave_the_picture() -> None:
     """Whether the car stops for a yellow is judged by the line. A near-side head first seen yellow with the line
     16 m ahead at 7.85 m/s: stopping at the line needs 2.1 m/s², stopping where the head stays in the picture 8.5 m
     before it needs 4.1 m/s², more than is comfortable. Judged by that point, the car went on and crossed the line
     on red; it stops, there if the brake allows (the light then stays in view)."""
-    view_back = 8.5
-
-    def scene(s: float, v: float, t: float) -> Scene:
-        bumper_to_line = 16.0 - s
-        head = bumper_to_line + CAM - 1.5  # a post 1.5 m before the line
-        in_view = view_back + CAM - 1.5
-        seen = in_view <= head
-        state = "yellow" if t < 3.0 else "red"
-        return Scene(v, light=state if seen else None, light_distance_m=head if seen else None,
-                     stop_line_m=bar_seen(bumper_to_line + CAM), light_in_view_m=in_view if seen else 0.0)
-
-    run = drive(scene, 8.0, v0=7.85)
+    run = drive(near_side_head(16.0, 8.5, lambda t: "yellow" if t < 3.0 else "red"), 8.0, v0=7.85)
     assert not any("going on" in d.reason for d in run.decisions)
-    assert run.speed[-1] == 0.0 and 16.0 - run.travelled >= view_back - 1.0, run.travelled
+    assert run.speed[-1] == 0.0 and 16.0 - run.travelled >= 8.5 - 1.0, run.travelled
     assert run.decisions[-1].reason.startswith("red light")
 
 
@@ -586,21 +596,10 @@ def test_a_red_whose_head_left_the_picture_is_kept_until_it_has_surely_ended() -
     more than the brake, so the car stops at the line and loses the head. Its red is kept until the longest red
     (``RoadDesign.longest_red_s``) since it was seen has passed: forgetting it after ``red_memory_s`` sent the car
     across the line on red. Then it goes (the head's green was never seen)."""
-    view_back = 7.5
-
-    def scene(s: float, v: float, t: float) -> Scene:
-        bumper_to_line = 10.5 - s
-        head = bumper_to_line + CAM - 1.5
-        in_view = view_back + CAM - 1.5
-        seen = in_view <= head
-        return Scene(v, light="red" if seen else None, light_distance_m=head if seen else None,
-                     stop_line_m=bar_seen(bumper_to_line + CAM), light_in_view_m=in_view if seen else 0.0)
-
-    run = drive(scene, 24.0, v0=7.0)
-    standing = [k for k, v in enumerate(run.speed) if v < 0.05]
-    assert standing and standing[0] * DT < 4.0 and 0.0 <= 10.5 - sum(run.speed[:standing[0]]) * DT <= 2.0  # at the line
-    moved = next(k * DT for k in range(standing[0], len(run.speed)) if run.speed[k] > 0.3)
-    assert ROAD.longest_red_s - 1.0 <= moved <= ROAD.longest_red_s + 2.0, moved
+    run = drive(near_side_head(10.5, 7.5, lambda t: "red"), 24.0, v0=7.0)
+    stood_m, moved_s = stood_then_moved(run)
+    assert 0.0 <= 10.5 - stood_m <= 2.0  # at the line
+    assert ROAD.longest_red_s - 1.0 <= moved_s <= ROAD.longest_red_s + 2.0, moved_s
     assert run.travelled > 10.5  # and went on
 
 
@@ -608,21 +607,11 @@ def test_a_yellow_stopped_for_at_the_line_out_of_view_is_kept_until_the_red_afte
     """A near-side head turns yellow 12 m before the line at 7.5 m/s: the stop where it stays in view needs more
     than the brake, the line 2.7 m/s², so the car stops at the line and loses the head. Forgetting the yellow after
     ``light_memory_s`` let the car go while the red that follows it was on; it waits the yellow and the longest red."""
-    view_back = 8.7
-
-    def scene(s: float, v: float, t: float) -> Scene:
-        bumper_to_line = 12.0 - s
-        head = bumper_to_line + CAM - 1.5
-        in_view = view_back + CAM - 1.5
-        seen = in_view <= head
-        return Scene(v, light="yellow" if seen else None, light_distance_m=head if seen else None,
-                     stop_line_m=bar_seen(bumper_to_line + CAM), light_in_view_m=in_view if seen else 0.0)
-
-    run = drive(scene, 28.0, v0=7.5)
-    standing = [k for k, v in enumerate(run.speed) if v < 0.05]
-    assert standing and 0.0 <= 12.0 - sum(run.speed[:standing[0]]) * DT <= 2.0  # at the line
-    moved = next(k * DT for k in range(standing[0], len(run.speed)) if run.speed[k] > 0.3)
-    assert ROAD.yellow_s + ROAD.longest_red_s - 1.0 <= moved <= ROAD.yellow_s + ROAD.longest_red_s + 2.0, moved
+    run = drive(near_side_head(12.0, 8.7, lambda t: "yellow"), 28.0, v0=7.5)
+    stood_m, moved_s = stood_then_moved(run)
+    assert 0.0 <= 12.0 - stood_m <= 2.0  # at the line
+    wait = ROAD.yellow_s + ROAD.longest_red_s
+    assert wait - 1.0 <= moved_s <= wait + 2.0, moved_s
 
 
 def test_a_person_standing_still_beside_the_path_is_passed_and_one_on_the_move_there_is_stopped_for() -> None:
