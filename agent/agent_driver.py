@@ -745,7 +745,7 @@ class AgentDriver:
             guard = kept_steer(self.config.lane_keep, pilot, lanes, speed, turn_due)
             if guard is not None:
                 pilot = guard[0]
-        lane_range = min(30.0, max((ln.z_range_m[1] for ln in (lanes.left, lanes.right) if ln is not None), default=30.0))
+        lane_range = min(30.0, lanes.reach_m(30.0))
         held_why = self.stages.blind_spot.reason(held) if held else ""
         caps = ([(held_why, self.config.blind_spot.yield_speed_mps)]
                 if held and self.stages.blind_spot.alongside(held) else [])  # let it pass; a follower is merged in front of

@@ -93,6 +93,12 @@ from towndrive.sim.spec import (
 VEHICLE_KINDS = ("car", "truck")
 
 
+def stop_decel_mps2(speed_mps: float, gap_m: float) -> float:
+    """The constant deceleration that stops a car at ``speed_mps`` within ``gap_m`` (a gap under 5 cm counts as
+    5 cm: a point at or behind the bumper asks for a large one, not an infinite one)."""
+    return speed_mps * speed_mps / (2.0 * max(gap_m, 0.05))
+
+
 def toward_zero(value: float, by: float) -> float:
     """``value`` moved ``by`` nearer zero, not past it: a speed less what its reading's scatter could make up."""
     return math.copysign(max(abs(value) - by, 0.0), value)
@@ -497,9 +503,9 @@ class Controller:
         # harder than is comfortable if need be, unless the car is past that point or not even the brake stops it
         # there (then at the line).
         line_gap = self.stop_line - cfg.stop_line_target_m
-        need = speed * speed / (2.0 * max(line_gap, 0.05))  # deceleration to stop at the line
+        need = stop_decel_mps2(speed, line_gap)  # deceleration to stop at the line
         back = self.stop_line - self._view_back_m
-        fits = speed * speed / (2.0 * max(back, 0.05)) <= 0.9 * cfg.max_brake_mps2
+        fits = stop_decel_mps2(speed, back) <= 0.9 * cfg.max_brake_mps2
         gap = back if -1.0 < back < line_gap and fits else line_gap  # the stop point
         if state == "yellow":
             if self._yellow_go is None:
@@ -535,7 +541,7 @@ class Controller:
             return Constraint(f"stop sign: full stop {gap:.1f} m ahead", point, 0.0, cfg.stop_line_min_gap_m, 0.5)
         wait = self._priority_traffic(scene, gap, steer)
         if wait:
-            need = speed * speed / (2.0 * max(point, 0.05))
+            need = stop_decel_mps2(speed, point)
             if signs.control == "yield" and need > 0.9 * cfg.max_brake_mps2:
                 self.note = f"yield: {wait}, too close to stop, going on"
                 return None
@@ -735,7 +741,7 @@ class Controller:
             if not math.isinf(c.gap_m):
                 c.accel_mps2 = self._idm(speed, target, c.gap_m, speed - c.speed_mps, c.min_gap_m, c.headway_s)
                 room = c.gap_m - c.min_gap_m
-                c.hard = c.speed_mps < speed and speed * speed / (2.0 * max(room, 0.05)) > cfg.comfortable_brake_mps2
+                c.hard = c.speed_mps < speed and stop_decel_mps2(speed, room) > cfg.comfortable_brake_mps2
                 if room < cfg.hold_margin_m and c.speed_mps < 0.5 and speed < 1.0:
                     c.hold = True  # IDM creeps towards a standstill: near the point, brake and stay
                     c.accel_mps2 = min(c.accel_mps2, -cfg.comfortable_brake_mps2)

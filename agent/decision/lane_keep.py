@@ -49,8 +49,7 @@ def kept_steer(rules: LaneKeepRules, steer: float, lanes: LaneResult | None, spe
     heading, offset = lanes.heading_rad, lanes.centre_offset_m
     if lanes.confidence < rules.min_confidence or not (math.isfinite(heading) and math.isfinite(offset)):
         return None
-    reach = max((ln.z_range_m[1] for ln in (lanes.left, lanes.right) if ln is not None), default=0.0)
-    if reach < rules.min_reach_m:
+    if lanes.reach_m(0.0) < rules.min_reach_m:
         return None
     why = ""
     if abs(heading) > rules.max_heading_rad:

@@ -263,6 +263,10 @@ class LaneResult:
     centre_coeffs: np.ndarray | None = None
     boundary_width_m: float = float("nan")
 
+    def reach_m(self, default: float) -> float:
+        """How far ahead the farther-reaching of the lines is seen; ``default`` when neither is."""
+        return max((ln.z_range_m[1] for ln in (self.left, self.right) if ln is not None), default=default)
+
 
 # --------------------------------------------------------------------------- detector
 @dataclass(frozen=True)

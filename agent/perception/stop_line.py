@@ -135,8 +135,7 @@ class StopLineDetector:
 
     def _find(self, rgb: np.ndarray, lanes: LaneResult | None) -> StopLine | None:
         cfg, be = self.config, self.birdseye
-        lane_end = max((ln.z_range_m[1] for ln in (lanes.left, lanes.right) if ln is not None), default=math.inf) \
-            if lanes is not None else math.inf
+        lane_end = lanes.reach_m(math.inf) if lanes is not None else math.inf
         light = cv2.cvtColor(rgb, cv2.COLOR_RGB2HLS)[..., 1]
         kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (1, cfg.bar_kernel_rows | 1))
         bg = cv2.morphologyEx(light, cv2.MORPH_OPEN, kernel).astype(np.float32)

@@ -208,7 +208,7 @@ class ZebraDetector:
         lo, hi = lane_corridor(lanes if have else None, z, cfg.corridor_half_m, cfg.corridor_inset_m)
         if not have or lanes is None:
             return lo, hi
-        z_end = max((ln.z_range_m[1] for ln in (lanes.left, lanes.right) if ln is not None), default=math.inf)
+        z_end = lanes.reach_m(math.inf)
         beyond = z > z_end
         if not beyond.any() or beyond.all():
             return lo, hi
