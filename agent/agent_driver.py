@@ -673,7 +673,7 @@ class AgentDriver:
             if self._model_view is not None:
                 pair = [self._model_view(p) for p in pair]
             depth = st.stereo.depth(st.stereo.disparity(pair[0], pair[1]))
-        objects = st.memory.recall(st.objects.update(tracks, t, depth, speed), speed, odo.turn, self.dt,
+        objects = st.memory.recall(st.objects.update(tracks, t, depth, speed, odo.turn), speed, odo.turn, self.dt,
                                    st.objects.expired)
         light = st.light.choose(self._lights, self.controller.line, odo.turned)
         lap("distance")

@@ -352,6 +352,55 @@ def test_pedestrian_entering_versus_walking_away() -> None:
     assert "entering our path" in d.reason
 
 
+def crossing_car(distance_m: float, left_edge_m: float, lateral_mps: float) -> Callable[[float, float, float], Scene]:
+    """A car driving across our road ``distance_m`` ahead of the bumper, its side towards us (4.5 m long across
+    the view), its left edge ``left_edge_m`` right of our axis at the start, moving sideways at ``lateral_mps``
+    (negative: to the left)."""
+    def scene(s: float, v: float, t: float) -> Scene:
+        left = left_edge_m + lateral_mps * t
+        car = PerceivedObject(1, "car", distance_m - s + CAM, left, left + 4.5, v, lateral_mps)
+        return Scene(v, objects=[car])
+    return scene
+
+
+def test_a_car_crossing_our_road_ahead_is_stopped_for_before_it_reaches_our_path() -> None:
+    """Straight on at 6 m/s, a car 14 m ahead comes from the right across our road at 4 m/s. Only in the corridor
+    did a vehicle count, by when the car was 4 m from it at full speed (it hit it); judged crossing by when it
+    gets there and when we do, it is stopped for early, and passed once across."""
+    scene = crossing_car(14.0, 8.0, -4.0)
+    run = drive(scene, 8.0, v0=6.0)
+    crossing = [k for k, d in enumerate(run.decisions) if "crossing our path" in d.reason]
+    assert crossing and crossing[0] * DT < 0.2
+    position = np.cumsum(np.array(run.speed) * DT)
+    for k, p in enumerate(position):  # while any of it is in our corridor, our bumper stays short of it
+        left = 8.0 - 4.0 * k * DT
+        if left <= CFG.path_half_width_m and left + 4.5 >= -CFG.path_half_width_m:
+            assert p < 14.0 - 1.0, (k, p)
+    assert run.travelled > 16.0  # and went on once it had crossed
+
+
+def test_a_car_far_off_our_road_or_crossing_slowly_does_not_slow_the_car() -> None:
+    """A car 25 m to the right driving towards our road at 2 m/s reaches our path 12 s from now, long after we
+    passed; one beside the road whose sideways speed is within its readings' scatter is not crossing, nor one
+    pulling away beside us that edges sideways more slowly than it drives off."""
+    far = drive(crossing_car(14.0, 25.0, -2.0), 4.0, v0=6.0)
+    assert min(far.speed) >= 6.0 - 1e-9
+
+    def scatter(s: float, v: float, t: float) -> Scene:
+        car = PerceivedObject(1, "car", 14.0 - s + CAM, 3.0, 7.5, v, -1.2, lateral_speed_sd_mps=0.6)
+        return Scene(v, objects=[car])
+
+    assert min(drive(scatter, 2.0, v0=6.0).speed) >= 6.0 - 1e-9
+
+    def driving_off(s: float, v: float, t: float) -> Scene:  # beside us at a green, edging right as it pulls away
+        left = -4.0 + 1.5 * t
+        car = PerceivedObject(1, "car", 3.0 + 5.0 * t, left, left + 1.8, -5.0, 1.5)
+        return Scene(v, objects=[car])
+
+    ctrl = Controller(CFG)
+    assert not any("crossing" in ctrl.step(driving_off(0.0, 0.0, k * DT), 0.0, DT).reason for k in range(10))
+
+
 def test_a_person_on_the_kerb_side_of_a_tight_turn_is_in_the_body_s_sweep() -> None:
     """Turning right at full lock the body turns about a point level with the rear bumper, 6.75 m to the right,
     and its inner side passes 5.8 m from it: a person 3.2 m ahead and 3.0-3.6 m right is outside the camera's

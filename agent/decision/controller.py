@@ -33,7 +33,9 @@ Why it is built this way:
 - **What is in our path** is decided laterally, at each object's distance, against a corridor: the lane
   centre from the lane detector when it found one, else the arc the current steering drives. Objects
   outside the corridor (other lanes) get no reaction; pedestrians get a wider corridor, and a pedestrian
-  whose lateral motion brings them into it within ``entering_horizon_s`` counts as in the path.
+  whose lateral motion brings them into it within ``entering_horizon_s`` counts as in the path; driving straight
+  on, so does a vehicle crossing our road that would be in the corridor about when the car gets to it
+  (``cuts_across``).
 - **No endless hold on what perception does not confirm.** A person remembered after the detector lost them,
   or one the detector reports only at the image's side edge (a lit facade or a kerb there at night looks like
   half a person, and nothing the camera sees can refute it while the car stands), is stopped for like any
@@ -142,6 +144,9 @@ class ControllerConfig:
     standing_pedestrian_margin_m: float = 0.0  # ... and for people standing still (a car's width and 0.35 m clear)
     entering_horizon_s: float = 2.5  # a pedestrian whose motion enters the corridor within this counts
     min_lateral_speed_mps: float = 0.3  # slower lateral motion is not "entering" (box jitter)
+    crossing_min_lateral_speed_mps: float = 1.0  # a vehicle moving sideways slower than this is not crossing
+    crossing_margin_s: float = 1.0  # a crossing vehicle in the corridor this near the time we reach it is in the way
+    crossing_hold_s: float = 1.0  # ... and stays so this long unless it has crossed (``_still_crossing``)
     lookahead_m: float = 45.0  # objects farther than this are ignored
     light_confirm_frames: int = 2
     # A light runs green, yellow, red, green: a change against that order that lets the car go (a green read during
@@ -305,6 +310,7 @@ class Controller:
         self._cruise = self.config.speed_limit_mps  # the cruise speed under the limit that applies
         self.bend_curvature = 0.0  # the curvature ahead (1/m), smoothed
         self._bend_rate = 0.0  # its growth (1/m per s), smoothed
+        self._crossing: dict[int, float] = {}  # vehicles judged crossing our path: how long the judgement holds
 
     # The stop-line track's figures, read and set as the controller's own (tests and overlays use them).
     stop_line = property(lambda self: self.line.stop_line, lambda self, v: setattr(self.line, "stop_line", v))
@@ -428,7 +434,9 @@ class Controller:
         lo, hi = centre - half, centre + half
         if obj.lateral_right_m >= lo and obj.lateral_left_m <= hi:
             return True
-        if obj.kind != "pedestrian" or abs(obj.lateral_speed_mps) < cfg.min_lateral_speed_mps:
+        if obj.kind != "pedestrian":
+            return self.cuts_across(scene, obj, steer, lo, hi)
+        if abs(obj.lateral_speed_mps) < cfg.min_lateral_speed_mps:
             return False
         # Entering: moving towards the corridor and reaching it within the horizon.
         shift = obj.lateral_speed_mps * cfg.entering_horizon_s
@@ -437,6 +445,48 @@ class Controller:
         if obj.lateral_left_m > hi and shift < 0:
             return obj.lateral_left_m + shift <= hi
         return False
+
+    def cuts_across(self, scene: Scene, obj: PerceivedObject, steer: float, lo: float, hi: float) -> bool:
+        """Whether a vehicle beside the corridor ``lo``..``hi`` (its edges at its distance) crosses it while the
+        car gets there: moving sideways towards it (its speed taken ``priority_speed_sigmas`` standard errors
+        nearer zero) faster than along our road, it is inside the corridor within ``entering_horizon_s`` and
+        during the time the car's front reaches its distance, give or take ``crossing_margin_s`` (one that has
+        crossed by then, or enters after the car has passed, is no conflict). Only while the car drives straight:
+        its path is then the corridor straight ahead."""
+        cfg = self.config
+        if obj.unconfirmed or abs(steer) > cfg.junction_turn_steer:
+            return False
+        lateral = toward_zero(obj.lateral_speed_mps, cfg.priority_speed_sigmas * obj.lateral_speed_sd_mps)
+        along = scene.speed_mps - obj.closing_speed_mps  # its speed along our heading
+        if abs(lateral) < max(cfg.crossing_min_lateral_speed_mps, abs(along)):
+            return False  # not moving across our road (one driving off beside us edges sideways as it goes)
+        if obj.lateral_right_m < lo and lateral > 0:  # from the left
+            enter, leave = lo - obj.lateral_right_m, hi - obj.lateral_left_m
+        elif obj.lateral_left_m > hi and lateral < 0:  # from the right
+            enter, leave = obj.lateral_left_m - hi, obj.lateral_right_m - lo
+        else:
+            return False
+        t_in, t_out = enter / abs(lateral), leave / abs(lateral)
+        gap = max(obj.distance_m - cfg.camera_to_front_m, 0.0)
+        t_us = gap / max(scene.speed_mps, cfg.crossing_min_lateral_speed_mps)
+        crossing = (t_in <= cfg.entering_horizon_s and t_in <= t_us + cfg.crossing_margin_s
+                    and t_out >= t_us - cfg.crossing_margin_s)
+        if crossing:
+            self._crossing[obj.track_id] = cfg.crossing_hold_s
+        return crossing
+
+    def _still_crossing(self, scene: Scene, obj: PerceivedObject, steer: float) -> bool:
+        """A vehicle judged crossing our path within ``crossing_hold_s`` stays in it until wholly past the
+        corridor's far side: a car on its way across does not stop, though its sideways speed, read from a box that
+        grows and is cut as it nears, may drop out of one frame's reading."""
+        if obj.track_id not in self._crossing or obj.distance_m <= 0:
+            return False
+        centre = self.path_centre(scene, obj.distance_m, steer, obj.kind)
+        half = self.config.path_half_width_m
+        inside = obj.lateral_right_m >= centre - half and obj.lateral_left_m <= centre + half
+        coming = ((obj.lateral_left_m > centre + half and obj.lateral_speed_mps <= 0)
+                  or (obj.lateral_right_m < centre - half and obj.lateral_speed_mps >= 0))
+        return inside or coming
 
     # ------------------------------------------------------------------ lights and stop lines
     def _update_light(self, scene: Scene, dt: float) -> None:
@@ -705,9 +755,10 @@ class Controller:
                 c.accel_mps2 = self._idm(speed, min(target, c.speed_mps), None, 0.0, 0.0, 0.0)
             constraints.append(c)
         creep = self.unconfirmed_clock.held_s >= cfg.unconfirmed_hold_s
+        self._crossing = {k: v - dt for k, v in self._crossing.items() if v > dt}
         for obj in scene.objects:
             swept = self.in_sweep(scene, obj, steer)  # a person where the body will pass, corridor or not
-            if not swept and not self.in_path(scene, obj, steer):
+            if not swept and not self.in_path(scene, obj, steer) and not self._still_crossing(scene, obj, steer):
                 continue
             in_path.append(obj.track_id)
             gap = max(obj.distance_m - cfg.camera_to_front_m, 0.0)
@@ -730,7 +781,9 @@ class Controller:
                                   f"past at {cfg.creep_speed_mps:.1f} m/s", cfg.creep_speed_mps, speed, target,
                                   grazing=True)
                 else:
-                    c = Constraint(f"{obj.kind} #{obj.track_id} ahead at {gap:.1f} m: {verb}", gap, lead_speed,
+                    what = (f"ahead at {gap:.1f} m: {verb}" if self.overlaps(scene, obj, steer)
+                            else f"crossing our path at {gap:.1f} m: stop")
+                    c = Constraint(f"{obj.kind} #{obj.track_id} {what}", gap, lead_speed,
                                    cfg.lead_min_gap_m, cfg.headway_s, grazing=clear is not None)
             ids[len(constraints)] = obj.track_id
             constraints.append(c)

@@ -70,8 +70,11 @@ class ObjectMemory:
                 continue
             if o.kind == "pedestrian":
                 closing, along = o.closing_speed_mps, speed * dt
-            else:  # its own speed along our heading (our speed then less its closing speed) is kept
-                closing = speed - ((speed if before is None else before) - o.closing_speed_mps)
+            else:  # its own speed along our heading (our speed then less its closing speed) is kept, but never
+                # towards us: close in, a box cut by the frame's bottom reads as coming on fast, and the car lost
+                # would pass under ours and leave our path while it stands in front (it is kept where it was)
+                own = max((speed if before is None else before) - o.closing_speed_mps, 0.0)
+                closing = speed - own
                 along = closing * dt
             # Near, a person's box is cut or wrong and its sideways "speed" is perspective, not walking.
             shift = o.lateral_speed_mps * dt if o.kind == "pedestrian" and not near else 0.0

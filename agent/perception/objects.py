@@ -110,7 +110,9 @@ class ObjectEstimator:
 
     def reset(self) -> None:
         # t, z, the lateral reading (bearing or centre) and what it is
-        self._history: dict[int, deque[tuple[float, float, float, tuple[int, float]]]] = {}
+        # per track: (time, distance, lateral reading, how it was read, our heading then)
+        self._history: dict[int, deque[tuple[float, float, float, tuple[int, float], float]]] = {}
+        self._heading = 0.0  # our heading (rad, positive right) summed over the frames' turns
         self._whole_at: dict[int, float] = {}  # track id -> when a person's track was last seen whole
         self._standing_unconfirmed: dict[int, int] = {}  # track id -> frames in a row unconfirmed, the car standing
         self._lengthwise: dict[int, float] = {}  # track id -> when last judged lengthwise along the camera axis
@@ -119,10 +121,12 @@ class ObjectEstimator:
         self.edge_only: set[int] = set()  # this frame's people seen only at the image's side edge
 
     def update(self, tracks: list[Track], t: float, depth: np.ndarray | None,
-               speed_mps: float = math.inf) -> list[PerceivedObject]:
+               speed_mps: float = math.inf, turn_rad: float = 0.0) -> list[PerceivedObject]:
         """The tracks as objects; ``speed_mps``, the car's own speed, expires what stays unconfirmed while it
-        stands (``UNCONFIRMED_STANDING_FRAMES``)."""
+        stands (``UNCONFIRMED_STANDING_FRAMES``); ``turn_rad``, our heading change since the last frame (positive
+        right), is taken out of their sideways motion."""
         out = []
+        self._heading += turn_rad
         self.edge_only = set()
         self.expired = set()
         standing = speed_mps < STANDING_MPS
@@ -163,7 +167,7 @@ class ObjectEstimator:
             bearing = geometry.lateral(box[0] if side > 0 else box[2], 1.0) if side else 0.5 * (xl + xr)
             mode = (side, depth_m)
             hist = self._history.setdefault(tr.track_id, deque())
-            hist.append((t, z, bearing, mode))
+            hist.append((t, z, bearing, mode, self._heading))
             while hist and hist[0][0] < t - rules.history_s:
                 hist.popleft()
             alive.add(tr.track_id)
@@ -177,7 +181,9 @@ class ObjectEstimator:
                 rate, closing_sd = slope([h[0] for h in hist], [h[1] for h in hist])
                 closing = -rate
             if known_lateral:
-                readings = [h[2] for h in same]
+                # Each reading as seen from our heading now: turning right since, a still point's bearing has
+                # moved left by the angle turned (without this, every car beside a turn seemed to cross it).
+                readings = [h[2] - (self._heading - h[4]) * h[1] for h in same]
                 if side:
                     # x = bearing x depth. The bearing is read to a pixel; the inner edge's depth at each reading
                     # is today's plus what was closed since: our own speed for a vehicle standing along our axis
@@ -187,7 +193,7 @@ class ObjectEstimator:
                     # passed at 5 m/s seemed to move sideways at 0.3 m/s.)
                     along = speed_mps - closing if math.isfinite(speed_mps) else math.inf
                     approach = speed_mps if abs(along) < STILL_ALONG_MPS else closing
-                    readings = [h[2] * (z + depth_m + (t - h[0]) * approach) for h in same]
+                    readings = [(h[2] - (self._heading - h[4])) * (z + depth_m + (t - h[0]) * approach) for h in same]
                 lateral, lateral_sd = slope([h[0] for h in same], readings)
             still = known_lateral and abs(lateral) < rules.still_lateral_mps
             if side and (still or tr.track_id in self._lengthwise):
