@@ -755,6 +755,7 @@ class AgentDriver:
                       speed_caps=caps, signs=self._signs,
                       lanes_each_way=lanes_each_way(lanes), light_in_view_m=light.in_view_m if light else 0.0,
                       steered_path=steered, arc_ahead_m=self.stages.junction.arc_ahead_m,
+                      arc_radius_m=self.stages.junction.arc_radius_m,
                       cross_traffic=self._cross[0], cross_unknown=self._cross[1],
                       cross_street_m=self.stages.junction.cross_street_m)
         decision = self.controller.step(scene, pilot, self.dt)

@@ -13,7 +13,7 @@ from towndrive.agent.decision.junction import ZEBRA_SD_M, JunctionRules, turn_pa
 from towndrive.agent.decision.odometry import Odometry
 from towndrive.agent.decision.priors import fused
 from towndrive.sim.road_priors import road_priors
-from towndrive.sim.spec import ROAD
+from towndrive.sim.spec import COUNT_DOUBT, ROAD
 from towndrive.sim.town import Command, TownConfig
 from towndrive.sim.world import cached_town
 
@@ -739,6 +739,31 @@ def test_a_reading_before_the_car_has_turned_much_moves_the_arcs_start_on() -> N
             assert g._arc_start_m == pytest.approx(start)
 
 
+def read_turn(command: int, centre_along_m: float, zebra: bool, share: float) -> Any:
+    """A suburb junction guidance that has placed a turn from the bar (and the zebra 6 m beyond it, if ``zebra``)
+    on a stop-sign arm where ``share`` of the cross streets have two lanes, then read the road turned into 40
+    degrees into the turn, its centre line ``centre_along_m`` beyond the bar's near edge."""
+    from types import SimpleNamespace
+
+    from towndrive.agent.decision.junction import JunctionGuidance
+    from towndrive.agent.perception.stop_line import StopLine
+    from towndrive.sim.spec import CrossStreetOdds, TurnReach
+
+    road = replace(road_priors("suburb"), turn_reaches=(TurnReach(1, 14.0, 11.0), TurnReach(2, 15.5, 9.0)),
+                   cross_street_odds=(CrossStreetOdds("stop", 1, share, 8),))
+    line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
+                           config=SimpleNamespace(camera_to_front_m=2.0))
+    odo = approach_odometry()
+    g = JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
+    # the bar's near edge at x = 11 in the odometry frame, the zebra's far edge 6 m beyond the bar's far edge
+    g.note(StopLine(8.0, 0.5, 0.9, 0), 8.0 + 0.5 + 6.0 if zebra else None, 3.2, None, "stop", 1)
+    odo.pos = np.array([11.0, 0.0])
+    assert g.turn_steer(command, 3.0) is not None
+    see_cross_centre_line(g, command, centre_along_m, 40.0)
+    assert g.exit_measured
+    return g
+
+
 def test_a_right_turn_read_in_the_turn_keeps_within_reach_of_every_count_the_centre_line_leaves() -> None:
     """``JunctionGuidance.exit_odds``: the road turned into's centre line lies a lane farther beyond the zebra on
     a two-lane street than on a single-lane one (less its parking strip), so the reading tells the likelier count
@@ -746,32 +771,12 @@ def test_a_right_turn_read_in_the_turn_keeps_within_reach_of_every_count_the_cen
     as far as two lanes are likely, but no farther than the car's room from the single lane's place (the inner lane
     of two): aimed at the kerb lane of two, it leaves the road if the street has one. A left turn goes into the
     inner lane."""
-    from types import SimpleNamespace
-
-    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
-    from towndrive.agent.perception.stop_line import StopLine
-    from towndrive.sim.spec import CrossStreetOdds, TurnReach
-
-    def read(command: int, centre_along_m: float, zebra: bool, share: float) -> JunctionGuidance:
-        road = replace(road_priors("suburb"), turn_reaches=(TurnReach(1, 14.0, 11.0), TurnReach(2, 15.5, 9.0)),
-                       cross_street_odds=(CrossStreetOdds("stop", 1, share, 8),))
-        line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
-                               config=SimpleNamespace(camera_to_front_m=2.0))
-        odo = approach_odometry()
-        g = JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
-        # the bar's near edge at x = 11 in the odometry frame, the zebra's far edge 6 m beyond the bar's far edge
-        g.note(StopLine(8.0, 0.5, 0.9, 0), 8.0 + 0.5 + 6.0 if zebra else None, 3.2, None, "stop", 1)
-        odo.pos = np.array([11.0, 0.0])
-        assert g.turn_steer(command, 3.0) is not None
-        see_cross_centre_line(g, command, centre_along_m, 40.0)
-        assert g.exit_measured
-        return g
 
     depth = ROAD.stop_bar_depth_m
-    w = read(2, 20.0, True, 0.5).lane_width_m
+    w = read_turn(2, 20.0, True, 0.5).lane_width_m
     for lanes, kerb_reach in ((1, 11.0), (2, 9.0)):
         inner = 6.0 + kerb_reach + (lanes - 1) * w  # bar's far edge to the inner lane's crossing
-        g = read(2, inner + depth + 0.5 * w, True, 0.5)
+        g = read_turn(2, inner + depth + 0.5 * w, True, 0.5)
         odds = g.exit_odds()
         assert likeliest(g) == lanes and odds[lanes] > 0.9 and sum(odds.values()) == pytest.approx(1.0)
         room = g.lane_room_m
@@ -780,16 +785,49 @@ def test_a_right_turn_read_in_the_turn_keeps_within_reach_of_every_count_the_cen
     # the same reading at a kind of junction where two-lane streets are rare, and where they are the rule:
     # a reading midway leans to the odds
     midway = 6.0 + 11.0 + 0.5 * (9.0 + w - 11.0)
-    assert likeliest(read(2, midway + depth + 0.5 * w, True, 0.05)) == 1
-    assert likeliest(read(2, midway + depth + 0.5 * w, True, 0.95)) == 2
+    assert likeliest(read_turn(2, midway + depth + 0.5 * w, True, 0.05)) == 1
+    assert likeliest(read_turn(2, midway + depth + 0.5 * w, True, 0.95)) == 2
     # no zebra: the odds alone
     for share, lanes in ((0.3, 1), (0.8, 2)):
-        g = read(2, 6.0 + 9.0 + w + depth + 0.5 * w, False, share)
+        g = read_turn(2, 6.0 + 9.0 + w + depth + 0.5 * w, False, share)
         assert likeliest(g) == lanes
         assert g.turn_reach_m(2) == pytest.approx(g._exit_fix[0] - min(g.lane_room_m, share * w))
     # a left turn goes into the inner lane whatever the count
-    g = read(1, 6.0 + 15.5 + depth - 0.5 * w, True, 0.95)
+    g = read_turn(1, 6.0 + 15.5 + depth - 0.5 * w, True, 0.95)
     assert g.turn_reach_m(1) == pytest.approx(6.0 + 15.5, abs=1e-6)
+
+
+def test_the_arc_is_driven_at_its_curve_speed_only_once_the_road_turned_into_leaves_no_count_in_doubt() -> None:
+    """``JunctionGuidance.arc_radius_m``, which the controller drives the arc at the curve speed of: set once the
+    road turned into is read and tells its lane count, not while a count in doubt keeps the turn within reach of
+    both (driven fast, the car reached the hedged arc's start before the reading settled, and the settled reach bent
+    the kept arc round inside the lane turned into). A left turn's inner lane does not depend on the count."""
+    depth, w = ROAD.stop_bar_depth_m, 3.2
+    clear = read_turn(2, 6.0 + 11.0 + depth + 0.5 * w, True, 0.2)  # where one lane puts it: one lane
+    assert min(clear.exit_odds().values()) < COUNT_DOUBT
+    clear.turn_steer(2, 3.0)
+    assert clear.arc_radius_m is not None and clear.arc_radius_m > 5.0
+    midway = read_turn(2, 6.0 + 11.0 + 0.5 * (9.0 + w - 11.0) + depth + 0.5 * w, True, 0.5)
+    assert min(midway.exit_odds().values()) > COUNT_DOUBT  # either count may be
+    midway.turn_steer(2, 3.0)
+    assert midway.arc_radius_m is None
+    left = read_turn(1, 6.0 + 15.5 + depth - 0.5 * w, True, 0.5)
+    left.turn_steer(1, 3.0)
+    assert left.arc_radius_m is not None
+
+
+def test_the_turn_speed_on_an_arc_placed_by_the_road_turned_into_is_its_curve_speed() -> None:
+    """``Controller._turn_cap``: on the arc, the turn speed (3 m/s) where its radius is not known to hold, the curve
+    speed sqrt(lateral acceleration x radius) where it is; before the arc, what braking brings down to it."""
+    from towndrive.agent.decision.controller import Controller, Scene
+
+    ctrl = Controller()
+    cfg = ctrl.config
+    on_arc = Scene(4.0, turning=True, arc_ahead_m=-1.0)
+    assert ctrl._turn_cap(on_arc, 0.5) == pytest.approx(cfg.junction_turn_speed_mps)
+    assert ctrl._turn_cap(replace(on_arc, arc_radius_m=12.0), 0.5) == pytest.approx(math.sqrt(cfg.lateral_accel_mps2 * 12.0))
+    before = replace(on_arc, arc_radius_m=12.0, arc_ahead_m=20.0)
+    assert ctrl._turn_cap(before, 0.0) > math.sqrt(cfg.lateral_accel_mps2 * 12.0)
 
 
 def test_a_right_turn_from_the_inner_lane_of_two_goes_into_the_inner_lane_whatever_the_cross_streets_count() -> None:
@@ -802,7 +840,7 @@ def test_a_right_turn_from_the_inner_lane_of_two_goes_into_the_inner_lane_whatev
 
     from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
     from towndrive.agent.perception.stop_line import StopLine
-    from towndrive.sim.spec import COUNT_DOUBT, CrossStreetOdds, TurnReach
+    from towndrive.sim.spec import CrossStreetOdds, TurnReach
 
     road = replace(road_priors("downtown"), turn_reaches=(TurnReach(1, 14.4, 10.8), TurnReach(2, 15.7, 8.6)),
                    cross_street_odds=(CrossStreetOdds("stop", 2, 0.9, 8),), lane_width_m=3.5, lane_width_sd_m=0.0)

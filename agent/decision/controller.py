@@ -207,6 +207,7 @@ class Scene:
     steered_path: np.ndarray | None = None
     turning: bool = False  # the route command asks for a left or right turn at the next junction
     arc_ahead_m: float | None = None  # the car's centre to where the junction's planned turn arc begins (<0: on it)
+    arc_radius_m: float | None = None  # ... its radius, once the road turned into places it and tells its lane count
     turn_left: bool = False  # ... a left turn
     turned_rad: float = 0.0  # heading change since the car last drove along its lane (odometry; positive right)
     speed_caps: list[tuple[str, float]] = field(default_factory=list)  # other limits: (reason, m/s)
@@ -834,16 +835,20 @@ class Controller:
                         self.stop_line, in_path, ids.get(governing) if governing is not None else None, holding)
 
     def _turn_cap(self, scene: Scene, steer: float) -> float:
-        """The speed of a commanded turn: ``junction_turn_speed_mps`` on the junction's arc, and before it, where
-        the arc is planned, at most what braking at ``turn_approach_brake_mps2`` brings down to it by the arc's
-        start (the autopilot's curve-speed profile). With no arc planned, the turn speed once the lane lines end or
-        the car steers into the turn."""
+        """The speed of a commanded turn: on the junction's arc, its curve speed, sqrt(``lateral_accel_mps2`` x radius),
+        where the road turned into has placed it (``Scene.arc_radius_m``), else ``junction_turn_speed_mps``; before
+        it, where the arc is planned, at most what braking at ``turn_approach_brake_mps2`` brings down to that by
+        the arc's start (the autopilot's curve-speed profile). With no arc planned, the turn speed once the lane
+        lines end or the car steers into the turn."""
         cfg = self.config
         if not scene.turning:
             return math.inf
         if scene.arc_ahead_m is not None:  # (the speed follows its cap a moment late: at the turn speed a second early)
-            room = scene.arc_ahead_m - cfg.junction_turn_speed_mps * cfg.turn_approach_lead_s
-            return math.sqrt(cfg.junction_turn_speed_mps ** 2 + 2.0 * cfg.turn_approach_brake_mps2 * max(0.0, room))
+            turn = cfg.junction_turn_speed_mps
+            if scene.arc_radius_m is not None:  # an arc placed by what the camera sees is driven at its curve speed
+                turn = max(turn, math.sqrt(cfg.lateral_accel_mps2 * scene.arc_radius_m))
+            room = scene.arc_ahead_m - turn * cfg.turn_approach_lead_s
+            return math.sqrt(turn ** 2 + 2.0 * cfg.turn_approach_brake_mps2 * max(0.0, room))
         if scene.lane_centre is None or abs(steer) > cfg.junction_turn_steer:
             return cfg.junction_turn_speed_mps
         return math.inf

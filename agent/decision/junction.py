@@ -39,6 +39,9 @@ and PilotNet, which sees it, finishes the turn. An exact design's arc leads to t
 Where junctions are not square, the arc turns by the cross street's angle, read from the zebra beyond the bar (its
 edges run along the cross street), into the lane whose centre line crosses the approach lane's where the road
 design's reach puts it.
+Once the road turned into places the arc and leaves no lane count in doubt (or the design is exact), the arc's
+radius is the controller's too (``arc_radius_m``), which drives the arc at its curve speed; while a count is in
+doubt, at the turn speed, so that the reading settles before the car reaches the arc's start.
 """
 
 from __future__ import annotations
@@ -206,6 +209,7 @@ class JunctionGuidance:
         # end, and the car's centre and heading (approach frame)
         self._steered: tuple[np.ndarray, np.ndarray, float] | None = None
         self.arc_ahead_m: float | None = None  # the car's centre to where the planned arc begins (negative: on it)
+        self.arc_radius_m: float | None = None  # its radius, where the road turned into places it (``turn_steer``)
 
     @property
     def skew_rad(self) -> float:
@@ -572,7 +576,7 @@ class JunctionGuidance:
         """Turning at a junction, the steer that keeps the car's centre on the turn arc from our lane to the same
         lane of the road we turn into; None when this does not apply."""
         cfg, odo = self.rules, self.odo
-        self._steered, self.arc_ahead_m = None, None
+        self._steered, self.arc_ahead_m, self.arc_radius_m = None, None, None
         if self.junction is None or not cfg.turn_guidance:
             return None
         _, _, road_yaw, started = self.junction
@@ -611,6 +615,11 @@ class JunctionGuidance:
         path, arc_end = turn_path(command, round(reach, 2), self.road.stop_bar_depth_m, radius, angle_deg=angle)
         start = self._arc_start_m if self._arc_start_m is not None else planned_start
         self.arc_ahead_m = start - along
+        # Placed by the road turned into, its lane count settled (no count in doubt moves the plan: ``hedge``), or
+        # by an exact design, the arc is driven at its curve speed; while in doubt, at the turn speed, which leaves
+        # the reading time to settle before the arc's start is committed.
+        if (self.exit_measured and abs(hedge) < 1e-6) or not self.design_spreads:
+            self.arc_radius_m = arc_placement(reach, self.road.stop_bar_depth_m, radius, angle)[0]
         lookahead = cfg.turn_lookahead_m + cfg.turn_lookahead_s * speed
         if here[0] < self.road.stop_bar_depth_m - lookahead:  # not yet: the lookahead point is still before the arc
             return None
