@@ -801,7 +801,8 @@ def test_the_arc_is_driven_at_its_curve_speed_only_once_the_road_turned_into_lea
     """``JunctionGuidance.arc_radius_m``, which the controller drives the arc at the curve speed of: set once the
     road turned into is read and tells its lane count, not while a count in doubt keeps the turn within reach of
     both (driven fast, the car reached the hedged arc's start before the reading settled, and the settled reach bent
-    the kept arc round inside the lane turned into). A left turn's inner lane does not depend on the count."""
+    the kept arc round inside the lane turned into). A left turn's inner lane does not depend on the count; an exact
+    design's arc, which is not read, keeps the turn speed."""
     depth, w = ROAD.stop_bar_depth_m, 3.2
     clear = read_turn(2, 6.0 + 11.0 + depth + 0.5 * w, True, 0.2)  # where one lane puts it: one lane
     assert min(clear.exit_odds().values()) < COUNT_DOUBT
@@ -814,6 +815,19 @@ def test_the_arc_is_driven_at_its_curve_speed_only_once_the_road_turned_into_lea
     left = read_turn(1, 6.0 + 15.5 + depth - 0.5 * w, True, 0.5)
     left.turn_steer(1, 3.0)
     assert left.arc_radius_m is not None
+    # the classic design's exact arc is not read: the turn speed
+    from types import SimpleNamespace
+
+    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
+    from towndrive.agent.perception.stop_line import StopLine
+
+    line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
+                           config=SimpleNamespace(camera_to_front_m=2.0))
+    odo = approach_odometry()
+    exact = JunctionGuidance(JunctionRules(), line, odo, 1.0, ROAD)
+    exact.note(StopLine(8.0, 0.5, 0.9, 0))
+    odo.pos = np.array([11.0, 0.0])  # at the bar
+    assert exact.turn_steer(2, 3.0) is not None and exact.arc_radius_m is None
 
 
 def test_the_turn_speed_on_an_arc_placed_by_the_road_turned_into_is_its_curve_speed() -> None:

@@ -39,9 +39,10 @@ and PilotNet, which sees it, finishes the turn. An exact design's arc leads to t
 Where junctions are not square, the arc turns by the cross street's angle, read from the zebra beyond the bar (its
 edges run along the cross street), into the lane whose centre line crosses the approach lane's where the road
 design's reach puts it.
-Once the road turned into places the arc and leaves no lane count in doubt (or the design is exact), the arc's
-radius is the controller's too (``arc_radius_m``), which drives the arc at its curve speed; while a count is in
-doubt, at the turn speed, so that the reading settles before the car reaches the arc's start.
+Once the road turned into places the arc and leaves no lane count in doubt, the arc's radius is the controller's
+too (``arc_radius_m``), which drives the arc at its curve speed; while a count is in doubt, at the turn speed, so
+that the reading settles before the car reaches the arc's start; where the road turned into is not read (an exact
+design), at the turn speed.
 """
 
 from __future__ import annotations
@@ -615,10 +616,10 @@ class JunctionGuidance:
         path, arc_end = turn_path(command, round(reach, 2), self.road.stop_bar_depth_m, radius, angle_deg=angle)
         start = self._arc_start_m if self._arc_start_m is not None else planned_start
         self.arc_ahead_m = start - along
-        # Placed by the road turned into, its lane count settled (no count in doubt moves the plan: ``hedge``), or
-        # by an exact design, the arc is driven at its curve speed; while in doubt, at the turn speed, which leaves
-        # the reading time to settle before the arc's start is committed.
-        if (self.exit_measured and abs(hedge) < 1e-6) or not self.design_spreads:
+        # Placed by the road turned into, its lane count settled (no count in doubt moves the plan: ``hedge``), the
+        # arc is driven at its curve speed; while in doubt, at the turn speed, which leaves the reading time to
+        # settle before the arc's start is committed; unread (an exact design's arc), at the turn speed.
+        if self.exit_measured and abs(hedge) < 1e-6:
             self.arc_radius_m = arc_placement(reach, self.road.stop_bar_depth_m, radius, angle)[0]
         lookahead = cfg.turn_lookahead_m + cfg.turn_lookahead_s * speed
         if here[0] < self.road.stop_bar_depth_m - lookahead:  # not yet: the lookahead point is still before the arc
