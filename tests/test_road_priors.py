@@ -18,6 +18,15 @@ from towndrive.sim.town import Command, TownConfig
 from towndrive.sim.world import cached_town
 
 
+def tracked_bar() -> Any:
+    """The controller's stop-line track as the junction guidance reads it: a bar measured 8 m ahead of a camera
+    2 m behind the front bumper, no light to ignore."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
+                           config=SimpleNamespace(camera_to_front_m=2.0))
+
+
 def approach_odometry(yaw_rad: float = 0.0, pos: tuple[float, float] = (0.0, 0.0)) -> Odometry:
     """Dead reckoning on an approach lane measured to run along x (the car centred on it)."""
     odo = Odometry()
@@ -122,14 +131,12 @@ def test_the_zebra_beyond_the_bar_halves_the_setback_s_error() -> None:
 def test_the_junction_guidance_corrects_its_setback_and_lane_width_by_what_is_measured() -> None:
     """``JunctionGuidance.note``: the zebra's far edge and the lane finder's width move a prior with a spread (the
     median of a junction's zebra readings), and leave the classic design's exact numbers alone."""
-    from types import SimpleNamespace
 
     from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
     from towndrive.agent.perception.stop_line import StopLine
 
     def guidance(road) -> JunctionGuidance:
-        line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
-                               config=SimpleNamespace(camera_to_front_m=2.0))
+        line = tracked_bar()
         odo = approach_odometry()
         return JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
 
@@ -189,14 +196,12 @@ def test_a_bar_lost_short_of_the_placing_range_is_placed_where_odometry_tracks_i
 def test_with_a_design_that_spreads_the_camera_finishes_the_turn_and_with_an_exact_one_the_arc_does() -> None:
     """Past ``turn_handover_deg`` of heading change the turn arc lets go (PilotNet steers) where the design's numbers
     are priors with a spread; the classic design's exact arc leads on."""
-    from types import SimpleNamespace
 
     from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
     from towndrive.agent.perception.stop_line import StopLine
 
     def steer_at(road, yaw_deg: float) -> tuple[float | None, float | None]:
-        line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
-                               config=SimpleNamespace(camera_to_front_m=2.0))
+        line = tracked_bar()
         odo = approach_odometry()
         g = JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
         g.note(StopLine(8.0, 0.5, 0.9, 0))
@@ -470,7 +475,6 @@ def test_an_unseen_lane_count_is_hedged_to_keep_both_lanes_within_the_car_s_room
     its lane of each count's lanes in its direction (a threshold, not a squared error, is what a lane keeps): a left
     turn between the two counts' inner lanes, a right turn near the single lane's place, the inner lane of two
     (aiming at the two-lane kerb lane puts it off the road on one lane). Left alone where one count is certain."""
-    from types import SimpleNamespace
 
     from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
     from towndrive.agent.perception.stop_line import StopLine
@@ -487,8 +491,7 @@ def test_an_unseen_lane_count_is_hedged_to_keep_both_lanes_within_the_car_s_room
     assert road.turn_reach(False, 0.8) == pytest.approx(0.2 * 11.1 + 0.8 * 9.0)
     assert road.turn_reach(False, 0.8, within_m=room) == pytest.approx(11.1 - room)  # inside the two lanes' band
     assert road.turn_reach(False, 1.0, within_m=room) == pytest.approx(9.0)  # two lanes certain: the kerb lane
-    line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
-                           config=SimpleNamespace(camera_to_front_m=2.0))
+    line = tracked_bar()
     odo = approach_odometry()
     g = JunctionGuidance(JunctionRules(), line, odo, 1.0, replace(road, lane_width_sd_m=0.0))
     g.note(StopLine(9.0, 0.5, 0.9, 0), 9.0 + 0.5 + 6.0, None, None, "signal", 2)
@@ -500,7 +503,6 @@ def test_the_junction_guidance_places_a_turn_from_the_zebra_by_the_kind_of_junct
     """``JunctionGuidance.turn_reach_m``: with the zebra measured, its far edge plus the reach expected for the
     kind of junction (a stop sign on a single-lane road: a two-lane street ahead; a light seen once keeps the arm a
     signal's); without a zebra, the priors as before."""
-    from types import SimpleNamespace
 
     from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
     from towndrive.agent.perception.stop_line import StopLine
@@ -509,8 +511,7 @@ def test_the_junction_guidance_places_a_turn_from_the_zebra_by_the_kind_of_junct
     road = replace(road_priors("downtown"), turn_reaches=(TurnReach(1, 14.0, 11.0), TurnReach(2, 15.5, 8.5)),
                    cross_street_odds=(CrossStreetOdds("stop", 1, 1.0, 8), CrossStreetOdds("none", 1, 0.0, 8),
                                       CrossStreetOdds("signal", 1, 0.2, 8)))
-    line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
-                           config=SimpleNamespace(camera_to_front_m=2.0))
+    line = tracked_bar()
     odo = approach_odometry()
     g = JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
     g.note(StopLine(10.0, 0.5, 0.9, 0), None, 3.2, None, "stop", 1)
@@ -556,7 +557,6 @@ def test_a_right_turn_s_radius_is_the_one_of_both_roads_lanes() -> None:
 def test_the_junction_guidance_begins_a_right_turn_s_arc_where_our_road_s_lanes_put_it() -> None:
     """``JunctionGuidance.turn_steer``: from a two-lane road the right turn's arc, tighter than the style's mean,
     begins later along the approach (the car's centre reaches it where the two-lane radius puts it)."""
-    from types import SimpleNamespace
 
     from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules, arc_placement
     from towndrive.agent.perception.stop_line import StopLine
@@ -565,8 +565,7 @@ def test_the_junction_guidance_begins_a_right_turn_s_arc_where_our_road_s_lanes_
     road = replace(road_priors("suburb"), turn_reaches=(TurnReach(1, 14.4, 10.8), TurnReach(2, 15.7, 8.6)),
                    cross_street_odds=(CrossStreetOdds("signal", 2, 1.0, 50),), right_turn_radius_m=9.5,
                    right_turn_radii=(TurnRadius(2, 2, 8.6), TurnRadius(1, 1, 10.8)))
-    line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
-                           config=SimpleNamespace(camera_to_front_m=2.0))
+    line = tracked_bar()
     odo = approach_odometry()
     g = JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
     g.note(StopLine(8.0, 0.5, 0.9, 0), 8.0 + 0.5 + 6.0, road.lane_width_m, None, "signal", 2)
@@ -645,7 +644,6 @@ def test_the_road_turned_into_read_in_the_turn_places_its_inner_lane_and_the_arc
     turned into half a lane to its right in the direction of travel (right turns short of it, left turns beyond it),
     whatever the design planned; a reading far from the plan is something else; once read, the arc leads past the
     hand-over heading."""
-    from types import SimpleNamespace
 
     from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
     from towndrive.agent.perception.stop_line import StopLine
@@ -653,8 +651,7 @@ def test_the_road_turned_into_read_in_the_turn_places_its_inner_lane_and_the_arc
     road = road_priors("suburb")
 
     def reach_read(command: int, centre_along_m: float, yaw_deg: float) -> JunctionGuidance:
-        line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
-                               config=SimpleNamespace(camera_to_front_m=2.0))
+        line = tracked_bar()
         odo = approach_odometry()
         g = JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
         g.note(StopLine(8.0, 0.5, 0.9, 0))  # the bar's near edge at x = 11 in the odometry frame
@@ -743,7 +740,6 @@ def read_turn(command: int, centre_along_m: float, zebra: bool, share: float) ->
     """A suburb junction guidance that has placed a turn from the bar (and the zebra 6 m beyond it, if ``zebra``)
     on a stop-sign arm where ``share`` of the cross streets have two lanes, then read the road turned into 40
     degrees into the turn, its centre line ``centre_along_m`` beyond the bar's near edge."""
-    from types import SimpleNamespace
 
     from towndrive.agent.decision.junction import JunctionGuidance
     from towndrive.agent.perception.stop_line import StopLine
@@ -751,8 +747,7 @@ def read_turn(command: int, centre_along_m: float, zebra: bool, share: float) ->
 
     road = replace(road_priors("suburb"), turn_reaches=(TurnReach(1, 14.0, 11.0), TurnReach(2, 15.5, 9.0)),
                    cross_street_odds=(CrossStreetOdds("stop", 1, share, 8),))
-    line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
-                           config=SimpleNamespace(camera_to_front_m=2.0))
+    line = tracked_bar()
     odo = approach_odometry()
     g = JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
     # the bar's near edge at x = 11 in the odometry frame, the zebra's far edge 6 m beyond the bar's far edge
@@ -816,13 +811,11 @@ def test_the_arc_is_driven_at_its_curve_speed_only_once_the_road_turned_into_lea
     left.turn_steer(1, 3.0)
     assert left.arc_radius_m is not None
     # the classic design's exact arc is not read: the turn speed
-    from types import SimpleNamespace
 
     from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
     from towndrive.agent.perception.stop_line import StopLine
 
-    line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
-                           config=SimpleNamespace(camera_to_front_m=2.0))
+    line = tracked_bar()
     odo = approach_odometry()
     exact = JunctionGuidance(JunctionRules(), line, odo, 1.0, ROAD)
     exact.note(StopLine(8.0, 0.5, 0.9, 0))
@@ -850,7 +843,6 @@ def test_a_right_turn_from_the_inner_lane_of_two_goes_into_the_inner_lane_whatev
     into, one lane or two: the centre line read in the turn places it, whatever count ``exit_odds`` makes likeliest, and
     the plan before the read is kept within the car's room of both counts' inner lanes. From the kerb lane, the
     kerb lane."""
-    from types import SimpleNamespace
 
     from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
     from towndrive.agent.perception.stop_line import StopLine
@@ -860,8 +852,7 @@ def test_a_right_turn_from_the_inner_lane_of_two_goes_into_the_inner_lane_whatev
                    cross_street_odds=(CrossStreetOdds("stop", 2, 0.9, 8),), lane_width_m=3.5, lane_width_sd_m=0.0)
 
     def read(lanes_to_kerb: int, centre_along_m: float | None) -> JunctionGuidance:
-        line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
-                               config=SimpleNamespace(camera_to_front_m=2.0))
+        line = tracked_bar()
         odo = approach_odometry()
         g = JunctionGuidance(JunctionRules(), line, odo, 1.0, road)
         g.note(StopLine(8.0, 0.5, 0.9, 0), 8.0 + 0.5 + 6.0, 3.5, None, "stop", 2, lanes_to_kerb)
@@ -1020,13 +1011,11 @@ def test_a_kind_of_junction_seen_only_a_few_times_leaves_the_other_lane_count_po
 
 def placed_turn() -> object:
     """Junction guidance on the suburb priors with the stop bar's near edge at x = 11 of the odometry frame."""
-    from types import SimpleNamespace
 
     from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
     from towndrive.agent.perception.stop_line import StopLine
 
-    line = SimpleNamespace(ignore_light_m=0.0, stop_line_measured=True, stop_line=8.0,
-                           config=SimpleNamespace(camera_to_front_m=2.0))
+    line = tracked_bar()
     g = JunctionGuidance(JunctionRules(), line, approach_odometry(), 1.0, road_priors("suburb"))
     g.note(StopLine(8.0, 0.5, 0.9, 0))
     return g

@@ -426,7 +426,8 @@ class Controller:
         return clear if clear >= cfg.squeeze_clear_m else None
 
     def in_path(self, scene: Scene, obj: PerceivedObject, steer: float) -> bool:
-        """Whether the object overlaps (or, a pedestrian, walks into) the corridor at its distance."""
+        """Whether the object overlaps the corridor at its distance, or a pedestrian walks into it, or a vehicle
+        crosses it as the car gets there (``cuts_across``, ``_still_crossing``)."""
         cfg = self.config
         if obj.distance_m <= 0 or obj.distance_m > cfg.lookahead_m:
             return False
@@ -436,7 +437,7 @@ class Controller:
         if obj.lateral_right_m >= lo and obj.lateral_left_m <= hi:
             return True
         if obj.kind != "pedestrian":
-            return self.cuts_across(scene, obj, steer, lo, hi)
+            return self.cuts_across(scene, obj, steer, lo, hi) or self._still_crossing(obj, lo, hi)
         if abs(obj.lateral_speed_mps) < cfg.min_lateral_speed_mps:
             return False
         # Entering: moving towards the corridor and reaching it within the horizon.
@@ -476,18 +477,14 @@ class Controller:
             self._crossing[obj.track_id] = cfg.crossing_hold_s
         return crossing
 
-    def _still_crossing(self, scene: Scene, obj: PerceivedObject, steer: float) -> bool:
-        """A vehicle judged crossing our path within ``crossing_hold_s`` stays in it until wholly past the
-        corridor's far side: a car on its way across does not stop, though its sideways speed, read from a box that
-        grows and is cut as it nears, may drop out of one frame's reading."""
-        if obj.track_id not in self._crossing or obj.distance_m <= 0:
+    def _still_crossing(self, obj: PerceivedObject, lo: float, hi: float) -> bool:
+        """A vehicle judged crossing our path within ``crossing_hold_s``, beside the corridor ``lo``..``hi`` and
+        not yet wholly past its far side, stays in our path: a car on its way across does not stop, though its
+        sideways speed, read from a box that grows and is cut as it nears, may drop out of one frame's reading."""
+        if obj.track_id not in self._crossing:
             return False
-        centre = self.path_centre(scene, obj.distance_m, steer, obj.kind)
-        half = self.config.path_half_width_m
-        inside = obj.lateral_right_m >= centre - half and obj.lateral_left_m <= centre + half
-        coming = ((obj.lateral_left_m > centre + half and obj.lateral_speed_mps <= 0)
-                  or (obj.lateral_right_m < centre - half and obj.lateral_speed_mps >= 0))
-        return inside or coming
+        return ((obj.lateral_left_m > hi and obj.lateral_speed_mps <= 0)
+                or (obj.lateral_right_m < lo and obj.lateral_speed_mps >= 0))
 
     # ------------------------------------------------------------------ lights and stop lines
     def _update_light(self, scene: Scene, dt: float) -> None:
@@ -759,7 +756,7 @@ class Controller:
         self._crossing = {k: v - dt for k, v in self._crossing.items() if v > dt}
         for obj in scene.objects:
             swept = self.in_sweep(scene, obj, steer)  # a person where the body will pass, corridor or not
-            if not swept and not self.in_path(scene, obj, steer) and not self._still_crossing(scene, obj, steer):
+            if not swept and not self.in_path(scene, obj, steer):
                 continue
             in_path.append(obj.track_id)
             gap = max(obj.distance_m - cfg.camera_to_front_m, 0.0)
