@@ -711,19 +711,28 @@ class AgentDriver:
             self._threads.took(threads, time.perf_counter() - t_wall)
         return decision.action(), view, times
 
+    def _street_lines_read(self) -> bool:
+        """Whether the lane lines in view tell about the street the car drives along: not inside a junction (the
+        road left behind is not the road ahead, and a turn sweeps the view across the other arms' lines), and no
+        stop line, tracked or put by a sign, within ``coverage_z_max_m`` (a line's style is read from its paint
+        that far ahead; a bar nearer cuts the solid edge line short, read as dashed, and beyond it lie the
+        junction's and the cross street's lines)."""
+        line = self.controller.line
+        if line.in_junction:
+            return False
+        ahead = line.stop_line if line.stop_line is not None else self.controller.signs.sign_line_m
+        return ahead is None or ahead > self.stages.lanes.config.markings.coverage_z_max_m
+
     def _note_lanes_to_kerb(self, lanes: LaneResult) -> None:
         """Remember how many lanes lie between ours and the kerb (``lanes_to_kerb``) as the line on our right tells,
-        read only with the tracked stop bar farther than ``coverage_z_max_m``: a line's style is read from its
-        paint that far ahead, and a bar nearer cuts the line short. Kept while the car is still in the lane it was
-        read in (``KerbLanes``); forgotten inside a junction: the road left behind is not the road ahead."""
-        line, odo = self.controller.line, self.stages.odometry
-        if line.in_junction:
+        read only where the lines tell about our street (``_street_lines_read``). Kept while the car is still in
+        the lane it was read in (``KerbLanes``); forgotten inside a junction: the road left behind is not the road
+        ahead."""
+        odo = self.stages.odometry
+        if self.controller.line.in_junction:
             self._kerb_lanes.forget()
             return
-        kerb = lanes_to_kerb(lanes)
-        if kerb is not None and line.stop_line is not None \
-                and line.stop_line <= self.stages.lanes.config.markings.coverage_z_max_m:
-            kerb = None
+        kerb = lanes_to_kerb(lanes) if self._street_lines_read() else None
         self._kerb_lanes.note(kerb, (float(odo.pos[0]), float(odo.pos[1])),
                               odo.road_yaw if odo.road_yaw is not None else odo.yaw)
 
@@ -753,7 +762,8 @@ class AgentDriver:
                       stop.distance_m if stop is not None else None, centre, max(lane_range, 8.0),
                       turning=command in (1, 2), turn_left=command == 1, turned_rad=self.stages.odometry.turned,
                       speed_caps=caps, signs=self._signs,
-                      lanes_each_way=lanes_each_way(lanes), light_in_view_m=light.in_view_m if light else 0.0,
+                      lanes_each_way=lanes_each_way(lanes) if self._street_lines_read() else None,
+                      light_in_view_m=light.in_view_m if light else 0.0,
                       steered_path=steered, arc_ahead_m=self.stages.junction.arc_ahead_m,
                       arc_radius_m=self.stages.junction.arc_radius_m,
                       cross_traffic=self._cross[0], cross_unknown=self._cross[1],

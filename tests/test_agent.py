@@ -692,3 +692,40 @@ def test_the_lanes_to_the_kerb_are_read_clear_of_a_stop_bar_and_forgotten_in_a_j
     line.stop_line, line.ignore_light_m = None, 10.0  # past the bar, in the junction
     driver._note_lanes_to_kerb(seen("solid"))
     assert driver._kerb_lanes.count is None
+
+
+@needs_models
+def test_the_street_s_lane_count_is_not_read_from_lines_a_stop_line_cuts_short() -> None:
+    """The kind of street (lanes each way: the default limit, the far kerb of a crossing) is read from the lane
+    lines only where they tell about our street: with a stop line within ``coverage_z_max_m`` ahead, tracked or
+    put by a stop sign, the solid edge line ends in view and reads as dashed (two lanes each way), and beyond the
+    line lie the junction's lines; inside the junction alike. A single-lane street stays one."""
+    from towndrive.agent.drivers import make_driver
+    from towndrive.agent.perception.lanes import LaneLine, LaneResult
+    from towndrive.envs.drive_env import DriveConfig
+
+    driver = make_driver("agent")
+    driver.reset(SimpleNamespace(config=DriveConfig()))
+    ctrl, reach = driver.controller, driver.stages.lanes.config.markings.coverage_z_max_m
+
+    def lines(right_style: str) -> LaneResult:
+        left = LaneLine(np.array([0.0, 0.0, -1.75]), (3.0, 18.0), 0.9, 300, "yellow", "solid", 0.9)
+        right = LaneLine(np.array([0.0, 0.0, 1.75]), (3.0, 18.0), 0.9, 300, "white", right_style, 0.5)
+        return LaneResult(left, right, 0.0, math.inf, 0.0, 3.5, 0.9, True)
+
+    def frames(n: int, style: str, bar_m: float | None = None) -> None:
+        stop = SimpleNamespace(distance_m=bar_m) if bar_m is not None else None
+        for _ in range(n):
+            driver._decide(1.0, 0, 0.0, None, None, None, [], None, stop, lines(style), None)
+
+    frames(40, "solid")
+    assert ctrl.signs.lanes_each_way == 1
+    ctrl.signs.control, ctrl.signs.sign_line_m = "stop", reach - 6.0  # a stop sign's line, no bar tracked yet
+    frames(40, "dashed")
+    assert ctrl.signs.lanes_each_way == 1
+    ctrl.signs.control, ctrl.signs.sign_line_m = None, None
+    frames(40, "dashed", bar_m=reach - 6.0)  # the bar tracked
+    assert ctrl.signs.lanes_each_way == 1
+    ctrl.line.reset()
+    frames(40, "dashed")  # clear of any line: a dashed divider on our right is another lane of ours
+    assert ctrl.signs.lanes_each_way == 2

@@ -20,7 +20,10 @@
   readings holds while neither is seen, and the lower default before any is measured. One reading is not enough:
   where the lines end ahead (at a stop bar) a solid edge line is painted over only part of the view and is read
   as dashed, and a few such frames before the bar would make a single-lane street a two-lane one just when the
-  junction's turn is placed by it (``JunctionGuidance``: the right turn's radius, the cross street's odds).
+  junction's turn is placed by it (``JunctionGuidance``: the right turn's radius, the cross street's odds). The
+  agent gives no reading at all with a stop line within the style's reading range, or inside a junction
+  (``AgentDriver._street_lines_read``): a second of dashed readings while slowing for a stop sign outvotes the
+  street's own.
 """
 
 from __future__ import annotations
