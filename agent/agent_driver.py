@@ -298,6 +298,7 @@ class AgentDriver:
         self._corner: Callable[[str], np.ndarray] | None = None  # the cross-traffic cameras, where there are some
         self._corner_camera = CORNERS.camera
         self._cross = ("", False)  # this frame's cross traffic (Scene.cross_traffic, cross_unknown)
+        self._stop_made_s: float | None = None  # when the car made its full stop at the stop line it is at
         self._model_view: ModelView | None = None  # a camera unlike the trained rig, warped into its view
         self._pools: dict[str, ThreadPoolExecutor] = {}  # made on first use, in the process that uses them
         self._pool_pid = -1
@@ -377,6 +378,7 @@ class AgentDriver:
         self._exit_expected: float | None = None  # in a turn, the direction the road turned into should run
         self._exit_seen: ExitLine | None = None  # ... and its centre line as seen this frame
         self._exit_cornered: ExitLine | None = None  # ... and through the corner camera
+        self._stop_made_s = None
         self._far_corridor: tuple[float, float, float] | None = None  # going straight, where the far side's lies
         self._read_count = False  # in a right turn: the road turned into's lane count is read too
         self._frame = 0
@@ -565,7 +567,11 @@ class AgentDriver:
 
     def _look_across(self, t: float, corner: Callable[[str], np.ndarray | None] | None) -> None:
         """The corner cameras' look, when wanted: one side a frame, in turn; this frame's cross traffic."""
-        st, odo = self.stages, self.stages.odometry
+        st, odo, signs = self.stages, self.stages.odometry, self.controller.signs
+        if signs.stopped and self._stop_made_s is None:
+            self._stop_made_s = t  # our full stop at a stop line: who came to theirs after it goes after us
+        elif signs.control is None and signs.edging_m is None:
+            self._stop_made_s = None
         side = CrossTraffic.side_to_look(self._frame)
         frame = corner(side) if corner is not None and self._cross_wanted() else None
         if frame is None:
@@ -573,7 +579,7 @@ class AgentDriver:
             return
         pose = (float(odo.pos[0]), float(odo.pos[1]), float(odo.yaw))
         st.cross_traffic.update(t, side, self._detect_vehicles(frame), pose)
-        self._cross = (st.cross_traffic.priority(t, pose), st.cross_traffic.unknown(t, pose))
+        self._cross = (st.cross_traffic.priority(t, pose, self._stop_made_s), st.cross_traffic.unknown(t, pose))
 
     def _act(self, observation: dict[str, Any], look: Callable[[str], np.ndarray] | None,
              corner: Callable[[str], np.ndarray | None] | None = None) -> tuple[np.ndarray, AgentView, dict[str, float]]:

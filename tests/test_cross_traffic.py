@@ -33,14 +33,17 @@ def _car(ahead: float, out: float) -> Detection:
     return Detection((ahead, out, 0.0, 0.0), 0, 0.9)  # class 0: car
 
 
-def _watch(stage: ct.CrossTraffic, side: str, where, seconds: float = 1.0) -> list[str]:
-    """Look on ``side`` every other frame at a car placed by ``where(t)``; the priority verdict each look."""
+def _watch(stage: ct.CrossTraffic, side: str, where, seconds: float = 1.0,
+           stop_made_s: float | None = None) -> list[str]:
+    """Look on ``side`` every other frame at a car placed by ``where(t)``; the priority verdict each look (our full
+    stop made at ``stop_made_s``, from then on)."""
     out = []
     for k in range(int(seconds / DT)):
         t = k * DT
         if k % 2 == 0:
             stage.update(t, side, [_car(*where(t))], STILL)
-            out.append(stage.priority(t, STILL))
+            made = stop_made_s if stop_made_s is not None and t >= stop_made_s else None
+            out.append(stage.priority(t, STILL, made))
     return out
 
 
@@ -182,3 +185,22 @@ def test_after_seeing_priority_traffic_both_sides_are_looked_at_afresh() -> None
         if went is None and ctrl.signs.edging_m is None:
             went = k
     assert went == CFG.edge_looks + CFG.edge_looks - 1  # the seen frame's index plus edge_looks clear looks
+
+
+def test_a_car_that_came_to_its_line_after_our_full_stop_waits_its_turn(monkeypatch: pytest.MonkeyPatch) -> None:
+    """At an all-way stop, who stopped first goes first: a car coming to a stand at its own line 18 m from our way
+    after our full stop is not let go first; before our stop (or with none made) it is, as before."""
+    def where(t: float) -> tuple[float, float]:  # comes at 6 m/s and stops 18 m to the left at 1.5 s
+        return 20.0, 20.0 + 6.0 * max(1.5 - t, 0.0)
+
+    after_ours = _watch(_stage(monkeypatch), "left", where, seconds=3.0, stop_made_s=0.5)
+    before_ours = _watch(_stage(monkeypatch), "left", where, seconds=3.0, stop_made_s=2.5)
+    assert any("s away" in v for v in after_ours)  # waited for while it came
+    assert after_ours[-3:] == ["", "", ""]  # standing (its fitted speed has fallen under the threshold at 2.6 s)
+    assert all("letting it go first" in v for v in before_ours[-3:])
+
+    def near(t: float) -> tuple[float, float]:  # ... while one stopping 2 m from our way stopped for our nose
+        return 20.0, 4.0 + 6.0 * max(1.5 - t, 0.0)
+
+    for_our_nose = _watch(_stage(monkeypatch), "left", near, seconds=3.0, stop_made_s=0.5)
+    assert all("letting it go first" in v for v in for_our_nose[-3:])

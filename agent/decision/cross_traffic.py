@@ -15,7 +15,11 @@ of it). "Would reach it" is judged as if a car slower than the street's speed pu
 (``resume_accel_mps2``, up to ``RoadDesign.single_lane_limit_kmh``): our own car, starting from the line, needs
 three or four seconds to clear a two-lane street, and a car standing or slowing 25 m off is there in that time
 once it goes, while at its speed of the moment it would take ten. Parked cars, cars that stand longer, and cars
-driving away from our way are not waited for.
+driving away from our way are not waited for. Nor is a car that came to a stand at its own line (farther than
+``arrival_clear_m`` from our way) after our full stop at ours: at an all-way stop who stopped first goes first, and
+it waits for us (letting it go first, we both waited, until the world's drivers take the turn from a first in
+line that does not go). When it came to a stand is backdated to its first sighting within ``stand_sigmas`` of its
+reading's standard error of where it stands: the fitted speed falls under the threshold a fit's window late.
 """
 
 from __future__ import annotations
@@ -48,6 +52,10 @@ class CrossTrafficConfig:
     range_m: float = 70.0  # sightings farther off are not placed well enough to count
     unknown_near_m: float = 45.0  # a vehicle this near whose motion is not told yet is waited for (briefly)
     stopped_wait_s: float = 3.0  # one that came towards our way and stands is waited for this long after it came
+    stand_sigmas: float = 2.0  # one stands since its readings came within this many of their standard errors
+    stand_min_m: float = 1.0  # (``BoxGeometry.distance_sd``), and at least this, of where it stands
+    arrival_clear_m: float = VEHICLE.length_m  # one that came to a stand after our full stop, farther than this
+    #                                            from our way, stands at its own line and waits its turn after us
     resume_accel_mps2: float = 3.0  # how hard a car standing or slower than the street's speed may pull away
     #                                 (highway-env's IDM a, the world's drivers' own)
 
@@ -59,6 +67,7 @@ class CrossTrack:
     side: str
     seen: list[tuple[float, float, float]] = field(default_factory=list)
     came_s: float = -math.inf  # when it was last seen moving towards our way
+    stood_s: float = math.inf  # when it came to a stand since (inf: moving, or never seen standing)
     _fit: tuple[tuple[float, int], tuple[np.ndarray, np.ndarray] | None] | None = None  # (now, sightings) -> fit
 
     def velocity(self, now_s: float, config: CrossTrafficConfig) -> tuple[np.ndarray, np.ndarray] | None:
@@ -150,9 +159,10 @@ class CrossTraffic:
             return (math.sqrt(speed_mps * speed_mps + 2.0 * a * distance_m) - speed_mps) / a
         return (top - speed_mps) / a + (distance_m - to_top_m) / top
 
-    def priority(self, t: float, pose: tuple[float, float, float]) -> str:
+    def priority(self, t: float, pose: tuple[float, float, float], stop_made_s: float | None = None) -> str:
         """What forbids crossing now ("" when nothing): a vehicle moving across our way towards it that could reach
-        it within ``gap_s`` (``reach_s``), or one that came so and stands or crawls, for ``stopped_wait_s``."""
+        it within ``gap_s`` (``reach_s``), or one that came so and stands or crawls, for ``stopped_wait_s``, unless
+        it came to a stand at its own line after our full stop (made at ``stop_made_s``): it arrived after us."""
         cfg = self.config
         x, y, yaw = pose
         ahead_v, right_v = _axes(yaw)
@@ -170,7 +180,9 @@ class CrossTraffic:
                 continue  # behind us
             where = "from the left" if right < 0 else "from the right"
             to_way_m = max(0.0, abs(right) - cfg.path_half_m)
-            if abs(v_right) < cfg.min_speed_mps:
+            if self._standing(k, p, abs(v_right), math.hypot(ahead, right), t):
+                if stop_made_s is not None and k.stood_s > stop_made_s and to_way_m > cfg.arrival_clear_m:
+                    continue  # it came to its line after we had stopped at ours: our turn first
                 if t - k.came_s < cfg.stopped_wait_s and self.reach_s(to_way_m, 0.0) < cfg.gap_s:
                     return f"cross traffic {where} stopped {math.hypot(ahead, right):.0f} m off: letting it go first"
                 continue  # standing (or parked)
@@ -181,3 +193,20 @@ class CrossTraffic:
             if time_s < cfg.gap_s:
                 return f"cross traffic {where} {math.hypot(ahead, right):.0f} m off, {time_s:.1f} s away"
         return ""
+
+    def _standing(self, k: CrossTrack, p: np.ndarray, speed_across_mps: float, range_m: float, t: float) -> bool:
+        """Whether a track stands (or crawls): slower across our way than ``min_speed_mps``. It stood since its first
+        sighting within ``stand_sigmas`` of its reading's standard error (``BoxGeometry.distance_sd``) of where it
+        stands (``stood_s``: its fitted speed falls under the threshold only a fit's window later)."""
+        cfg = self.config
+        if speed_across_mps >= cfg.min_speed_mps:
+            k.stood_s = math.inf
+            return False
+        if math.isinf(k.stood_s):
+            near_m = max(cfg.stand_min_m, cfg.stand_sigmas * self.geometry.distance_sd(range_m, "car"))
+            k.stood_s = t
+            for seen_s, sx, sy in reversed(k.seen):
+                if math.hypot(sx - p[0], sy - p[1]) >= near_m:
+                    break
+                k.stood_s = seen_s
+        return True

@@ -64,9 +64,21 @@ class BoxGeometry:
             return z_size
         if not math.isfinite(z_size):
             return z_ground
+        var_g, var_s = self._variances(z_ground, z_size, height_px)
+        return (z_ground / var_g + z_size / var_s) / (1.0 / var_g + 1.0 / var_s)
+
+    def _variances(self, z_ground: float, z_size: float, height_px: float) -> tuple[float, float]:
+        """The variances of the two distance readings: the box's bottom row on the road (a row's error grows with
+        the square of the distance) and its height against the kind's prior height."""
         var_g = (z_ground ** 2 / (self.f * self.camera.mount_height_m) * self.row_sigma) ** 2
         var_s = (z_size * self.row_sigma / height_px) ** 2 + (self.prior_sigma * z_size) ** 2
-        return (z_ground / var_g + z_size / var_s) / (1.0 / var_g + 1.0 / var_s)
+        return var_g, var_s
+
+    def distance_sd(self, z_m: float, kind: str) -> float:
+        """The standard error of ``distance`` for a whole object of ``kind`` standing ``z_m`` ahead: how far its
+        reading may wander from one picture to the next while nothing moves but the camera."""
+        var_g, var_s = self._variances(z_m, z_m, self.f * HEIGHT_PRIOR_M.get(kind, 1.5) / max(z_m, 1e-6))
+        return math.sqrt(1.0 / (1.0 / var_g + 1.0 / var_s))
 
     def height_ratio(self, box: np.ndarray | tuple[float, ...], kind: str) -> float:
         """The box's height over the height the kind's prior height would have where its bottom row meets the
