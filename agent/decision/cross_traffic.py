@@ -180,7 +180,7 @@ class CrossTraffic:
                 continue  # behind us
             where = "from the left" if right < 0 else "from the right"
             to_way_m = max(0.0, abs(right) - cfg.path_half_m)
-            if self._standing(k, p, abs(v_right), math.hypot(ahead, right), t):
+            if self._note_stand(k, p, abs(v_right), math.hypot(ahead, right), t):
                 if stop_made_s is not None and k.stood_s > stop_made_s and to_way_m > cfg.arrival_clear_m:
                     continue  # it came to its line after we had stopped at ours: our turn first
                 if t - k.came_s < cfg.stopped_wait_s and self.reach_s(to_way_m, 0.0) < cfg.gap_s:
@@ -194,10 +194,11 @@ class CrossTraffic:
                 return f"cross traffic {where} {math.hypot(ahead, right):.0f} m off, {time_s:.1f} s away"
         return ""
 
-    def _standing(self, k: CrossTrack, p: np.ndarray, speed_across_mps: float, range_m: float, t: float) -> bool:
-        """Whether a track stands (or crawls): slower across our way than ``min_speed_mps``. It stood since its first
-        sighting within ``stand_sigmas`` of its reading's standard error (``BoxGeometry.distance_sd``) of where it
-        stands (``stood_s``: its fitted speed falls under the threshold only a fit's window later)."""
+    def _note_stand(self, k: CrossTrack, p: np.ndarray, speed_across_mps: float, range_m: float, t: float) -> bool:
+        """Whether a track stands (or crawls): slower across our way than ``min_speed_mps``; and note since when
+        (``stood_s``, reset once it moves): since its first sighting within ``stand_sigmas`` of its reading's
+        standard error (``BoxGeometry.distance_sd``) of where it stands (its fitted speed falls under the
+        threshold only a fit's window later)."""
         cfg = self.config
         if speed_across_mps >= cfg.min_speed_mps:
             k.stood_s = math.inf
