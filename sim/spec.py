@@ -262,6 +262,7 @@ class RoadDesign:
     far_lane_shift_sd_m: float = 0.0
     far_lane_turn_sd_deg: float = 0.0
     stop_bar_depth_m: float = 0.5  # the painted bar's depth along the lane
+    crosswalk_depth_m: float = 3.0  # a zebra's depth along the road it crosses (the length of its stripes)
     # Where our signal head hangs: on a mast arm over the incoming lanes, across the junction. A design with
     # other mounts (posts at a corner) lists them in ``other_signal_mounts``: where heads hang is a kind, not a
     # number that spreads, so each kind is one mode of the prior.

@@ -519,7 +519,6 @@ POLE_HEAD_HEIGHT_M = 3.6  # a post-mounted head's centre above the road
 CROSSWALK_GAP_M = 0.6  # kerb line of the crossing street to the zebra
 CORNER_TO_ZEBRA_M = 0.3  # where corners are rounded wide (styles), the zebra starts this far past the rounding
 POLE_FROM_KERB_M = 1.25  # a signal pole stands this far inside a corner's kerb (the classic corner's spacing)
-CROSSWALK_DEPTH_M = 3.0
 STOP_BAR_GAP_M = 0.5  # zebra to the stop bar, at least
 PARKED_SLOT_M = 6.0  # one parked car's share of the kerb
 PARKING_CLEAR_M = 10.0  # no parking this near a road's ends (the junction's mouth)
@@ -640,7 +639,7 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
             if extra is None:
                 setback[(node, a)] = config.stop_line_setback_m
             else:
-                need = _cross_street(a, node, cols, rows).half_width_m + zebra_gap + CROSSWALK_DEPTH_M
+                need = _cross_street(a, node, cols, rows).half_width_m + zebra_gap + ROAD.crosswalk_depth_m
                 setback[(node, a)] = round(need + STOP_BAR_GAP_M + extra, 2)
         controls[node] = _junction_controls(style, node, arms, cols, rows, len(arms) == 3, mix)
         if Control.SIGNAL in controls[node].values():
@@ -779,7 +778,7 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
             elif control != Control.PRIORITY:
                 markings["stop_line"].append(np.array([far + inner, near + inner, near + outer, far + outer]))
             # Zebra across the whole arm, between the crossing street and the stop bar.
-            cw0, cw1 = half_cross + zebra_gap, half_cross + zebra_gap + CROSSWALK_DEPTH_M
+            cw0, cw1 = half_cross + zebra_gap, half_cross + zebra_gap + ROAD.crosswalk_depth_m
             for lat in np.arange(-half_arm + 0.4, half_arm - 0.3, 1.0):
                 q0, q1 = c + u * cw0 + r * lat, c + u * cw1 + r * lat
                 markings["crosswalk"].append(np.array([q0, q1, q1 + r * 0.5, q0 + r * 0.5]))

@@ -6,13 +6,15 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
 from towndrive.agent.decision.blind_spot import SideMount
 from towndrive.agent.perception.exit_line import ExitLineFinder
+from towndrive.agent.perception.lanes import BirdsEye
 from towndrive.envs.drive_env import DriveConfig, DriveEnv
-from towndrive.sim.spec import CORNERS
+from towndrive.sim.spec import CORNERS, CameraConfig
 from towndrive.sim.town import Command, TownConfig
 from towndrive.sim.world import World, WorldConfig, cached_town
 
@@ -183,3 +185,47 @@ def test_the_corner_camera_reads_the_road_turned_into_from_the_turns_start(
     seen = line.seen_from(x, z, yaw)
     assert _off_line_m(seen.point, a, b) <= POSITION_TOLERANCE_M
     assert abs(math.degrees(math.remainder(seen.direction_rad - runs, 2 * math.pi))) <= DIRECTION_TOLERANCE_DEG
+
+
+def _painted(camera: CameraConfig, strokes: list[tuple[tuple[float, float], tuple[float, float]]]) -> np.ndarray:
+    """A camera frame of grey road with yellow paint 0.3 m wide along each stroke (two road points, the camera's
+    ground frame: x right, z ahead)."""
+    eye = BirdsEye(camera)
+    rgb = np.full((camera.height, camera.width, 3), 60, np.uint8)
+    for a, b in strokes:
+        a_, b_ = np.asarray(a, float), np.asarray(b, float)
+        u = (b_ - a_) / np.linalg.norm(b_ - a_)
+        n = np.array([u[1], -u[0]]) * 0.15
+        ring = np.array([a_ + n, b_ + n, b_ - n, a_ - n])
+        px = eye.image_of_ground(ring[:, 0], ring[:, 1])
+        cv2.fillPoly(rgb, [np.round(px).astype(np.int32)], (210, 170, 40))
+    return rgb
+
+
+def _along(start: tuple[float, float], direction_rad: float, from_m: float, to_m: float
+           ) -> tuple[tuple[float, float], tuple[float, float]]:
+    u = np.array([math.sin(direction_rad), math.cos(direction_rad)])
+    p = np.asarray(start, float)
+    return tuple(p + from_m * u), tuple(p + to_m * u)  # type: ignore[return-value]
+
+
+def test_paint_in_pieces_far_apart_is_not_a_line() -> None:
+    """A zebra stripe lit orange (3 m) and a fleck 5 m beyond it on the same bearing span 9 m between them, but no
+    line is painted there: nothing is read (read as one line, the turn's arc was put 2 m too far)."""
+    camera = DriveConfig().camera
+    runs = math.radians(-52.0)
+    rgb = _painted(camera, [_along((-6.0, 7.5), runs, 0.0, 3.0), _along((-6.0, 7.5), runs, 8.0, 8.6)])
+    assert ExitLineFinder(camera).find(rgb, runs) is None
+
+
+def test_a_centre_line_cut_short_by_a_car_is_read_from_its_longest_piece() -> None:
+    """A centre line with a car across it (a 4 m gap) is read from the longer piece in view, on the line."""
+    camera = DriveConfig().camera
+    runs, start = math.radians(-45.0), (-2.0, 6.0)
+    rgb = _painted(camera, [_along(start, runs, 0.0, 3.0), _along(start, runs, 7.0, 16.0)])
+    line = ExitLineFinder(camera).find(rgb, runs + math.radians(5.0))
+    assert line is not None
+    a, b = (np.asarray(p) for p in _along(start, runs, 0.0, 16.0))
+    assert _off_line_m(line.point, a, b) <= POSITION_TOLERANCE_M
+    assert abs(math.degrees(math.remainder(line.direction_rad - runs, 2 * math.pi))) <= DIRECTION_TOLERANCE_DEG
+    assert 7.0 <= line.length_m <= 12.0  # the longer piece alone (read as one line, both: 16 m and more)

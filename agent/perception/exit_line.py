@@ -15,8 +15,9 @@ above the local road, so it works at night as at noon) in a wide bird's-eye view
 dense band of it within a window around the direction the junction's geometry expects. Only a line long enough to
 have a direction counts, and only one with road on both sides: at dusk the low sun lights white paint orange, and a
 zebra's stripes (side by side, a metre apart) line up into a band as dense as the centre line; the centre line has
-no paint of its colour within a metre or so beside it, a zebra has as much as on the band itself. Nothing is
-guessed.
+no paint of its colour within a metre or so beside it, a zebra has as much as on the band itself. The line is the
+band's longest stretch without a gap, and it must be longer than a zebra's stripe: a single stripe lit orange with a
+fleck of paint metres beyond it on its bearing spans as much as a line but is none. Nothing is guessed.
 
 The white line a lane to the centre line's right (in the direction of travel) tells the street's lane count, which
 a right turn's kerb lane depends on: beside a single lane it is the solid edge line, between two lanes the dashed
@@ -35,7 +36,7 @@ import cv2
 import numpy as np
 
 from towndrive.agent.perception.lanes import BirdsEye, BirdsEyeConfig, ThresholdConfig, lane_masks, white_any_direction
-from towndrive.sim.spec import CameraConfig
+from towndrive.sim.spec import ROAD, CameraConfig
 
 
 @dataclass(frozen=True)
@@ -48,7 +49,10 @@ class ExitLineConfig:
     bin_m: float = 0.25  # paint is binned across the candidate direction at this spacing
     inlier_m: float = 0.4  # paint this near the best line is its own (the double line's pair and its blur)
     min_pixels: int = 60  # bird's-eye pixels of paint on the line (about 2 m of a double line)
-    min_length_m: float = 3.0  # the paint must span this much along the line
+    # the paint must span this much along the line without a gap over ``max_gap_m``: longer than a zebra's stripes
+    # (``RoadDesign.crosswalk_depth_m``), which at dusk the low sun can light as orange as the centre line
+    min_length_m: float = ROAD.crosswalk_depth_m + 1.0
+    max_gap_m: float = 1.0
     # paint beside the line (from ``inlier_m`` to this far across it, along its span) ...
     side_m: float = 1.5
     side_max_share: float = 0.5  # ... at most this share of the line's own: else it is a patch (a zebra), not a line
@@ -129,10 +133,10 @@ class ExitLineFinder:
         assert best is not None
         _, angle, offset = best
         apart = np.abs(x * math.cos(angle) - z * math.sin(angle) - offset)  # each pixel's distance from the line
-        near = apart <= cfg.inlier_m
+        along_all = x * math.sin(angle) + z * math.cos(angle)
+        near = _longest_stretch(apart <= cfg.inlier_m, along_all, cfg.max_gap_m)
         if int(near.sum()) < cfg.min_pixels:
             return None
-        along_all = x * math.sin(angle) + z * math.cos(angle)
         first, last = float(along_all[near].min()), float(along_all[near].max())
         beside = (apart > cfg.inlier_m) & (apart <= cfg.side_m) & (along_all >= first) & (along_all <= last)
         if int(beside.sum()) > cfg.side_max_share * int(near.sum()):
@@ -183,3 +187,18 @@ class ExitLineFinder:
         idx = np.round((along[on] - steps[0]) / cfg.divider_bin_m).astype(int)
         painted[idx[(idx >= 0) & (idx < len(steps))]] = True
         return float((painted & inside).sum() / inside.sum())
+
+
+def _longest_stretch(on_line: np.ndarray, along: np.ndarray, max_gap_m: float) -> np.ndarray:
+    """Of the pixels ``on_line``, those of the stretch along it (positions ``along``) with the most of them, where
+    no gap between neighbours is over ``max_gap_m``: paint in pieces far apart (a lit zebra stripe and a fleck
+    beyond) is not one line, and a line cut by a car in front is as long as its longest piece in view."""
+    keep = np.zeros(len(along), bool)
+    idx = np.flatnonzero(on_line)
+    if len(idx) == 0:
+        return keep
+    order = idx[np.argsort(along[idx])]
+    breaks = np.flatnonzero(np.diff(along[order]) > max_gap_m) + 1
+    pieces = np.split(order, breaks)
+    keep[max(pieces, key=len)] = True
+    return keep
