@@ -287,6 +287,7 @@ class RoadDesign:
         check_number("road lane_width_m", self.lane_width_m, 2.0, 6.0)
         check_number("road stop_line_setback_m", self.stop_line_setback_m, 3.0, 60.0)
         check_number("road stop_bar_depth_m", self.stop_bar_depth_m, 0.1, 2.0)
+        check_number("road crosswalk_depth_m", self.crosswalk_depth_m, 1.0, 8.0)
         check_number("road signal_head_height_m", self.signal_head_height_m, 2.0, 12.0)
         check_number("road signal_housing_height_m", self.signal_housing_height_m, 0.3, 3.0)
         check_number("road longest_red_s", self.longest_red_s, 1.0, 600.0)
