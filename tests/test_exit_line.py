@@ -204,13 +204,15 @@ def _painted(camera: CameraConfig, strokes: list[tuple[tuple[float, float], tupl
 
 def _along(start: tuple[float, float], direction_rad: float, from_m: float, to_m: float
            ) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The stroke from ``from_m`` to ``to_m`` along the bearing ``direction_rad`` (from the camera's axis, positive
+    right) through ``start`` (the camera's ground frame)."""
     u = np.array([math.sin(direction_rad), math.cos(direction_rad)])
     p = np.asarray(start, float)
     return tuple(p + from_m * u), tuple(p + to_m * u)  # type: ignore[return-value]
 
 
 def test_paint_in_pieces_far_apart_is_not_a_line() -> None:
-    """A zebra stripe lit orange (3 m) and a fleck 5 m beyond it on the same bearing span 9 m between them, but no
+    """A zebra stripe lit orange (3 m) and a fleck 5 m beyond it on the same bearing span nearly 9 m, but no
     line is painted there: nothing is read (read as one line, the turn's arc was put 2 m too far)."""
     camera = DriveConfig().camera
     runs = math.radians(-52.0)
