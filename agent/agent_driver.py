@@ -298,7 +298,6 @@ class AgentDriver:
         self._corner: Callable[[str], np.ndarray] | None = None  # the cross-traffic cameras, where there are some
         self._corner_camera = CORNERS.camera
         self._cross = ("", False)  # this frame's cross traffic (Scene.cross_traffic, cross_unknown)
-        self._stop_made_s: float | None = None  # when the car made its full stop at the stop line it is at
         self._model_view: ModelView | None = None  # a camera unlike the trained rig, warped into its view
         self._pools: dict[str, ThreadPoolExecutor] = {}  # made on first use, in the process that uses them
         self._pool_pid = -1
@@ -378,7 +377,7 @@ class AgentDriver:
         self._exit_expected: float | None = None  # in a turn, the direction the road turned into should run
         self._exit_seen: ExitLine | None = None  # ... and its centre line as seen this frame
         self._exit_cornered: ExitLine | None = None  # ... and through the corner camera
-        self._stop_made_s = None
+        self._stop_made_s: float | None = None  # when the car made its full stop at the stop line it is at
         self._far_corridor: tuple[float, float, float] | None = None  # going straight, where the far side's lies
         self._read_count = False  # in a right turn: the road turned into's lane count is read too
         self._frame = 0

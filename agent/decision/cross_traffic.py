@@ -180,18 +180,19 @@ class CrossTraffic:
                 continue  # behind us
             where = "from the left" if right < 0 else "from the right"
             to_way_m = max(0.0, abs(right) - cfg.path_half_m)
-            if self._note_stand(k, p, abs(v_right), math.hypot(ahead, right), t):
+            range_m = math.hypot(ahead, right)
+            if self._note_stand(k, p, abs(v_right), range_m, t):
                 if stop_made_s is not None and k.stood_s > stop_made_s and to_way_m > cfg.arrival_clear_m:
                     continue  # it came to its line after we had stopped at ours: our turn first
                 if t - k.came_s < cfg.stopped_wait_s and self.reach_s(to_way_m, 0.0) < cfg.gap_s:
-                    return f"cross traffic {where} stopped {math.hypot(ahead, right):.0f} m off: letting it go first"
+                    return f"cross traffic {where} stopped {range_m:.0f} m off: letting it go first"
                 continue  # standing (or parked)
             if right * v_right > 0:
                 continue  # moving away from our way
             k.came_s = t
             time_s = self.reach_s(to_way_m, abs(v_right))
             if time_s < cfg.gap_s:
-                return f"cross traffic {where} {math.hypot(ahead, right):.0f} m off, {time_s:.1f} s away"
+                return f"cross traffic {where} {range_m:.0f} m off, {time_s:.1f} s away"
         return ""
 
     def _note_stand(self, k: CrossTrack, p: np.ndarray, speed_across_mps: float, range_m: float, t: float) -> bool:

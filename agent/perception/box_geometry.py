@@ -26,6 +26,11 @@ LENGTH_PRIOR_M = {"car": 4.3, "truck": 6.5}
 LENGTHWISE_TOLERANCE = 0.25  # a box this far (a fraction) from the lengthwise width is not judged lengthwise
 
 
+def prior_height_m(kind: str) -> float:
+    """The prior height of an object of ``kind`` (a kind without one is taken for a car)."""
+    return HEIGHT_PRIOR_M.get(kind, HEIGHT_PRIOR_M["car"])
+
+
 def at_side_edge(box: tuple[float, float, float, float] | np.ndarray, width_px: int, margin_px: float = 0.5) -> bool:
     """Whether a box touches the image's left or right edge, within ``margin_px`` (the object is leaving the view
     sideways, or is cut by its edge)."""
@@ -54,7 +59,7 @@ class BoxGeometry:
         x0, y0, x1, y1 = (float(v) for v in box)
         z_ground = float(self.birdseye.ground_z_of_row(np.array([y1]))[0])
         height_px = y1 - y0
-        z_size = self.f * HEIGHT_PRIOR_M.get(kind, 1.5) / height_px if height_px >= 2 else math.nan
+        z_size = self.f * prior_height_m(kind) / height_px if height_px >= 2 else math.nan
         cut_top, cut_bottom = self.cut(box)
         if cut_top:
             z_size = math.nan
@@ -77,7 +82,7 @@ class BoxGeometry:
     def distance_sd(self, z_m: float, kind: str) -> float:
         """The standard error of ``distance`` for a whole object of ``kind`` standing ``z_m`` ahead: how far its
         reading may wander from one picture to the next while nothing moves but the camera."""
-        var_g, var_s = self._variances(z_m, z_m, self.f * HEIGHT_PRIOR_M.get(kind, 1.5) / max(z_m, 1e-6))
+        var_g, var_s = self._variances(z_m, z_m, self.f * prior_height_m(kind) / max(z_m, 1e-6))
         return math.sqrt(1.0 / (1.0 / var_g + 1.0 / var_s))
 
     def height_ratio(self, box: np.ndarray | tuple[float, ...], kind: str) -> float:
@@ -90,7 +95,7 @@ class BoxGeometry:
         z = float(self.birdseye.ground_z_of_row(np.array([y1]))[0])
         if not math.isfinite(z) or z <= 0:
             return math.nan
-        return z * (y1 - y0) / (self.f * HEIGHT_PRIOR_M.get(kind, 1.5))
+        return z * (y1 - y0) / (self.f * prior_height_m(kind))
 
     def height_of_row(self, v_px: float, z_m: float) -> float:
         """Metres above the road seen at image row ``v_px`` at forward ground distance ``z_m``."""
@@ -108,7 +113,7 @@ class BoxGeometry:
             return math.nan
         if not math.isfinite(self.last_row_z_m) or self.last_row_z_m <= 0:
             return math.nan
-        return self.height_of_row(float(box[1]), self.last_row_z_m) / HEIGHT_PRIOR_M.get(kind, 1.5)
+        return self.height_of_row(float(box[1]), self.last_row_z_m) / prior_height_m(kind)
 
     def lengthwise(self, box: np.ndarray | tuple[float, ...], z_m: float, kind: str) -> bool:
         """Whether a vehicle wholly to one side of the camera axis stands lengthwise along it rather than across.

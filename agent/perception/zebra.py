@@ -43,7 +43,7 @@ import numpy as np
 
 from towndrive.agent.perception.lanes import BirdsEye, BirdsEyeConfig, LaneResult
 from towndrive.agent.perception.stop_line import lane_corridor, row_bands
-from towndrive.sim.spec import CameraConfig
+from towndrive.sim.spec import ROAD, CameraConfig
 
 
 @dataclass(frozen=True)
@@ -61,7 +61,8 @@ class ZebraConfig:
     min_corridor_m: float = 1.2  # narrower corridor rows (the lines' fits crossing far out) are not judged
     depth_range_m: tuple[float, float] = (1.8, 4.2)  # how deep the band may be (stripes are 3 m long)
     gap_m: float = 0.3  # rows missing inside a band (noise, a pedestrian) that do not split it
-    nominal_depth_m: float = 3.0  # used for the near edge when the band runs out of the view's near edge
+    # used for the near edge when the band runs out of the view's near edge: the stripes' length
+    nominal_depth_m: float = ROAD.crosswalk_depth_m
     corridor_half_m: float = 1.5  # half width of the corridor when no lane is known (or only one line)
     corridor_inset_m: float = 0.25  # kept clear of the lane lines
     after_bar_m: tuple[float, float] = (-1.0, 7.5)  # where the near edge may start past the stop bar (the bar
