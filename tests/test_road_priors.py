@@ -1100,3 +1100,68 @@ def test_the_line_beside_the_cross_streets_centre_line_tells_its_lane_count() ->
     assert odds([0.9, 0.95, 1.0])[1] > 0.9
     assert odds([0.4, 0.3, 0.45])[2] > 0.9
     assert odds([0.1, 0.9, 0.95, 1.0])[1] > 0.9
+
+
+def test_a_bar_read_with_the_car_turned_away_from_its_lane_places_no_turn() -> None:
+    """``JunctionGuidance.note``: turned more than ``place_max_turned_deg`` from the approach lane, paint read as a
+    bar ahead lies across the road being turned into (its zebra, another arm's line), not on the approach; placed,
+    it set a turn's arc in the approach lane's frame from the middle of the turn."""
+    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
+    from towndrive.agent.perception.stop_line import StopLine
+
+    rules = JunctionRules()
+    for turned_deg, placed in ((rules.place_max_turned_deg + 20.0, False), (rules.place_max_turned_deg / 2, True)):
+        odo = approach_odometry()
+        odo.yaw = math.radians(turned_deg)  # turned since the car last drove along its lane (approach_yaw 0)
+        g = JunctionGuidance(rules, tracked_bar(), odo, 1.0, road_priors("suburb"))
+        g.note(StopLine(8.0, 0.5, 0.9, 0))
+        assert g.placed is placed
+
+
+def test_the_rest_of_a_turn_from_the_car_s_pose_ends_on_the_lane_turned_into() -> None:
+    """``arc_from_pose``: from a car already turned part way (its centre off the approach lane's line), straight on
+    along its heading, then the design's radius when there is room, else tighter, ending along the lane turned into
+    (whose centre line crosses the approach lane's ``reach`` beyond the bar's far edge at the turn's angle)."""
+    from towndrive.agent.decision.junction import arc_from_pose
+
+    for command, side in ((2, 1.0), (1, -1.0)):
+        for (along, across, heading_deg), radius, room in (((4.0, 0.3, 10.0), 8.0, True), ((9.4, 1.0, 15.0), 10.0, False)):
+            placed = arc_from_pose(command, (along, side * across), side * math.radians(heading_deg), 16.6, 0.5,
+                                   radius, 97.0)
+            assert placed is not None
+            path, begins, ends, r = placed
+            k0, k1 = int(round(begins / 0.2)), int(round(ends / 0.2))
+            # through the car's centre, along its heading
+            assert np.min(np.hypot(*(path - np.array([along, side * across])).T)) < 0.15
+            d0 = path[k0] - path[k0 - 5]
+            assert math.degrees(math.atan2(side * d0[1], d0[0])) == pytest.approx(heading_deg, abs=0.5)
+            d1 = path[-1] - path[k1]
+            assert math.degrees(math.atan2(side * d1[1], d1[0])) == pytest.approx(97.0, abs=0.5)
+            crossing = path[k1][0] - path[k1][1] * d1[0] / d1[1]  # the exit line, carried back to our lane's line
+            assert crossing == pytest.approx(0.5 + 16.6, abs=0.1)
+            assert (r == radius) is room and (r <= radius)
+    assert arc_from_pose(2, (10.0, 5.0), math.radians(100.0), 16.6, 0.5, 8.0, 97.0) is None  # already along it
+
+
+def test_a_turn_read_to_end_elsewhere_after_its_arc_began_is_re_placed_from_where_the_car_is() -> None:
+    """``JunctionGuidance.turn_steer``: the arc's start committed for one reach, a reading well on in the turn
+    that puts the lane turned into 2.2 m farther (the other lane count) would stretch the arc from that start to a
+    radius far from the design's; the rest of the turn is re-placed from the car's pose on the design's radius
+    instead (``replace_radius_m``), which keeps nearer the lanes (the stretched arc cuts inside the corner)."""
+    from towndrive.agent.decision.junction import JunctionGuidance, JunctionRules
+
+    rules = JunctionRules()
+    odo = approach_odometry()
+    g = JunctionGuidance(rules, tracked_bar(), odo, 1.0, road_priors("suburb"))
+    g.junction = (11.0, 0.0, 0.0, 2)  # a right turn under way, the bar's near edge at x = 11
+    g._arc_start_m = 5.0
+    g._exit_fix = (14.4, 90.0)  # read: the arc from 5.0 m needs no stretching
+    odo.pos, odo.yaw = np.array([11.0 + 9.4, 1.0]), math.radians(15.0)
+    g.turn_steer(2, 3.0)
+    assert g._replaced is None
+    g._exit_fix = (14.4 + 2.2 + 4.0, 90.0)  # read on, far from where the arc from 5.0 m ends on the design's radius
+    g.turn_steer(2, 3.0)
+    assert g._replaced is not None
+    (path, begins, ends, radius), reach, angle = g._replaced
+    assert np.min(np.hypot(*(path - np.array([9.4, 1.0])).T)) < 0.15  # from where the car is
+    assert g.arc_ahead_m is not None and g.arc_ahead_m >= -0.2

@@ -95,6 +95,43 @@ def arc_placement(reach_m: float, bar_depth_m: float, radius_m: float | None, an
     return radius, bar_depth_m + reach_m - radius * math.tan(half)
 
 
+def arc_from_pose(command: int, centre: tuple[float, float], heading_rad: float, reach_m: float, bar_depth_m: float,
+                  radius_m: float, angle_deg: float, step_m: float = 0.2,
+                  back_m: float = 5.0) -> tuple[np.ndarray, float, float, float] | None:
+    """The rest of a turn from where the car is (``turn_path``'s frame: its centre and heading from the approach
+    lane): straight on along its heading, then an arc of ``radius_m`` onto the lane turned into (whose centre line
+    crosses the approach lane's ``reach_m`` beyond the bar's far edge at ``angle_deg``), tighter where there is no
+    longer room for that radius (never under the car's smallest), then 30 m of that lane; ``back_m`` of the
+    heading's line behind the car first. Returns the path, the path length at which its arc begins and ends, and
+    its radius; None when the car already heads along the lane turned into, or past it."""
+    side = 1.0 if command == 2 else -1.0
+    x, y, h = centre[0], side * centre[1], side * heading_rad  # the turn taken to the right
+    th = math.radians(angle_deg)
+    rem = th - h
+    if rem <= math.radians(1.0):
+        return None
+    # where the car's line of travel meets the lane turned into's centre line, through (bar depth + reach, 0)
+    a = np.array([[math.cos(h), -math.cos(th)], [math.sin(h), -math.sin(th)]])
+    if abs(np.linalg.det(a)) < 1e-9:
+        return None
+    t = float(np.linalg.solve(a, np.array([bar_depth_m + reach_m - x, -y]))[0])
+    if t <= 0.0:
+        return None
+    tan_half = math.tan(rem / 2)
+    radius = radius_m if radius_m * tan_half <= t else max(VEHICLE.min_turn_radius_m, t / tan_half)
+    lead = max(0.0, t - radius * tan_half)
+    u = np.array([math.cos(h), math.sin(h)])
+    before = np.array([x, y]) + np.arange(-back_m, lead, step_m)[:, None] * u
+    start = np.array([x, y]) + lead * u
+    middle = start + radius * np.array([-math.sin(h), math.cos(h)])
+    phi = h + np.arange(0.0, rem, step_m / radius)
+    arc = middle + radius * np.stack([np.sin(phi), -np.cos(phi)], axis=1)
+    end = middle + radius * np.array([math.sin(th), -math.cos(th)])
+    exit_ = end + np.arange(0.0, 30.0, step_m)[:, None] * np.array([math.cos(th), math.sin(th)])
+    path = np.concatenate([before, arc, exit_]) * np.array([1.0, side])
+    return path, len(before) * step_m, (len(before) + len(arc)) * step_m, radius
+
+
 def _right_of(yaw: float) -> np.ndarray:
     """The unit vector to the right of a heading (the odometry frame's y points right of its x)."""
     return np.array([-math.sin(yaw), math.cos(yaw)])
@@ -142,6 +179,9 @@ class JunctionRules:
     turn_lookahead_s: float = 0.4
     turn_offset_gain: float = 0.5  # the car's centre heads back onto the arc at atan(this x its offset in metres)
     turn_bar_seen_m: float = 12.0  # a turn is placed only by a stop bar this near (seen, or tracked from a reading)
+    # ... and only while the car still runs along the approach lane: turned farther than this from it, a "bar" ahead
+    # is paint across the road being turned into (its zebra, a stop line of another arm), not the approach's bar
+    place_max_turned_deg: float = 20.0
     # With a design whose numbers spread, the arc (dead-reckoned from priors) leads the turn only this far; the
     # camera's steering finishes it, facing the road turned into. An exact design's arc leads to the end.
     turn_handover_deg: float = 60.0
@@ -159,6 +199,11 @@ class JunctionRules:
     # A reading of the road turned into that puts the arc's start farther on moves it there while the car has
     # turned at most this (it goes on straight to it; farther round, it could not follow the later arc)
     exit_restart_max_deg: float = 10.0
+    # Farther round, a reading that would stretch the arc from where it began to a radius this much larger than the
+    # design's re-places the rest of the turn from the car's pose instead (``arc_from_pose``); a re-placed turn is
+    # re-placed again when the reach read moves this far
+    replace_radius_m: float = 1.0
+    replace_reach_m: float = 0.3
     exit_min_readings: int = 3
     exit_last_readings: int = 5
     exit_max_shift_m: float = 5.0
@@ -206,6 +251,9 @@ class JunctionGuidance:
         self._exit_fix: tuple[float, float] | None = None  # ... their medians, once there are enough readings
         self._fills: list[float] = []  # the white line beside it: how much of it is painted (ExitLine.divider_fill)
         self._arc_start_m: float | None = None  # where the arc begins (approach frame), once the car is on it
+        # the rest of the turn re-placed from the car's pose (``arc_from_pose``), and the reach and angle it was
+        # placed for
+        self._replaced: tuple[tuple[np.ndarray, float, float, float], float, float] | None = None
         # the path the arc steered along on the last frame, from the point nearest the car's centre to the arc's
         # end, and the car's centre and heading (approach frame)
         self._steered: tuple[np.ndarray, np.ndarray, float] | None = None
@@ -298,6 +346,8 @@ class JunctionGuidance:
                 and not line.stop_line_measured):
             self.junction = None  # the bar it was placed by, never read near, was forgotten as a glimpse: so is it
         if line.ignore_light_m > 0 or not line.stop_line_measured or line.stop_line is None or odo.road_yaw is None:
+            return
+        if self.junction is None and abs(odo.turned) > math.radians(self.rules.place_max_turned_deg):
             return
         near = stop is not None and stop.distance_m <= self.rules.turn_bar_seen_m
         if near:
@@ -608,19 +658,27 @@ class JunctionGuidance:
         _, planned_start = arc_placement(reach, self.road.stop_bar_depth_m, radius, angle)
         if (self._arc_start_m is not None and self.exit_measured
                 and abs(heading) <= math.radians(cfg.exit_restart_max_deg) and planned_start > self._arc_start_m):
-            self._arc_start_m = None  # read before the car has turned much: it goes on straight to the later start
+            self._arc_start_m, self._replaced = None, None  # read before the car has turned much: it goes on
+            #                                                  straight to the later start
+        design = radius
         if self._arc_start_m is not None:  # on the arc: a new reading moves its end, not where it began (a start
             # moved on lags the car already turning there, which steers back out and cannot catch the turn again)
             radius = round(max(VEHICLE.min_turn_radius_m,
                                (self.road.stop_bar_depth_m + reach - self._arc_start_m) / math.tan(half_turn)), 2)
+            self._replace(command, reach, angle, design, radius, (along, across), heading)
         path, arc_end = turn_path(command, round(reach, 2), self.road.stop_bar_depth_m, radius, angle_deg=angle)
         start = self._arc_start_m if self._arc_start_m is not None else planned_start
         self.arc_ahead_m = start - along
+        if self._replaced is not None:
+            path, arc_begins, arc_end, radius = self._replaced[0]
+            self.arc_ahead_m = arc_begins - float(np.hypot(*(path[1] - path[0]))) * int(
+                np.argmin(np.sum((path - np.array([along, across])) ** 2, axis=1)))
         # Placed by the road turned into, its lane count settled (no count in doubt moves the plan: ``hedge``), the
         # arc is driven at its curve speed; while in doubt, at the turn speed, which leaves the reading time to
         # settle before the arc's start is committed; unread (an exact design's arc), at the turn speed.
         if self.exit_measured and abs(hedge) < 1e-6:
-            self.arc_radius_m = arc_placement(reach, self.road.stop_bar_depth_m, radius, angle)[0]
+            self.arc_radius_m = (radius if self._replaced is not None
+                                 else arc_placement(reach, self.road.stop_bar_depth_m, radius, angle)[0])
         lookahead = cfg.turn_lookahead_m + cfg.turn_lookahead_s * speed
         if here[0] < self.road.stop_bar_depth_m - lookahead:  # not yet: the lookahead point is still before the arc
             return None
@@ -640,6 +698,29 @@ class JunctionGuidance:
         delta, on = self._centre_on_path(path, np.array([along, across]), heading)
         self._steered = (path[on:int(arc_end / step) + 1], np.array([along, across]), heading)
         return float(np.clip(delta / VEHICLE.max_steer_rad, -1.0, 1.0))
+
+    def _replace(self, command: int, reach: float, angle: float, design: float | None, stretched: float,
+                 centre: tuple[float, float], heading: float) -> None:
+        """On the arc, where the reach read would stretch it from where it began to a radius well over the design's
+        (a start committed for the likelier lane count, the farther lane read after the car has turned too far to go
+        on straight to a later start): the rest of the turn from the car's pose, on the design's radius
+        (``arc_from_pose``). The stretched arc, tangent to the same two lines on a larger radius, cuts inside the
+        corner by (R - r) x (1 / cos(turn / 2) - 1), a metre on a right turn read 2.4 m of radius out. A reading
+        that tightens the arc leaves it (tighter, it stays outside the corner, and a reading that flips between the
+        counts mid-turn would otherwise swing the car from one lane's arc to the other's). Kept until the reach or
+        the angle read moves again."""
+        cfg = self.rules
+        if design is None or not self.design_spreads:
+            return
+        if self._replaced is not None:
+            _, placed_reach, placed_angle = self._replaced
+            if abs(reach - placed_reach) <= cfg.replace_reach_m and abs(angle - placed_angle) <= 1.0:
+                return
+        elif stretched - design <= cfg.replace_radius_m:
+            return  # a tighter arc from the same start stays outside the corner
+        placed = arc_from_pose(command, centre, heading, reach, self.road.stop_bar_depth_m, design, angle)
+        if placed is not None:
+            self._replaced = (placed, reach, angle)
 
     def steered_path(self, ahead_m: float) -> np.ndarray | None:
         """The turn's path the car is steered along this frame (``turn_steer``) as (x, z) points in the camera's
