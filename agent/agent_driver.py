@@ -75,7 +75,7 @@ from towndrive.agent.perception.pilotnet import DEFAULT_MODEL, PilotNetModel
 from towndrive.agent.perception.signs import SignLocator, SignRules, SignSeen
 from towndrive.agent.perception.stop_line import StopLine, StopLineDetector
 from towndrive.agent.perception.tracking import Sort, SortConfig, Track
-from towndrive.agent.perception.zebra import ZebraDetector
+from towndrive.agent.perception.zebra import ZebraDetector, bar_checked
 from towndrive.agent.shipped import DETECTOR_ONNX, REFINER_ONNX
 from towndrive.envs.driver_context import DriverContext
 from towndrive.sim.spec import CAMERA, CORNERS, MIRRORS, ROAD, VEHICLE, CameraConfig, RoadDesign
@@ -374,6 +374,8 @@ class AgentDriver:
         self._zebra_far_m: float | None = None  # this frame's zebra far edge (camera to it), when looked for
         self._zebra_tilt: float | None = None  # ... and the slope of its edges (the cross street's direction)
         self._bar_tracked_m: float | None = None  # camera to the tracked bar this frame (the zebra's look, unread)
+        self._zebra_look = ""  # the zebra ahead looked for this frame, before the bar is placed (_zebra_look_wanted)
+        self._arm_governed = False  # a light or a sign seen governing the arm ahead since the last junction
         self._exit_expected: float | None = None  # in a turn, the direction the road turned into should run
         self._exit_seen: ExitLine | None = None  # ... and its centre line as seen this frame
         self._exit_cornered: ExitLine | None = None  # ... and through the corner camera
@@ -522,9 +524,15 @@ class AgentDriver:
         zebra = self.stages.zebra
         self._zebra_far_m = None
         self._zebra_tilt = None
+        ahead = None
+        if zebra is not None and self._zebra_look != "":
+            ahead = self._timed("zebra", times, zebra.detect, image, lanes, None)
+            stop = bar_checked(stop, ahead, self.config.road,
+                               self.config.turn_bar_seen_m if self._zebra_look == "stand-in" else None)
         bar_m = stop.distance_m if stop is not None else self._bar_tracked_m
         if zebra is not None and bar_m is not None and bar_m <= self.config.turn_bar_seen_m:
-            seen = self._timed("zebra", times, zebra.detect, image, lanes, bar_m)
+            seen = (ahead if ahead is not None and zebra.beyond_bar(ahead.near_m, bar_m)
+                    else self._timed("zebra", times, zebra.detect, image, lanes, bar_m))
             self._zebra_far_m = None if seen is None else seen.far_m
             self._zebra_tilt = None if seen is None else seen.tilt
         finder, expected = self.stages.exit_line, self._exit_expected
@@ -605,6 +613,7 @@ class AgentDriver:
         self._bar_tracked_m = (camera_to_bar_m(line) - speed * self.dt
                                if line.bar_confirmed and not line.in_junction else None)  # confirmed: a bar tracked
         self._far_corridor = st.junction.far_corridor()
+        self._zebra_look = self._zebra_look_wanted(command)
         self._read_count = st.junction.reads_lane_count
         # Two cores: the detector, then lanes and the stop line, on the worker while this thread looks in the
         # mirror and runs PilotNet (each stage's own thread times it); else all on this thread, in this order.
@@ -715,6 +724,22 @@ class AgentDriver:
         if self._threads is not None:
             self._threads.took(threads, time.perf_counter() - t_wall)
         return decision.action(), view, times
+
+    def _zebra_look_wanted(self, command: int) -> str:
+        """Whether this frame looks for the zebra ahead before the bar is placed (``zebra.bar_checked``): "" not, "check"
+        to check the bar read against it, "stand-in" to let it stand in for a bar where nothing governs our arm.
+        Only approaching a turn (a straight hold needs no bar), in a town whose design spreads (a zebra detector),
+        with the car still along its lane."""
+        st, line, last = self.stages, self.controller.line, self._last_view
+        if line.in_junction:
+            self._arm_governed = False  # the next arm is judged afresh
+        elif (self.controller.signs.control is not None or st.junction.control not in (None, "none")
+              or (last is not None and (last.light is not None or last.decision.light is not None))):
+            self._arm_governed = True  # a light or a sign seen once governs the arm (a light's box comes and goes)
+        if (st.zebra is None or command not in (1, 2) or line.in_junction
+                or abs(st.odometry.turned) > math.radians(st.junction.rules.place_max_turned_deg)):
+            return ""
+        return "check" if self._arm_governed else "stand-in"
 
     def _street_lines_read(self) -> bool:
         """Whether the lane lines in view tell about the street the car drives along: not inside a junction (the

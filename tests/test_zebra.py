@@ -107,3 +107,38 @@ def test_the_zebra_s_edges_tell_the_cross_street_s_direction(style: str, entry_i
     assert abs(zebra.tilt - truth) <= 0.05, (zebra.tilt, truth)
     if style != "classic":
         assert abs(truth) > 0.1  # the case is one that leans
+
+
+@pytest.mark.parametrize("before_end_m", [12.0, 16.0])
+def test_on_an_arm_with_no_bar_the_zebra_stands_in_for_one(before_end_m: float) -> None:
+    """``bar_checked`` on a suburb arm with priority (no bar painted; a training town): far off, the zebra's stripes
+    run together and the stop-line detector reads a "bar" inside the zebra's band, which is dropped; the zebra then
+    stands in for the bar, placed where the style's design puts bars before a zebra's far edge, off the arm's own
+    bar line by the arm's difference from that design and the far edge's reading error."""
+    from towndrive.agent.perception.stop_line import StopLine
+    from towndrive.agent.perception.zebra import bar_checked
+    from towndrive.sim.road_priors import road_priors
+    from towndrive.sim.town import Control
+
+    road = road_priors("suburb")
+    town_seed, entry_index = 1000, 1
+    assert cached_town(TownConfig.of_style("suburb"), town_seed).entries[entry_index].control == Control.PRIORITY
+    rgb, env = _frame("suburb", town_seed, entry_index, before_end_m)
+    assert env.world is not None
+    truth = zebra_truth(env.world, env.config.camera)
+    cam = env.config.camera
+    env.close()
+    lanes = LaneDetector(cam).detect(rgb)
+    read = StopLineDetector(cam).detect(rgb, lanes)
+    zebra = ZebraDetector(cam).detect(rgb, lanes, None)
+    assert zebra is not None and read is not None
+    assert zebra.near_m < read.distance_m < zebra.far_m  # the zebra, read as a bar
+    assert bar_checked(read, zebra, road) is None
+    assert bar_checked(read, zebra, road, 5.0) is None  # the stand-in lies farther than that
+    stand_in = bar_checked(read, zebra, road, 20.0)
+    assert stand_in is not None
+    design = road.stop_line_setback_m + road.stop_bar_depth_m - road.zebra_to_centre_m  # bar to the zebra's far edge
+    arm = truth.far_m - truth.bar_m
+    assert abs(stand_in.distance_m - truth.bar_m) <= abs(arm - design) + FAR_EDGE_TOLERANCE_M
+    bar = StopLine(zebra.near_m - 1.0, 0.5, 0.9, 0)  # a bar read before the zebra is a bar, kept as read
+    assert bar_checked(bar, zebra, road, 20.0) is bar

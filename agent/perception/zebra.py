@@ -27,6 +27,9 @@ How, and why each step:
   (robustly, twice) over at least ``tilt_min_stripes`` stripes spanning ``tilt_min_span_m`` gives the edges'
   slope. Lane lines reach beyond the band and are left out; a stripe's ends are sharp only near the car, so the
   junction guidance takes the tilt only from near readings, and their median.
+- **The bar checked against it** (``bar_checked``): approaching a turn, the zebra ahead is looked for with no bar
+  given. A "bar" read inside its band is the zebra (far off its stripes run together), and where no bar is painted
+  (an arm with priority) the zebra stands in for one, put where the road design puts bars before a zebra.
 - Relative thresholds (contrast and ratio to the local road) keep it working from noon to dusk; at night the
   headlights' pool and the darkness can leave too little contrast, and then it reports nothing.
 
@@ -42,8 +45,12 @@ import cv2
 import numpy as np
 
 from towndrive.agent.perception.lanes import BirdsEye, BirdsEyeConfig, LaneResult
-from towndrive.agent.perception.stop_line import lane_corridor, row_bands
-from towndrive.sim.spec import ROAD, CameraConfig
+from towndrive.agent.perception.stop_line import StopLine, lane_corridor, row_bands
+from towndrive.sim.spec import ROAD, CameraConfig, RoadDesign
+
+# Paint read as a stop bar this far or more past the near edge of a zebra read in the same frame lies inside the
+# zebra's band (a bar lies before its zebra; the near edge is read within a few tenths of a metre).
+BAR_IN_ZEBRA_MARGIN_M = 0.5
 
 
 @dataclass(frozen=True)
@@ -164,10 +171,16 @@ class ZebraDetector:
                 near = min(near, far - cfg.nominal_depth_m)
             elif depth < cfg.depth_range_m[0]:
                 continue
-            if stop_line_m is not None and not (cfg.after_bar_m[0] <= near - stop_line_m <= cfg.after_bar_m[1]):
+            if stop_line_m is not None and not self.beyond_bar(near, stop_line_m):
                 continue
             return Zebra(near, far, float(fill[r0:r1].mean()), (r0, r1), self._tilt(bright, r0, r1))
         return None
+
+    def beyond_bar(self, near_m: float, stop_line_m: float) -> bool:
+        """Whether a zebra whose near edge is ``near_m`` off lies where one lies past the stop bar at
+        ``stop_line_m`` (``after_bar_m``)."""
+        lo, hi = self.config.after_bar_m
+        return lo <= near_m - stop_line_m <= hi
 
     def _tilt(self, bright: np.ndarray, r0: int, r1: int) -> float | None:
         """The slope dz/dx of the zebra's edges from its stripes' ends (module docstring), or None."""
@@ -232,3 +245,24 @@ class ZebraDetector:
             if b - a > 1 and b - a - 1 <= float(max_gap_rows[a]):
                 out[a:b] = True
         return out
+
+
+def bar_checked(stop: StopLine | None, zebra: Zebra | None, road: RoadDesign,
+                stand_in_within_m: float | None = None) -> StopLine | None:
+    """The stop bar ahead checked against the nearest zebra ahead read in the same frame (``zebra``, looked for
+    with no bar given). Paint read as a bar inside the zebra's band is the zebra: far off, its stripes run
+    together into a band the stop-line detector takes for a bar. With ``stand_in_within_m`` (nothing governs our
+    arm, so no bar is painted) and no bar read, the zebra stands in for one: the bar is put where the road design
+    puts bars before a zebra's far edge (``road``'s setback, less the zebra's distance from the junction's centre),
+    so a turn there is placed as from a bar; the design's spread between junctions is the stand-in's error. Only
+    within that distance of the camera: nearer than a governed arm's light or sign is first seen, so an arm
+    whose light or sign is still out of sight is not taken for one with nothing to obey."""
+    if zebra is None:
+        return stop
+    if stop is not None and zebra.near_m + BAR_IN_ZEBRA_MARGIN_M < stop.distance_m < zebra.far_m:
+        stop = None
+    if stop is None and stand_in_within_m is not None:
+        bar_m = zebra.far_m + road.zebra_to_centre_m - road.stop_line_setback_m - road.stop_bar_depth_m
+        if 0 < bar_m <= stand_in_within_m:
+            return StopLine(bar_m, road.stop_bar_depth_m, 0.0, -1)
+    return stop
