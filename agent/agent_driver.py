@@ -525,7 +525,8 @@ class AgentDriver:
         self._zebra_far_m = None
         self._zebra_tilt = None
         ahead = None
-        if zebra is not None and self._zebra_look != "":
+        # on an arm a light or sign governs, the look only checks a bar read (the zebra stands in for none there)
+        if zebra is not None and (self._zebra_look == "stand-in" or (self._zebra_look == "check" and stop is not None)):
             ahead = self._timed("zebra", times, zebra.detect, image, lanes, None)
             stop = bar_checked(stop, ahead, self.config.road,
                                self.config.turn_bar_seen_m if self._zebra_look == "stand-in" else None)
