@@ -524,15 +524,17 @@ class AgentDriver:
         zebra = self.stages.zebra
         self._zebra_far_m = None
         self._zebra_tilt = None
-        ahead = None
+        ahead, stand_in = None, self._zebra_look == "stand-in"
         # on an arm a light or sign governs, the look only checks a bar read (the zebra stands in for none there)
-        if zebra is not None and (self._zebra_look == "stand-in" or (self._zebra_look == "check" and stop is not None)):
+        looked = zebra is not None and (stand_in or (self._zebra_look == "check" and stop is not None))
+        if looked:
             ahead = self._timed("zebra", times, zebra.detect, image, lanes, None)
-            stop = bar_checked(stop, ahead, self.config.road,
-                               self.config.turn_bar_seen_m if self._zebra_look == "stand-in" else None)
+            stop = bar_checked(stop, ahead, self.config.road, self.config.turn_bar_seen_m if stand_in else None)
         bar_m = stop.distance_m if stop is not None else self._bar_tracked_m
         if zebra is not None and bar_m is not None and bar_m <= self.config.turn_bar_seen_m:
-            seen = (ahead if ahead is not None and zebra.beyond_bar(ahead.near_m, bar_m)
+            # the look's zebra is the nearest: if it lies beyond the bar it is the one looked for, and where the look
+            # found none there is none beyond the bar either
+            seen = (ahead if looked and (ahead is None or zebra.beyond_bar(ahead.near_m, bar_m))
                     else self._timed("zebra", times, zebra.detect, image, lanes, bar_m))
             self._zebra_far_m = None if seen is None else seen.far_m
             self._zebra_tilt = None if seen is None else seen.tilt

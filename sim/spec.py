@@ -318,6 +318,12 @@ class RoadDesign:
             return self.kerb_lane_reach_m
         return self.stop_line_setback_m - 1.5 * self.lane_width_m
 
+    @property
+    def zebra_beyond_bar_m(self) -> float:
+        """A stop bar's near edge to the far edge of the zebra beyond it, along the lane (the priors' means: the
+        setback and the bar's depth, less the zebra's distance from the junction's centre)."""
+        return self.stop_line_setback_m + self.stop_bar_depth_m - self.zebra_to_centre_m
+
     def two_lane_share(self, control: str | None, our_lanes: int | None) -> float:
         """How likely the cross street has two lanes each way at a junction whose arm ``control`` governs, on a
         road of ``our_lanes`` lanes each way (None: not seen). Kinds never measured pool the nearest ones."""

@@ -137,8 +137,7 @@ def test_on_an_arm_with_no_bar_the_zebra_stands_in_for_one(before_end_m: float) 
     assert bar_checked(read, zebra, road, 5.0) is None  # the stand-in lies farther than that
     stand_in = bar_checked(read, zebra, road, 20.0)
     assert stand_in is not None
-    design = road.stop_line_setback_m + road.stop_bar_depth_m - road.zebra_to_centre_m  # bar to the zebra's far edge
-    arm = truth.far_m - truth.bar_m
-    assert abs(stand_in.distance_m - truth.bar_m) <= abs(arm - design) + FAR_EDGE_TOLERANCE_M
+    arm = truth.far_m - truth.bar_m  # this arm's bar line to its zebra's far edge
+    assert abs(stand_in.distance_m - truth.bar_m) <= abs(arm - road.zebra_beyond_bar_m) + FAR_EDGE_TOLERANCE_M
     bar = StopLine(zebra.near_m - 1.0, 0.5, 0.9, 0)  # a bar read before the zebra is a bar, kept as read
     assert bar_checked(bar, zebra, road, 20.0) is bar

@@ -666,10 +666,11 @@ class JunctionGuidance:
             radius = round(max(VEHICLE.min_turn_radius_m,
                                (self.road.stop_bar_depth_m + reach - self._arc_start_m) / math.tan(half_turn)), 2)
             self._replace(command, reach, angle, design, radius, (along, across), heading)
-        path, arc_end = turn_path(command, round(reach, 2), self.road.stop_bar_depth_m, radius, angle_deg=angle)
         start = self._arc_start_m if self._arc_start_m is not None else planned_start
-        self.arc_ahead_m = start - along
-        if self._replaced is not None:
+        if self._replaced is None:
+            path, arc_end = turn_path(command, round(reach, 2), self.road.stop_bar_depth_m, radius, angle_deg=angle)
+            self.arc_ahead_m = start - along
+        else:
             path, arc_begins, arc_end, radius = self._replaced[0]
             self.arc_ahead_m = arc_begins - float(np.hypot(*(path[1] - path[0]))) * int(
                 np.argmin(np.sum((path - np.array([along, across])) ** 2, axis=1)))

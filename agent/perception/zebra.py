@@ -253,16 +253,16 @@ def bar_checked(stop: StopLine | None, zebra: Zebra | None, road: RoadDesign,
     with no bar given). Paint read as a bar inside the zebra's band is the zebra: far off, its stripes run
     together into a band the stop-line detector takes for a bar. With ``stand_in_within_m`` (nothing governs our
     arm, so no bar is painted) and no bar read, the zebra stands in for one: the bar is put where the road design
-    puts bars before a zebra's far edge (``road``'s setback, less the zebra's distance from the junction's centre),
-    so a turn there is placed as from a bar; the design's spread between junctions is the stand-in's error. Only
-    within that distance of the camera: nearer than a governed arm's light or sign is first seen, so an arm
-    whose light or sign is still out of sight is not taken for one with nothing to obey."""
+    puts bars before a zebra's far edge (``RoadDesign.zebra_beyond_bar_m``), so a turn there is placed as from a
+    bar; the design's spread between junctions is the stand-in's error. Only within that distance of the camera:
+    nearer than a governed arm's light or sign is first seen, so an arm whose light or sign is still out of sight is
+    not taken for one with nothing to obey."""
     if zebra is None:
         return stop
     if stop is not None and zebra.near_m + BAR_IN_ZEBRA_MARGIN_M < stop.distance_m < zebra.far_m:
         stop = None
     if stop is None and stand_in_within_m is not None:
-        bar_m = zebra.far_m + road.zebra_to_centre_m - road.stop_line_setback_m - road.stop_bar_depth_m
+        bar_m = zebra.far_m - road.zebra_beyond_bar_m
         if 0 < bar_m <= stand_in_within_m:
             return StopLine(bar_m, road.stop_bar_depth_m, 0.0, -1)
     return stop
