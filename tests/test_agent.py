@@ -192,6 +192,40 @@ def test_a_car_parked_lengthwise_is_placed_by_its_length_and_one_across_by_its_w
 
 
 @needs_models
+def test_a_near_parked_car_s_box_stopping_short_of_the_image_edge_keeps_it_lengthwise() -> None:
+    """Near, a car parked beside our path reaches past the image's side edge whichever way it stands, but the
+    detector's box may stop short of it: that edge is the box's, and judged by it the car looked too narrow to
+    stand lengthwise, was read by its width, and its inner edge came 0.6 m nearer, into our side (a false hold
+    behind a parked car). Such a box is not judged: the judgement made on the whole box farther off stands."""
+    from towndrive.agent.drivers import make_driver
+    from towndrive.agent.perception.classes import CLASSES
+    from towndrive.agent.perception.tracking import Track
+    from towndrive.envs.drive_env import DriveConfig
+
+    driver = make_driver("agent")
+    driver.reset(SimpleNamespace(config=DriveConfig()))
+    geo = driver.geometry
+    inner = 1.55
+    far = car_beside_box(geo, inner_m=inner, near_m=9.0)
+    near = car_beside_box(geo, inner_m=inner, near_m=2.8)
+    assert near[0] < 0  # the car itself reaches past the image's left edge
+    short = near.copy()
+    short[0] = 16.0  # the detector's box ends 16 pixels inside it
+    assert geo.shows_outer_edge(far, geo.distance(far, "car"), "car")
+    assert not geo.shows_outer_edge(short, geo.distance(short, "car"), "car")
+    assert not geo.lengthwise(short, geo.distance(short, "car"), "car")
+    label = CLASSES.index("car")
+    for k in range(8):  # seen whole farther off, then near with the short box, standing
+        obj = driver.stages.objects.update([Track(5, far, hits=10, age=10, time_since_update=0, label=label)],
+                                           0.05 * k, None, speed_mps=0.0)[0]
+    assert obj.lateral_right_m == pytest.approx(-inner, abs=0.1)
+    for k in range(8, 20):
+        obj = driver.stages.objects.update([Track(5, short, hits=10, age=10, time_since_update=0, label=label)],
+                                           0.05 * k, None, speed_mps=0.0)[0]
+    assert obj.lateral_right_m == pytest.approx(-inner, abs=0.25)  # read by its width: a metre nearer
+
+
+@needs_models
 def test_a_car_standing_at_an_angle_to_our_axis_is_not_read_by_its_length() -> None:
     """A car standing 40 degrees off our axis (one waiting in a junction we turn through) draws a box narrower than
     either the lengthwise or the across hypothesis predicts; it is read the safe way, never beyond its nearest

@@ -115,6 +115,34 @@ class BoxGeometry:
             return math.nan
         return self.height_of_row(float(box[1]), self.last_row_z_m) / prior_height_m(kind)
 
+    def _inner_outer_px(self, box: np.ndarray | tuple[float, ...]) -> tuple[float, float, int]:
+        """A box's inner and outer edges as pixels from the image centre on its side, and the side (1: right of the
+        camera axis, -1: left, 0: across it)."""
+        cx = float(self.k[0, 2])
+        x0, x2 = float(box[0]), float(box[2])
+        if x0 > cx:
+            return x0 - cx, x2 - cx, 1
+        if x2 < cx:
+            return cx - x2, cx - x0, -1
+        return 0.0, 0.0, 0
+
+    def shows_outer_edge(self, box: np.ndarray | tuple[float, ...], z_m: float, kind: str) -> bool:
+        """Whether the outer edge of a box wholly to one side of the camera axis can be the vehicle's near outer
+        corner: the box does not touch the image's side edge, and that corner, where the narrower of the lengthwise
+        and across hypotheses (``lengthwise``) puts it, falls inside the image.
+
+        Near, a vehicle beside our path reaches past the image's side whichever way it stands, but the detector's
+        box often stops short of the edge (a parked car 2.8 m ahead drew a box ending 16 pixels inside it): that
+        edge is the box's, not the vehicle's, and judged by it the car seemed too narrow to stand lengthwise."""
+        inner, outer, side = self._inner_outer_px(box)
+        if kind not in LENGTH_PRIOR_M or side == 0 or at_side_edge(box, self.camera.width) or z_m <= 0:
+            return False
+        a = inner / self.f
+        length, width = LENGTH_PRIOR_M[kind], DEPTH_PRIOR_M[kind]
+        narrowest_px = self.f * min(a * length + width, a * width + length) / z_m
+        room_px = (self.camera.width - 1.0 - float(self.k[0, 2])) if side > 0 else float(self.k[0, 2])
+        return inner + narrowest_px <= room_px
+
     def lengthwise(self, box: np.ndarray | tuple[float, ...], z_m: float, kind: str) -> bool:
         """Whether a vehicle wholly to one side of the camera axis stands lengthwise along it rather than across.
 
@@ -123,17 +151,10 @@ class BoxGeometry:
         other way round. The box's width at ``z_m`` is then ``a D + E`` (``a``: the inner edge's ray, lateral
         metres per metre of depth; E: the lateral extent), and the two hypotheses predict ``a L + W`` and
         ``a W + L``: the nearer one wins. A yawed vehicle lies between and counts as across (the nearer inner
-        edge). A box cut by the image's side edge is not judged (its outer edge is not the vehicle's)."""
-        if kind not in LENGTH_PRIOR_M or at_side_edge(box, self.camera.width):
+        edge). A box whose outer edge cannot be the vehicle's (``shows_outer_edge``) is not judged."""
+        if not self.shows_outer_edge(box, z_m, kind):
             return False
-        cx = float(self.k[0, 2])
-        x0, x2 = float(box[0]), float(box[2])
-        if x0 > cx:
-            inner, outer = x0 - cx, x2 - cx
-        elif x2 < cx:
-            inner, outer = cx - x2, cx - x0
-        else:
-            return False
+        inner, outer, _ = self._inner_outer_px(box)
         a = inner / self.f
         apparent = (outer - inner) / self.f * z_m
         length, width = LENGTH_PRIOR_M[kind], DEPTH_PRIOR_M[kind]

@@ -153,7 +153,7 @@ class ObjectEstimator:
             # second, passing a parked car at 3 m/s) and made it look as if it were pulling out.
             cx = float(geometry.k[0, 2])
             side = (1 if box[0] > cx else -1 if box[2] < cx else 0) if kind in DEPTH_PRIOR_M else 0
-            if side and not at_side_edge(box, geometry.camera.width):  # judged on a whole box, kept while cut
+            if side and geometry.shows_outer_edge(box, z, kind):  # judged on a whole box, kept while cut
                 if geometry.lengthwise(box, z, kind):
                     self._lengthwise[tr.track_id] = t
                 else:
