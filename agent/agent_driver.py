@@ -76,13 +76,13 @@ from towndrive.agent.perception.signs import SignLocator, SignRules, SignSeen
 from towndrive.agent.perception.stop_line import StopLine, StopLineDetector
 from towndrive.agent.perception.tracking import Sort, SortConfig, Track
 from towndrive.agent.perception.zebra import ZebraDetector, bar_checked
-from towndrive.agent.shipped import DETECTOR_ONNX, REFINER_ONNX
+from towndrive.agent.shipped import DETECTOR_SIGNS_ONNX, REFINER_ONNX, SIGN_READER_ONNX
 from towndrive.envs.driver_context import DriverContext
 from towndrive.sim.spec import CAMERA, CORNERS, MIRRORS, ROAD, VEHICLE, CameraConfig, RoadDesign
 
-DEFAULT_DETECTOR = DETECTOR_ONNX
+DEFAULT_DETECTOR = DETECTOR_SIGNS_ONNX  # the six classes of cars, people and lights, and the road signs
 DEFAULT_REFINER = REFINER_ONNX
-DEFAULT_SIGN_READER = None  # SIGN_READER_ONNX goes with the sign-class detector (shipped.DETECTOR_SIGNS_ONNX)
+DEFAULT_SIGN_READER = SIGN_READER_ONNX  # reads which sign a sign box holds (none with a six-class detector)
 STAGES = ("blind_spot", "cross_traffic", "pilotnet", "detector", "tracking", "lanes", "stop_line", "distance", "control", "adas",
           "wait")  # wait: the calling thread waiting for the worker's stages (stage_threads > 1)
 

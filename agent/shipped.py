@@ -10,8 +10,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 MODELS_DIR = ROOT / "data" / "models"
 PILOTNET = MODELS_DIR / "pilotnet.pt"  # and pilotnet.onnx beside it
-DETECTOR_ONNX = MODELS_DIR / "detector.onnx"  # the default: cars, trucks, pedestrians, lights (six classes)
-DETECTOR_SIGNS_ONNX = MODELS_DIR / "detector_signs.onnx"  # also the four road-sign classes (not yet the default)
+DETECTOR_ONNX = MODELS_DIR / "detector.onnx"  # cars, trucks, pedestrians, lights (six classes; `--no-signs`)
+DETECTOR_SIGNS_ONNX = MODELS_DIR / "detector_signs.onnx"  # the default: the six and the four road-sign classes
 REFINER_ONNX = MODELS_DIR / "ped_refiner.onnx"
 SIGN_READER_ONNX = MODELS_DIR / "sign_reader.onnx"  # reads which road sign a detector sign box holds
 RL_POLICY = MODELS_DIR / "rl_ppo.zip"

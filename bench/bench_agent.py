@@ -7,7 +7,8 @@
     python bench/bench_agent.py --threads 1           # a frame's stages one after another on one thread
     python bench/bench_agent.py --threads 2           # ... always on two threads (default 0: the faster)
     python bench/bench_agent.py --pipeline            # perception of frame t while the simulator renders t+1
-    python bench/bench_agent.py --town-style downtown --signs   # a downtown town, its road priors, the sign classes
+    python bench/bench_agent.py --town-style downtown   # a downtown town, its road priors
+    python bench/bench_agent.py --no-signs            # the six-class detector (no road-sign classes)
 
 The agent drives (closed loop, its own actions), in the default town with its default traffic, at 320x160.
 "Whole loop" is ``env.step`` (simulation and rendering) plus ``driver.act`` (every perception stage and
@@ -61,8 +62,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="perceive frame t while the simulator renders frame t+1 (one frame of latency)")
     ap.add_argument("--town-style", default="classic", choices=sorted(STYLES),
                     help="the kind of town (the agent gets that style's road priors)")
-    ap.add_argument("--signs", action="store_true",
-                    help="the detector with the road-sign classes and the sign reader (as drive --signs)")
+    ap.add_argument("--signs", action=argparse.BooleanOptionalAction, default=None,
+                    help="the detector with the road-sign classes and the sign reader (the default); --no-signs: the "
+                         "six-class detector (as drive --no-signs)")
     ap.add_argument("--no-blind-spot", action="store_true",
                     help="without the mirror-camera look before lane changes (agent.decision.blind_spot; on by default)")
     args = ap.parse_args(argv)
@@ -107,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     print(machine_line())
     town = "" if args.town_style == "classic" else f"{args.town_style} town, its road priors, "
     print(f"Agent closed loop at {cam.width}x{cam.height}, {args.frames} frames, seed {args.seed}, {args.weather}, {town}"
-          f"{'the sign detector, ' if args.signs else ''}"
+          f"{'the six-class detector, ' if args.signs is False else 'the sign detector, '}"
           f"detector every {args.detect_every} frame(s), distances by {'stereo' if args.stereo else 'box geometry'}, "
           f"stage threads {args.threads or 'the faster of 1 and 2'}{', pipelined' if args.pipeline else ''}")
     cpu = latency_of(cpu_s)

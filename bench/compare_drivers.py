@@ -107,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
         piped = args.pipeline and name == "agent"
         if name == "agent":
             kwargs.update(agent_variant(args.town_style, args.road_priors, args.signs))
-            label += " (signs)" if args.signs else ""
+            label += " (six classes)" if args.signs is False else ""
         if name == "agent":
             # One worker process per core: each agent then keeps to its own core (the actions are the same).
             kwargs["stage_threads"] = 1 if args.workers > 1 or args.ray else 0

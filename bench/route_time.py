@@ -7,7 +7,7 @@ three most frequent reasons there (``AgentDriver.reason``). A wait the autopilot
 light reached later; a turn taken slower shows as a longer stretch with "turning at a junction".
 
   python bench/route_time.py --town-style downtown --town-seed 4002 --seed 507 --weather overcast \
-      --signs --road-priors style
+      --road-priors style
 """
 
 from __future__ import annotations

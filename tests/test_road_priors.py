@@ -292,6 +292,37 @@ def test_the_cli_gives_the_agent_a_style_s_priors_and_the_sign_detector_and_refu
     other.workers = 1
     with pytest.raises(ValueError, match="for the agent driver"):
         driver_spec(other)
+    other = parse_args(["--driver", "autopilot", "--no-signs"])
+    other.workers = 1
+    with pytest.raises(ValueError, match="for the agent driver"):
+        driver_spec(other)
+
+
+def test_the_agent_s_default_detector_reads_signs_and_no_signs_gives_the_six_classes() -> None:
+    """The sign detector and its reader are the agent's default; ``--no-signs`` asks for the six-class detector
+    alone. A reader given with a six-class model reads nothing, and the detections are those without it."""
+    from towndrive.agent.agent_driver import DEFAULT_DETECTOR, DEFAULT_SIGN_READER
+    from towndrive.agent.perception.classes import CLASSES
+    from towndrive.agent.perception.detector import OnnxDetector
+    from towndrive.agent.shipped import DETECTOR_ONNX, DETECTOR_SIGNS_ONNX, REFINER_ONNX, SIGN_READER_ONNX
+    from towndrive.drive_cli import driver_spec, parse_args
+
+    assert (DEFAULT_DETECTOR, DEFAULT_SIGN_READER) == (DETECTOR_SIGNS_ONNX, SIGN_READER_ONNX)
+    args = parse_args(["--driver", "agent"])
+    args.workers = 1
+    assert "detector" not in dict(driver_spec(args).kwargs)  # the default
+    args = parse_args(["--driver", "agent", "--no-signs"])
+    args.workers = 1
+    kwargs = dict(driver_spec(args).kwargs)
+    assert kwargs["detector"] == DETECTOR_ONNX and kwargs["sign_reader"] is None
+    rng = np.random.default_rng(0)
+    frame = rng.integers(0, 255, (160, 320, 3), dtype=np.uint8)
+    frame[60:120, 140:170] = (200, 30, 30)
+    plain = OnnxDetector(DETECTOR_ONNX, refiner=REFINER_ONNX)
+    with_reader = OnnxDetector(DETECTOR_ONNX, refiner=REFINER_ONNX, signs=SIGN_READER_ONNX)
+    raw = plain.raw(frame)
+    assert raw.shape[1] - 5 == CLASSES.index("stop_sign")  # six class channels
+    assert with_reader(frame) == plain(frame)
 
 
 def test_the_scenario_suite_gives_each_scenario_s_agent_the_priors_of_the_town_it_happens_in() -> None:

@@ -121,12 +121,14 @@ def add_agent_variant_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--road-priors", default="classic", choices=["classic", "style"],
                    help="agent: the road design it assumes, the classic towns' or the --town-style's (measured on "
                         "its training towns, sim.road_priors)")
-    p.add_argument("--signs", action="store_true",
-                   help="agent: the detector with the road-sign classes and the sign reader (stop, yield, limits)")
+    p.add_argument("--signs", action=argparse.BooleanOptionalAction, default=None,
+                   help="agent: the detector with the road-sign classes and the sign reader (stop, yield, limits; the "
+                        "default); --no-signs: the six-class detector of cars, people and lights")
 
 
-def agent_variant(town_style: str, road_priors_name: str, signs: bool) -> dict[str, Any]:
-    """The agent's keyword arguments for ``--road-priors`` and ``--signs``."""
+def agent_variant(town_style: str, road_priors_name: str, signs: bool | None) -> dict[str, Any]:
+    """The agent's keyword arguments for ``--road-priors`` and ``--signs`` / ``--no-signs`` (None: the agent's
+    default detector, the one with the signs)."""
     kwargs: dict[str, Any] = {}
     if road_priors_name == "style":
         from towndrive.sim.road_priors import road_priors
@@ -136,6 +138,10 @@ def agent_variant(town_style: str, road_priors_name: str, signs: bool) -> dict[s
         from towndrive.agent.shipped import DETECTOR_SIGNS_ONNX, SIGN_READER_ONNX
 
         kwargs.update(detector=DETECTOR_SIGNS_ONNX, sign_reader=SIGN_READER_ONNX)
+    elif signs is False:
+        from towndrive.agent.shipped import DETECTOR_ONNX
+
+        kwargs.update(detector=DETECTOR_ONNX, sign_reader=None)
     return kwargs
 
 
@@ -267,11 +273,11 @@ def driver_spec(args: argparse.Namespace) -> Any:
     elif args.model is not None and args.driver not in ("rl", "agent"):
         raise ValueError(f"--model is for the pilotnet, agent and rl drivers, not {args.driver}.")
     threads, pipeline = getattr(args, "threads", None), getattr(args, "pipeline", False)
-    road, signs = getattr(args, "road_priors", "classic"), getattr(args, "signs", False)
+    road, signs = getattr(args, "road_priors", "classic"), getattr(args, "signs", None)
     if args.driver == "agent":
         kwargs.update(agent_variant(args.town_style, road, signs))
-    elif road != "classic" or signs:
-        raise ValueError(f"--road-priors and --signs are for the agent driver, not {args.driver}.")
+    elif road != "classic" or signs is not None:
+        raise ValueError(f"--road-priors and --signs / --no-signs are for the agent driver, not {args.driver}.")
     if args.driver == "agent":
         parallel = getattr(args, "workers", 1) > 1 or bool(getattr(args, "ray", None))
         kwargs["stage_threads"] = threads if threads is not None else (1 if parallel else 0)

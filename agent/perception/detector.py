@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from towndrive.agent.perception.classes import CLASSES, classes_of_model
+from towndrive.agent.perception.classes import CLASSES, SIGN_CLASSES, classes_of_model
 from towndrive.agent.perception.detections import Detection, box_iou, nms_numpy  # noqa: F401 (re-exported)
 
 if TYPE_CHECKING:
@@ -241,8 +241,6 @@ def detect_only_classes(raw: np.ndarray, rgb: np.ndarray, score_threshold: float
     """The detections of the classes ``names`` alone, as ``detect_and_refine`` gives them: without pedestrians
     the refiner (which only re-places and re-scores pedestrian boxes) has nothing to do and is not run, and without
     signs neither is the sign reader. The mirror look reads only vehicles."""
-    from towndrive.agent.perception.classes import SIGN_CLASSES
-
     if "pedestrian" in names or (read is not None and any(n in SIGN_CLASSES for n in names)):
         wanted = refine if "pedestrian" in names else None
         return [d for d in detect_and_refine(raw, rgb, score_threshold, wanted, read) if d.name in names]
@@ -254,6 +252,8 @@ def detect_and_refine(raw: np.ndarray, rgb: np.ndarray, score_threshold: float,
     """Post-processing, then the sign reader and the pedestrian refiner if there are any (each sees candidates
     down to its own threshold, since its re-scoring can lift a sign or a pedestrian the detector alone scored too
     low)."""
+    if read is not None and raw.shape[1] - 5 <= CLASSES.index(SIGN_CLASSES[0]):
+        read = None  # a model of before the signs has no sign boxes to read
     if refine is None and read is None:
         return postprocess(raw, score_threshold)
     low = score_threshold
