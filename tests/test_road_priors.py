@@ -303,7 +303,7 @@ def test_the_agent_s_default_detector_reads_signs_and_no_signs_gives_the_six_cla
     alone. A reader given with a six-class model reads nothing, and the detections are those without it."""
     from towndrive.agent.agent_driver import DEFAULT_DETECTOR, DEFAULT_SIGN_READER
     from towndrive.agent.perception.classes import CLASSES
-    from towndrive.agent.perception.detector import OnnxDetector
+    from towndrive.agent.perception.detector import OnnxDetector, detect_and_refine
     from towndrive.agent.shipped import DETECTOR_ONNX, DETECTOR_SIGNS_ONNX, REFINER_ONNX, SIGN_READER_ONNX
     from towndrive.drive_cli import driver_spec, parse_args
 
@@ -323,6 +323,16 @@ def test_the_agent_s_default_detector_reads_signs_and_no_signs_gives_the_six_cla
     raw = plain.raw(frame)
     assert raw.shape[1] - 5 == CLASSES.index("stop_sign")  # six class channels
     assert with_reader(frame) == plain(frame)
+
+    from types import SimpleNamespace
+
+    class NoSignsToRead:
+        config = SimpleNamespace(lowest_candidate=lambda threshold: 0.01)
+
+        def __call__(self, *args: object) -> list:
+            raise AssertionError("the sign reader ran on a six-class model's boxes")
+
+    assert detect_and_refine(raw, frame, 0.3, None, NoSignsToRead()) == detect_and_refine(raw, frame, 0.3, None)
 
 
 def test_the_scenario_suite_gives_each_scenario_s_agent_the_priors_of_the_town_it_happens_in() -> None:
