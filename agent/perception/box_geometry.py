@@ -143,7 +143,7 @@ class BoxGeometry:
         room_px = (self.camera.width - 1.0 - float(self.k[0, 2])) if side > 0 else float(self.k[0, 2])
         return inner + narrowest_px <= room_px
 
-    def lengthwise(self, box: np.ndarray | tuple[float, ...], z_m: float, kind: str) -> bool:
+    def lengthwise(self, box: np.ndarray | tuple[float, ...], z_m: float, kind: str) -> bool | None:
         """Whether a vehicle wholly to one side of the camera axis stands lengthwise along it rather than across.
 
         Its outer box edge comes from its near outer corner (at ``z_m``), its inner edge from its far inner corner,
@@ -151,9 +151,9 @@ class BoxGeometry:
         other way round. The box's width at ``z_m`` is then ``a D + E`` (``a``: the inner edge's ray, lateral
         metres per metre of depth; E: the lateral extent), and the two hypotheses predict ``a L + W`` and
         ``a W + L``: the nearer one wins. A yawed vehicle lies between and counts as across (the nearer inner
-        edge). A box whose outer edge cannot be the vehicle's (``shows_outer_edge``) is not judged."""
+        edge). A box whose outer edge cannot be the vehicle's (``shows_outer_edge``) is not judged: None."""
         if not self.shows_outer_edge(box, z_m, kind):
-            return False
+            return None
         inner, outer, _ = self._inner_outer_px(box)
         a = inner / self.f
         apparent = (outer - inner) / self.f * z_m
@@ -161,7 +161,7 @@ class BoxGeometry:
         along, across = a * length + width, a * width + length
         # nearer the lengthwise prediction, and near it: a box far narrower than both (a car yawed well off our
         # axis, as one standing in a junction we turn through) fits neither and is read the safe way
-        return apparent < 0.5 * (along + across) and abs(apparent - along) <= LENGTHWISE_TOLERANCE * along
+        return bool(apparent < 0.5 * (along + across) and abs(apparent - along) <= LENGTHWISE_TOLERANCE * along)
 
     def lateral(self, u_px: float, z_m: float) -> float:
         """Metres right of the camera axis of image column ``u_px`` at forward distance ``z_m``."""

@@ -153,11 +153,11 @@ class ObjectEstimator:
             # second, passing a parked car at 3 m/s) and made it look as if it were pulling out.
             cx = float(geometry.k[0, 2])
             side = (1 if box[0] > cx else -1 if box[2] < cx else 0) if kind in DEPTH_PRIOR_M else 0
-            if side and geometry.shows_outer_edge(box, z, kind):  # judged on a whole box, kept while cut
-                if geometry.lengthwise(box, z, kind):
-                    self._lengthwise[tr.track_id] = t
-                else:
-                    self._lengthwise.pop(tr.track_id, None)
+            judged = geometry.lengthwise(box, z, kind) if side else None  # on a whole box; kept while cut
+            if judged:
+                self._lengthwise[tr.track_id] = t
+            elif judged is False:
+                self._lengthwise.pop(tr.track_id, None)
             if standing and tr.track_id in self._lengthwise:
                 self._lengthwise[tr.track_id] = t  # standing, our heading does not turn: the judgement holds
             elif t - self._lengthwise.get(tr.track_id, -math.inf) > LENGTHWISE_MEMORY_S:
