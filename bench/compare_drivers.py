@@ -44,7 +44,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="driver names; NAME@MODEL uses another model file (e.g. pilotnet@out/pilotnet/bc.pt)")
     ap.add_argument("--episodes", type=int, default=10)
     ap.add_argument("--seed", type=int, default=500)
-    ap.add_argument("--town-seed", type=int, default=None, help="first town (default 100, or the split's first)")
+    ap.add_argument("--town-seed", type=int, default=None,
+                    help="first town (default 100, or the split's first; with --split, a town inside it)")
     ap.add_argument("--towns", type=int, default=5)
     ap.add_argument("--town-style", default="classic", choices=sorted(STYLES), help="the kind of town")
     ap.add_argument("--split", default=None, choices=list(TOWN_SPLITS),
@@ -74,10 +75,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="take a driver's row from an earlier run in --out with the same settings instead of re-running")
     args = ap.parse_args(argv)
     if args.split is not None:
-        first = split_towns(args.split, args.towns)[0]
-        if args.town_seed not in (None, first):
-            ap.error(f"--split {args.split} starts at town {first}; drop --town-seed")
-        args.town_seed = first
+        try:
+            args.town_seed = split_towns(args.split, args.towns, args.town_seed)[0]
+        except ValueError as err:
+            ap.error(str(err))
     elif args.town_seed is None:
         args.town_seed = 100
     args.workers = parse_workers(args.workers)

@@ -16,14 +16,17 @@ TOWN_SPLITS: dict[str, range] = {
 }
 
 
-def split_towns(split: str, count: int) -> range:
-    """The first ``count`` town seeds of a split; one sentence if the split is unknown or too small."""
+def split_towns(split: str, count: int, first: int | None = None) -> range:
+    """``count`` town seeds of a split from ``first`` (default the split's first); one sentence if the split is
+    unknown or the towns do not all lie in it. A later start gives towns of the same split not driven before, e.g.
+    a second test run after the first was reported."""
     seeds = TOWN_SPLITS.get(split)
     if seeds is None:
         raise ValueError(f"unknown split {split!r}; the splits are {', '.join(TOWN_SPLITS)}.")
-    if not 1 <= count <= len(seeds):
-        raise ValueError(f"the {split} split has {len(seeds)} towns; asked for {count}.")
-    return seeds[:count]
+    start = seeds.start if first is None else first
+    if count < 1 or start not in seeds or start + count - 1 not in seeds:
+        raise ValueError(f"the {split} split holds towns {seeds.start}-{seeds.stop - 1}; asked for {count} from {start}.")
+    return range(start, start + count)
 
 
 def split_of(town_seed: int) -> str | None:

@@ -263,8 +263,13 @@ def test_style_names_and_splits_are_checked_in_one_sentence():
     assert all(a.stop <= b.start for a, b in zip(ranges, ranges[1:], strict=False))
     assert split_of(101) == "train" and split_of(4500) == "validation" and split_of(5999) == "test"
     assert list(split_towns("test", 3)) == [5000, 5001, 5002]
-    with pytest.raises(ValueError, match="has 1000 towns"):
+    assert list(split_towns("test", 2, first=5005)) == [5005, 5006]
+    with pytest.raises(ValueError, match="holds towns 5000-5999; asked for 1001 from 5000"):
         split_towns("test", 1001)
+    with pytest.raises(ValueError, match="asked for 2 from 4999"):
+        split_towns("test", 2, first=4999)
+    with pytest.raises(ValueError, match="asked for 2 from 5999"):
+        split_towns("test", 2, first=5999)
 
 
 def test_reset_option_town_style_builds_that_style(tmp_path):

@@ -66,7 +66,7 @@ def parse_args(argv: list[str] | None = None, prog: str | None = None) -> argpar
     p.add_argument("--serial", default=None, metavar="PORT", help="with --profile: the alert line protocol to PORT")
     p.add_argument("--seed", type=int, default=0, help="first episode seed (traffic, start and route)")
     p.add_argument("--town-seed", type=int, default=None,
-                   help="which town to generate (default 0, or the first town of --split)")
+                   help="which town to generate (default 0, or the first town of --split; with --split, a town inside it)")
     p.add_argument("--town-style", default="classic", choices=sorted(STYLES),
                    help="the kind of town (sim/town_style.py): classic (the original grid of arterials and signals), "
                         "downtown or suburb")
@@ -164,10 +164,7 @@ def check_args(args: argparse.Namespace) -> None:
         if not (args.record or args.evaluate):
             raise ValueError(f"--split {args.split} chooses the towns of a recording or an evaluation; add --record or "
                              "--evaluate (or give a single town with --town-seed).")
-        first = split_towns(args.split, args.towns)[0]
-        if args.town_seed is not None and args.town_seed != first:
-            raise ValueError(f"--split {args.split} starts at town {first}; drop --town-seed {args.town_seed}.")
-        args.town_seed = first
+        args.town_seed = split_towns(args.split, args.towns, args.town_seed)[0]
     elif args.town_seed is None:
         args.town_seed = 0
     options.town_seed(args.town_seed, "--town-seed")
