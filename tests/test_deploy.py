@@ -150,6 +150,7 @@ def test_a_2_to_1_crop_of_a_square_camera_narrows_nothing_but_a_wide_one_does() 
     ({"modules": {"detector": {"every": 0}}}, ["modules.detector.every"]),
     ({"modules": {"detector": {"every": "three"}}}, ["modules.detector.every", "integer"]),
     ({"modules": {"radar": {"every": 1}}}, ["'modules.radar'"]),
+    ({"modules": {"signs": {"enabled": False}}}, ["'modules.signs'", "refiner, sign_reader, lanes"]),
     ({"budgets_ms": {"detectr": 5}}, ["'budgets_ms.detectr'"]),
     ({"budgets_ms": {"detector": -1}}, ["budgets_ms.detector"]),
     ({"camera": {"source": "webcam"}}, ["camera.source", "'webcam'", "usb"]),
@@ -310,6 +311,69 @@ def test_tensorrt_absence_is_one_clear_error(exported) -> None:
                                                          "backend": "tensorrt", "precision": "int8"}}}, "t.yaml")
     with pytest.raises(BackendUnavailable, match="TensorRT is not installed.*onnxruntime"):
         open_backend(profile, "detector")
+
+
+class FixedCells:
+    """A stand-in detector backend whose decoded cells are always ``cells`` (whatever runtime a profile names)."""
+
+    name, precision = "stand-in", "fp32"
+
+    def __init__(self, cells: np.ndarray) -> None:
+        self.cells = cells
+
+    def run(self, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
+        return [self.cells[None]]
+
+
+def car_and_sign_cells(classes: int) -> np.ndarray:
+    """Decoded cells of a model with ``classes`` class channels: a car, and (with the sign channels) a stop sign."""
+    from towndrive.agent.perception.classes import CLASSES
+
+    cells = np.zeros((2, 5 + classes), np.float32)
+    cells[0, :5] = (40, 60, 90, 95, 0.9)
+    cells[0, 5 + CLASSES.index("car")] = 0.9
+    if classes > CLASSES.index("stop_sign"):
+        cells[1, :5] = (250, 40, 262, 52, 0.9)
+        cells[1, 5 + CLASSES.index("stop_sign")] = 0.9
+    return cells
+
+
+def test_a_profiles_detector_hands_its_sign_boxes_to_the_shipped_sign_reader(tmp_path: Path) -> None:
+    """``open_detector`` runs the shipped sign reader after the profile's detector, as the agent does: a stand-in
+    reader network that reads every plate as a yield sign turns the detector's stop sign into one."""
+    from towndrive.agent.perception.classes import SIGN_CLASSES
+    from towndrive.agent.perception.sign_reader import NO_SIGN, Read, onnx_read
+    from towndrive.agent.shipped import SIGN_READER_ONNX
+
+    profile = profile_from_dict({"export_dir": str(tmp_path)}, "x.yaml")
+    runner = open_detector(profile)
+    assert isinstance(runner.read, Read) and runner.read.config == onnx_read(SIGN_READER_ONNX, 1).config
+    assert runner.refine is not None  # the pedestrian refiner stays
+    seen: list[tuple[int, ...]] = []
+
+    def reads_yield(x: np.ndarray) -> np.ndarray:
+        seen.append(x.shape)
+        logits = np.full((len(x), NO_SIGN + 1), -9.0, np.float32)
+        logits[:, SIGN_CLASSES.index("yield_sign")] = 9.0
+        return logits
+
+    runner.read.run = reads_yield
+    frame = scene_frames(1, 5)[0]
+    runner.backend = FixedCells(car_and_sign_cells(10))
+    assert sorted(d.name for d in runner(frame)) == ["car", "yield_sign"]
+    assert seen == [(1, 3, 32, 32)]  # one crop: the sign box's
+    runner.backend = FixedCells(car_and_sign_cells(6))  # a six-class model has no sign boxes to read
+    assert [d.name for d in runner(frame)] == ["car"] and len(seen) == 1
+
+
+def test_modules_sign_reader_enabled_false_runs_the_detector_without_it(tmp_path: Path) -> None:
+    profile = profile_from_dict({"export_dir": str(tmp_path), "modules": {"sign_reader": {"enabled": False}}}, "x.yaml")
+    assert profile.every("sign_reader") == 0 and profile.every("refiner") == 1
+    runner = open_detector(profile)
+    assert runner.read is None and runner.refine is not None
+    runner.backend = FixedCells(car_and_sign_cells(10))
+    assert sorted(d.name for d in runner(scene_frames(1, 5)[0])) == ["car", "stop_sign"]  # the detector's own class
+    assert profile_from_dict({}, "empty.yaml").every("sign_reader") == 1  # on unless turned off
 
 
 def test_missing_onnx_file_says_how_to_export(tiny_models: dict[str, Path], tmp_path: Path) -> None:

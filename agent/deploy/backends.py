@@ -26,6 +26,7 @@ if TYPE_CHECKING:
     from towndrive.agent.deploy.profiles import Profile
     from towndrive.agent.perception.detector import Detection
     from towndrive.agent.perception.ped_refiner import Refine
+    from towndrive.agent.perception.sign_reader import Read
 
 DETECTOR_INPUTS = ("image",)
 DETECTOR_OUTPUTS = ("detections",)
@@ -249,11 +250,12 @@ class DetectorRunner:
     a frame of another size is resized to it, and the boxes are scaled back to the frame's pixels."""
 
     def __init__(self, backend: Backend, input_size: tuple[int, int] = (320, 160), score_threshold: float = 0.3,
-                 refine: Refine | None = None) -> None:
+                 refine: Refine | None = None, read: Read | None = None) -> None:
         self.backend = backend
         self.input_size = input_size
         self.score_threshold = score_threshold
         self.refine = refine  # the pedestrian refiner (agent/perception/ped_refiner.py), on the frame's pixels
+        self.read = read  # the sign reader (agent/perception/sign_reader.py), likewise; skipped for a six-class model
 
     def inputs(self, rgb: np.ndarray) -> dict[str, np.ndarray]:
         return detector_feeds(rgb, self.input_size)
@@ -270,7 +272,7 @@ class DetectorRunner:
     def __call__(self, rgb: np.ndarray) -> list[Detection]:
         from towndrive.agent.perception.detector import detect_and_refine
 
-        return detect_and_refine(self.raw(rgb), rgb, self.score_threshold, self.refine)
+        return detect_and_refine(self.raw(rgb), rgb, self.score_threshold, self.refine, self.read)
 
 
 def open_pilotnet(profile: Profile) -> PilotNetRunner:
@@ -279,13 +281,19 @@ def open_pilotnet(profile: Profile) -> PilotNetRunner:
 
 
 def open_detector(profile: Profile, score_threshold: float = 0.3) -> DetectorRunner:
-    """The profile's detector, followed by the shipped pedestrian refiner unless ``modules.refiner`` is disabled
-    (the refiner is small and runs on ONNX Runtime's CPU provider whatever the detector's backend)."""
-    refine = None
+    """The profile's detector, followed by the shipped sign reader and pedestrian refiner unless ``modules.sign_reader``
+    or ``modules.refiner`` is disabled: the stages the simulator's agent runs (``agent.agent_driver``). Both are small
+    and run on ONNX Runtime's CPU provider, one thread each, whatever the detector's backend."""
+    refine, read = None, None
     if profile.every("refiner"):
         from towndrive.agent.deploy.profiles import resolve
         from towndrive.agent.perception.ped_refiner import DEFAULT_REFINER_ONNX, onnx_refine
 
         refine = onnx_refine(resolve(DEFAULT_REFINER_ONNX), threads=1)
+    if profile.every("sign_reader"):
+        from towndrive.agent.perception.sign_reader import onnx_read
+        from towndrive.agent.shipped import SIGN_READER_ONNX
+
+        read = onnx_read(SIGN_READER_ONNX, threads=1)
     return DetectorRunner(open_backend(profile, "detector"), profile.models["detector"].input_size, score_threshold,
-                          refine)
+                          refine, read)

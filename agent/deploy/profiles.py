@@ -2,8 +2,9 @@
 
 A profile says, per model (``pilotnet``, ``detector``), the inference backend (``torch``, ``onnxruntime``,
 ``tensorrt``), the precision (``fp32``, ``fp16``, ``int8``) and the input size; per module, how often it
-runs (the detector every k frames with SORT predicting in between, as seed 000 did; stereo every m frames);
-a latency budget per stage; the camera source; and the alert output. The shipped profiles live in
+runs (the detector every k frames with SORT predicting in between, as seed 000 did; stereo every m frames)
+and whether the detector's second stages (the pedestrian refiner, the sign reader) run after it; a latency budget
+per stage; the camera source; and the alert output. The shipped profiles live in
 ``agent/deploy/profiles/``: ``cpu`` (the default, runs here), ``jetson-nano``, ``jetson-xavier``, ``jetson-orin``.
 
 Why so strict: a profile is edited by hand on a car, and a misspelt key (``precison: int8``) that is
@@ -31,7 +32,8 @@ PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
 BACKENDS = ("torch", "onnxruntime", "tensorrt")
 PRECISIONS = ("fp32", "fp16", "int8")
 MODELS = ("pilotnet", "detector")
-MODULES = ("detector", "refiner", "lanes", "stop_line", "stereo")
+# refiner and sign_reader: the detector's second stages, run on its boxes whenever it runs
+MODULES = ("detector", "refiner", "sign_reader", "lanes", "stop_line", "stereo")
 # The agent driver's stages (agent.agent_driver: distance includes stereo matching, which agent.deploy.profiled_agent times
 # apart as "stereo"), plus reading the camera and sending alerts.
 STAGES = ("camera", "pilotnet", "detector", "tracking", "lanes", "stop_line", "stereo", "distance", "control", "adas",
@@ -105,9 +107,10 @@ def _default_models() -> dict[str, ModelProfile]:
 
 
 def _default_modules() -> dict[str, ModuleProfile]:
-    # refiner: the pedestrian refiner after the detector (data/models/ped_refiner.onnx, ONNX Runtime on the CPU)
-    return {"detector": ModuleProfile(), "refiner": ModuleProfile(), "lanes": ModuleProfile(),
-            "stop_line": ModuleProfile(), "stereo": ModuleProfile(enabled=False)}
+    # refiner: the pedestrian refiner after the detector (data/models/ped_refiner.onnx, ONNX Runtime on the CPU);
+    # sign_reader: reads which sign each sign box holds (data/models/sign_reader.onnx, likewise), as the agent does
+    return {"detector": ModuleProfile(), "refiner": ModuleProfile(), "sign_reader": ModuleProfile(),
+            "lanes": ModuleProfile(), "stop_line": ModuleProfile(), "stereo": ModuleProfile(enabled=False)}
 
 
 @dataclass(frozen=True)
