@@ -113,12 +113,16 @@ def tiny_profile(tmp: Path, models: dict[str, Path], **model_changes: dict) -> o
 def test_shipped_profiles_load_with_their_settings(tmp_path: Path) -> None:
     names = available_profiles()
     assert {"cpu", "cpu-int8", "jetson-nano", "jetson-xavier", "jetson-orin"} <= set(names)
+    for name in names:  # every one runs the agent's detector (ten classes) and its sign reader
+        shipped = load_profile(name)
+        assert shipped.models["detector"].checkpoint == "data/models/detector_signs.pt", name
+        assert shipped.every("sign_reader") == 1 and shipped.every("refiner") == 1, name
     assert load_profile("cpu-int8").models["detector"].precision == "int8"
     cpu = load_profile("cpu")
     assert cpu.models["detector"].backend == "onnxruntime" and cpu.camera.source == "simulator"
     assert cpu.budget_ms("detector") == 15 and cpu.every("lanes") == 1
     unexported = profile_from_dict({"export_dir": str(tmp_path)}, "x.yaml")  # runs without an export step:
-    assert unexported.model_file("detector") == ROOT / "data" / "models" / "detector.onnx"
+    assert unexported.model_file("detector") == ROOT / "data" / "models" / "detector_signs.onnx"
     xavier = load_profile("jetson-xavier")
     assert xavier.models["detector"].precision == "int8" and xavier.every("detector") == 2
     assert xavier.every("stereo") == 2 and xavier.camera.stereo == "side-by-side"
@@ -258,18 +262,22 @@ def test_onnx_matches_torch_per_model_fp32_and_fp16(exported) -> None:
         assert np.corrcoef(d8[:, 4], ref_d[:, 4])[0, 1] > 0.9  # objectness
 
 
-@pytest.mark.parametrize("name, size", [("detector", (320, 160)), ("pilotnet", (200, 66))])
-def test_shipped_model_parity_fp32_and_fp16(tmp_path: Path, name: str, size: tuple[int, int]) -> None:
-    """The models that ship in data/models: exported again and compared with torch on road-like frames."""
+@pytest.mark.parametrize("name, file, size", [("detector", "detector_signs", (320, 160)), ("detector", "detector", (320, 160)),
+                                              ("pilotnet", "pilotnet", (200, 66))])
+def test_shipped_model_parity_fp32_and_fp16(tmp_path: Path, name: str, file: str, size: tuple[int, int]) -> None:
+    """The models that ship in data/models (the profiles' ten-class detector, the six-class one of ``--no-signs``,
+    PilotNet): exported again and compared with torch on road-like frames."""
     from towndrive.agent.deploy.backends import detector_feeds, pilotnet_feeds
     from towndrive.agent.deploy.export_profile import prepare, to_fp16, torch_outputs
     from towndrive.agent.deploy.onnx_export import export_onnx
     from towndrive.agent.perception.onnx_runtime import onnx_session
 
-    checkpoint = ROOT / "data" / "models" / f"{name}.pt"
+    checkpoint = ROOT / "data" / "models" / f"{file}.pt"
     if not checkpoint.is_file():
-        pytest.skip(f"no shipped {name} checkpoint")
+        pytest.skip(f"no shipped {file} checkpoint")
     job = prepare(name, checkpoint, size)
+    if name == "detector":  # the export's metadata names the model's own classes
+        assert len(job.meta["classes"]) == (10 if file == "detector_signs" else 6)
     fp32 = tmp_path / f"{name}.fp32.onnx"
     assert export_onnx(job.module, job.examples, fp32, job.input_names, job.output_names) <= 1e-4
     to_fp16(fp32, tmp_path / f"{name}.fp16.onnx")

@@ -103,7 +103,7 @@ class AlertProfile:
 
 def _default_models() -> dict[str, ModelProfile]:
     return {"pilotnet": ModelProfile("data/models/pilotnet.pt", input_size=PILOTNET_INPUT),
-            "detector": ModelProfile("data/models/detector.pt", input_size=(320, 160))}
+            "detector": ModelProfile("data/models/detector_signs.pt", input_size=(320, 160))}  # the agent's default
 
 
 def _default_modules() -> dict[str, ModuleProfile]:
