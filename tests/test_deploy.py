@@ -370,6 +370,7 @@ def test_a_profiles_detector_hands_its_sign_boxes_to_the_shipped_sign_reader(tmp
     runner.backend = FixedCells(car_and_sign_cells(10))
     assert sorted(d.name for d in runner(frame)) == ["car", "yield_sign"]
     assert seen == [(1, 3, 32, 32)]  # one crop: the sign box's
+    assert [d.name for d in runner.detect_only(frame, ("car", "truck"))] == ["car"] and len(seen) == 1  # the mirror look
     runner.backend = FixedCells(car_and_sign_cells(6))  # a six-class model has no sign boxes to read
     assert [d.name for d in runner(frame)] == ["car"] and len(seen) == 1
 
@@ -382,6 +383,42 @@ def test_modules_sign_reader_enabled_false_runs_the_detector_without_it(tmp_path
     runner.backend = FixedCells(car_and_sign_cells(10))
     assert sorted(d.name for d in runner(scene_frames(1, 5)[0])) == ["car", "stop_sign"]  # the detector's own class
     assert profile_from_dict({}, "empty.yaml").every("sign_reader") == 1  # on unless turned off
+
+
+@pytest.fixture(scope="module")
+def sign_frame() -> np.ndarray:
+    """A frame of the suburb town (stop and yield signs, limits) from the lane 12 m before a stop sign, at noon."""
+    from towndrive.sim.objects import LightState
+    from towndrive.sim.render import CameraConfig, SceneRenderer
+    from towndrive.sim.town import TownConfig
+    from towndrive.sim.world import cached_town
+
+    town = cached_town(TownConfig.of_style("suburb"), 0)
+    sign = next(s for s in town.signs if s.kind.name == "STOP")
+    h = sign.facing  # the heading of the traffic that reads it
+    ahead, across = np.array([np.cos(h), np.sin(h)]), np.array([np.sin(h), -np.cos(h)])  # across: from the post to the road
+    x, y = np.asarray(sign.position, float) - 12.0 * ahead + 4.0 * across
+    renderer = SceneRenderer(town, seed=town.seed)
+    try:
+        renderer.sync([], [LightState.RED] * len(town.approaches))
+        return renderer.render((float(x), float(y), float(h)), CameraConfig(), "noon").rgb
+    finally:
+        renderer.close()
+
+
+def test_a_profiles_detector_gives_the_agents_detections_on_a_rendered_stop_sign(sign_frame: np.ndarray,
+                                                                                  tmp_path: Path) -> None:
+    """The cpu profile's detector and the simulator agent's own (``agent.agent_driver``'s defaults) see the same
+    frame alike: the ten-class detector, the sign reader and the pedestrian refiner."""
+    from towndrive.agent.agent_driver import DEFAULT_DETECTOR, DEFAULT_REFINER, DEFAULT_SIGN_READER
+    from towndrive.agent.perception.detector import OnnxDetector
+
+    agent = OnnxDetector(DEFAULT_DETECTOR, 0.3, threads=1, refiner=DEFAULT_REFINER, signs=DEFAULT_SIGN_READER)
+    profile = profile_from_dict({"export_dir": str(tmp_path)}, "cpu.yaml")  # nothing exported: the shipped ONNX
+    runner = open_detector(profile, 0.3)
+    want = agent(sign_frame)
+    assert "stop_sign" in {d.name for d in want}
+    assert runner(sign_frame) == want  # without the reader the detector alone reads this plate as a 30 limit
 
 
 def test_missing_onnx_file_says_how_to_export(tiny_models: dict[str, Path], tmp_path: Path) -> None:

@@ -274,6 +274,14 @@ class DetectorRunner:
 
         return detect_and_refine(self.raw(rgb), rgb, self.score_threshold, self.refine, self.read)
 
+    def detect_only(self, rgb: np.ndarray, names: tuple[str, ...]) -> list[Detection]:
+        """The detections of the classes ``names`` alone, as ``OnnxDetector.detect_only`` gives them: the agent's
+        mirror look asks for vehicles only, so neither second stage runs on those frames (it does not in the
+        simulator's agent either)."""
+        from towndrive.agent.perception.detector import detect_only_classes
+
+        return detect_only_classes(self.raw(rgb), rgb, self.score_threshold, self.refine, names, self.read)
+
 
 def open_pilotnet(profile: Profile) -> PilotNetRunner:
     meta = model_meta(profile, "pilotnet")
