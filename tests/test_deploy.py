@@ -155,6 +155,7 @@ def test_a_2_to_1_crop_of_a_square_camera_narrows_nothing_but_a_wide_one_does() 
     ({"modules": {"detector": {"every": "three"}}}, ["modules.detector.every", "integer"]),
     ({"modules": {"radar": {"every": 1}}}, ["'modules.radar'"]),
     ({"modules": {"signs": {"enabled": False}}}, ["'modules.signs'", "refiner, sign_reader, lanes"]),
+    ({"modules": {"sign_reader": {"every": 3}}}, ["modules.sign_reader.every must be 1", "modules.detector.every"]),
     ({"budgets_ms": {"detectr": 5}}, ["'budgets_ms.detectr'"]),
     ({"budgets_ms": {"detector": -1}}, ["budgets_ms.detector"]),
     ({"camera": {"source": "webcam"}}, ["camera.source", "'webcam'", "usb"]),

@@ -32,8 +32,8 @@ PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
 BACKENDS = ("torch", "onnxruntime", "tensorrt")
 PRECISIONS = ("fp32", "fp16", "int8")
 MODELS = ("pilotnet", "detector")
-# refiner and sign_reader: the detector's second stages, run on its boxes whenever it runs
 MODULES = ("detector", "refiner", "sign_reader", "lanes", "stop_line", "stereo")
+SECOND_STAGES = ("refiner", "sign_reader")  # run on the detector's boxes whenever it runs: only enabled is theirs to set
 # The agent driver's stages (agent.agent_driver: distance includes stereo matching, which agent.deploy.profiled_agent times
 # apart as "stereo"), plus reading the camera and sending alerts.
 STAGES = ("camera", "pilotnet", "detector", "tracking", "lanes", "stop_line", "stereo", "distance", "control", "adas",
@@ -207,6 +207,9 @@ class Profile:
         for name, mod in self.modules.items():
             if mod.every < 1:
                 raise ProfileError(f"{f}: modules.{name}.every must be 1 or more (frames between runs), not {mod.every}.")
+            if name in SECOND_STAGES and mod.every != 1:  # it would be ignored: a second stage runs with the detector
+                raise ProfileError(f"{f}: modules.{name}.every must be 1, since it runs on the detector's boxes whenever "
+                                   "the detector runs; set modules.detector.every instead.")
         for stage, ms in self.budgets_ms.items():
             if not ms > 0:
                 raise ProfileError(f"{f}: budgets_ms.{stage} must be a positive number of milliseconds, not {ms}.")
