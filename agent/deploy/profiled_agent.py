@@ -1,10 +1,11 @@
 """The agent as a deployment profile runs it: in the simulator, or on real frames without the simulator.
 
 ``ProfiledAgent`` is the ``agent`` driver (``agent.agent_driver.AgentDriver``) built with what the profile says:
-PilotNet and the detector on the profile's backends and precisions (``agent.deploy.backends``), the detector
-every k frames (SORT predicts in between), lanes and the stop line every k frames (the last result is
-reused in between), stereo every m frames (box geometry gives the distances in between), and stereo
-matching timed apart from the rest of the distance stage so that it can be held to its own budget.
+PilotNet and the detector on the profile's backends and precisions (``agent.deploy.backends``; the detector followed
+by the shipped sign reader and pedestrian refiner, as in the simulator's agent), the detector every k frames (SORT
+predicts in between), lanes and the stop line every k frames (the last result is reused in between), stereo every
+m frames (box geometry gives the distances in between), and stereo matching timed apart from the rest of the
+distance stage so that it can be held to its own budget.
 
 ``run_on_source`` drives it from a camera source (``agent.deploy.camera_sources``: a video file, a USB or CSI
 camera, a recorded episode): each frame's decision goes to the alert outputs (``agent.deploy.alerts``: serial
