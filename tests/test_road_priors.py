@@ -263,6 +263,34 @@ def test_a_design_with_heads_on_posts_finds_its_light_on_a_post_and_the_classic_
     assert OurLight(geometry, LightRules(), downtown).choose([red], unmeasured, 0.0) is None
 
 
+def test_a_far_corner_head_read_a_row_low_is_still_ours_and_the_near_corner_s_head_is_not() -> None:
+    """A suburb junction whose far corner lies 3 m beyond the design's mean (within the towns' spread), its post's
+    red head read a row low: 3-4 degrees above the camera a row is metres, and a fixed 5 m tolerance turned the head
+    away while the car waited at the line (it then drove on into the junction). Ours with the reading's spread
+    counted; a green head on the same kind of post 12 m nearer (the cross street's near corner) is still not."""
+    from types import SimpleNamespace
+
+    from towndrive.agent.decision.our_light import LightRules, OurLight
+    from towndrive.agent.perception.box_geometry import BoxGeometry
+    from towndrive.agent.perception.classes import CLASSES
+    from towndrive.agent.perception.detections import Detection
+    from towndrive.sim.spec import CameraConfig
+
+    camera = CameraConfig()
+    geometry = BoxGeometry(camera)
+    line = SimpleNamespace(stop_line_measured=True, stop_line=1.5, config=SimpleNamespace(camera_to_front_m=1.3))
+    suburb = road_priors("suburb")
+    post = next(m for m in suburb.other_signal_mounts if m.lateral_m > 6.0 and m.beyond_stop_line_m > 20.0)
+    z = 1.5 + 1.3 + post.beyond_stop_line_m + 3.0
+    u0, v0, u1, v1 = _head_box(camera, post.lateral_m, z, post.height_m)
+    red = Detection((u0, v0 + 1.0, u1, v1 + 1.0), CLASSES.index("light_red"), 0.9)
+    seen = OurLight(geometry, LightRules(), suburb).choose([red], line, 0.0)
+    assert seen is not None and seen.state == "red"
+    assert OurLight(geometry, LightRules(light_reading_sigmas=0.0), suburb).choose([red], line, 0.0) is None
+    near = Detection(_head_box(camera, post.lateral_m, z - 12.0, post.height_m), CLASSES.index("light_green"), 0.9)
+    assert OurLight(geometry, LightRules(), suburb).choose([near], line, 0.0) is None
+
+
 def test_a_profile_sets_the_priors_their_spreads_and_the_signal_mounts_and_bad_ones_get_one_sentence() -> None:
     from towndrive.agent.deploy.profiles import ProfileError, profile_from_dict
 

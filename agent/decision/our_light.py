@@ -5,7 +5,12 @@ turn): as the camera swings into a turn before the stop line, the cross street's
 comes to hang over the camera axis, but not over the lane we came along. Once the stop line has been measured,
 ours must also hang where the road design puts it (``RoadDesign.light_beyond_stop_line_m`` beyond the line):
 the cross street's head on the near right corner hangs over our lane's edge, 12 m nearer, lit green while ours is
-red. A box cut by the top of the image is a light beside the car (the cross street's, seen edge-on at night):
+red. Where it hangs is told give or take the design's spread and the reading's own: a head's distance comes from
+its elevation, and a post's head (3.6 m) 30 m off stands 3-4 degrees above the camera, where one image row is 4 m;
+a fixed tolerance turned our own red far-corner head away as not ours while the car waited at the line, and the car
+drove on into the junction once the red it had seen was forgotten. The near corner's head stands 7 degrees up,
+where a row is under a metre, so the reading's share does not let it in.
+A box cut by the top of the image is a light beside the car (the cross street's, seen edge-on at night):
 never ours, which stands across the junction, well inside the picture.
 """
 
@@ -35,6 +40,7 @@ class LightRules:
     light_score_threshold: float = 0.4
     light_max_lateral_m: float = 4.5  # our light hangs over the lane divider, within a lane of our axis
     light_line_tolerance_m: float = 5.0  # with the stop line measured, ours hangs where the design says, give or take
+    light_reading_sigmas: float = 2.0  # ... and this many standard errors of the head's distance reading (one row)
     light_box_pad_px: float = 1.0  # light boxes come out about a pixel taller than the housing (measured)
     light_size_agreement: float = 0.3  # with several mounts, the head's height and its box's size agree this well
     view_margin_px: float = 4.0  # a head kept in view stays this far inside the picture's edges
@@ -61,6 +67,25 @@ class OurLight:
             height = self.road.signal_head_height_m if height_m is None else height_m
             return (height - camera.mount_height_m) / math.tan(elevation)
         return self.by_size(box)
+
+    def distance_sd(self, box: tuple[float, float, float, float], height_m: float | None = None) -> float:
+        """The standard error of ``distance`` from one image row (``BoxGeometry.row_sigma``) of the box's place: by
+        elevation, the head's height over the camera divided by sin^2 of the elevation, times a row's angle; by
+        size, the distance over the box's height in pixels."""
+        x0, y0, x1, y1 = box
+        k, camera, f = self.geometry.k, self.geometry.camera, self.geometry.f
+        row_rad = self.geometry.row_sigma / f
+        elevation = math.atan((float(k[1, 2]) - 0.5 * (y0 + y1)) / f) + math.radians(camera.pitch_deg)
+        if elevation > math.radians(2.0):
+            height = self.road.signal_head_height_m if height_m is None else height_m
+            return (height - camera.mount_height_m) / math.sin(elevation) ** 2 * row_rad
+        return self.by_size(box) * self.geometry.row_sigma / max(y1 - y0 - self.rules.light_box_pad_px, 1.0)
+
+    def line_tolerance(self, box: tuple[float, float, float, float], height_m: float | None = None) -> float:
+        """How far from where the design puts our head a box's head may stand and still be ours: the design's
+        spread (``light_line_tolerance_m``) and ``light_reading_sigmas`` of the reading's (``distance_sd``)."""
+        rules = self.rules
+        return math.hypot(rules.light_line_tolerance_m, rules.light_reading_sigmas * self.distance_sd(box, height_m))
 
     def by_size(self, box: tuple[float, float, float, float]) -> float:
         """Ground distance (m) to a signal head from its housing's height in pixels."""
@@ -99,7 +124,7 @@ class OurLight:
                     continue
                 if measured:
                     expected = camera_to_bar_m(line) + mount.beyond_stop_line_m
-                    if abs(z - expected) > rules.light_line_tolerance_m:
+                    if abs(z - expected) > self.line_tolerance(d.box, mount.height_m):
                         continue
                 if best is None or z < best.distance_m:
                     best = LightSeen(d.name.removeprefix("light_"), d.box, z, d.score, self.in_view(d.box, z))
