@@ -17,7 +17,7 @@ not timed here (bench_perception: SGBM).
    IDF1 / identity switches of the trained detector + SORT against the simulator's ids (motmetrics,
    ``eval_tracking.evaluate``, objects under 25 visible pixels are ignore regions).
 3. The whole agent driver (``agent.deploy.profiled_agent.ProfiledAgent``) replayed on a recorded episode, per backend,
-   detector precision and skipping.
+   detector precision and skipping, its stages one after another on the calling thread (``stage_threads=1``).
 
 The fp16 and int8 files come from ``python train.py export --profile cpu`` (``--export-dir`` elsewhere).
 """
@@ -143,7 +143,9 @@ def agent_section(args: argparse.Namespace, report: dict) -> None:
                                                      ("onnxruntime", "fp32", "int8", 3)):
         profile = variant(args.profile, backend, precision, args.pilotnet, args.export_dir, det_precision)
         profile = replace(profile, modules={**profile.modules, "detector": replace(profile.modules["detector"], every=every)})
-        agent = ProfiledAgent(profile)
+        # serial stages (stage_threads=1): every stage on the calling thread, so that its CPU time counts all of
+        # them; the agent's default may move the detector and lanes to a worker thread, which thread_time misses
+        agent = ProfiledAgent(profile, stage_threads=1)
         agent.reset(frame_env(profile.camera_config(), dt, False))
         runs.append((f"{backend}, detector {det_precision} every {every}", profile, agent, []))
     for start in range(0, len(frames), 50):  # taking turns, 50 frames each (see interleaved)
