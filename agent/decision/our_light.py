@@ -59,27 +59,27 @@ class OurLight:
         """Ground distance (m) to a signal head from how far above the horizon its box's centre is (the head
         hangs at ``height_m``, the design's mast-arm height by default), or from its height in pixels when it is
         too near the horizon for that."""
-        x0, y0, x1, y1 = box
-        k, camera = self.geometry.k, self.geometry.camera
-        above_axis = math.atan((float(k[1, 2]) - 0.5 * (y0 + y1)) / self.geometry.f)
-        elevation = above_axis + math.radians(camera.pitch_deg)
+        elevation = self._elevation(box)
         if elevation > math.radians(2.0):
             height = self.road.signal_head_height_m if height_m is None else height_m
-            return (height - camera.mount_height_m) / math.tan(elevation)
+            return (height - self.geometry.camera.mount_height_m) / math.tan(elevation)
         return self.by_size(box)
+
+    def _elevation(self, box: tuple[float, float, float, float]) -> float:
+        """The box centre's angle above the horizontal (rad), through the camera's intrinsics and pitch."""
+        k, f = self.geometry.k, self.geometry.f
+        return math.atan((float(k[1, 2]) - 0.5 * (box[1] + box[3])) / f) + math.radians(self.geometry.camera.pitch_deg)
 
     def distance_sd(self, box: tuple[float, float, float, float], height_m: float | None = None) -> float:
         """The standard error of ``distance`` from one image row (``BoxGeometry.row_sigma``) of the box's place: by
         elevation, the head's height over the camera divided by sin^2 of the elevation, times a row's angle; by
         size, the distance over the box's height in pixels."""
-        x0, y0, x1, y1 = box
-        k, camera, f = self.geometry.k, self.geometry.camera, self.geometry.f
-        row_rad = self.geometry.row_sigma / f
-        elevation = math.atan((float(k[1, 2]) - 0.5 * (y0 + y1)) / f) + math.radians(camera.pitch_deg)
+        geometry = self.geometry
+        elevation = self._elevation(box)
         if elevation > math.radians(2.0):
             height = self.road.signal_head_height_m if height_m is None else height_m
-            return (height - camera.mount_height_m) / math.sin(elevation) ** 2 * row_rad
-        return self.by_size(box) * self.geometry.row_sigma / max(y1 - y0 - self.rules.light_box_pad_px, 1.0)
+            return (height - geometry.camera.mount_height_m) / math.sin(elevation) ** 2 * geometry.row_sigma / geometry.f
+        return self.by_size(box) * geometry.row_sigma / max(box[3] - box[1] - self.rules.light_box_pad_px, 1.0)
 
     def line_tolerance(self, box: tuple[float, float, float, float], height_m: float | None = None) -> float:
         """How far from where the design puts our head a box's head may stand and still be ours: the design's
