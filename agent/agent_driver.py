@@ -78,7 +78,7 @@ from towndrive.agent.perception.tracking import Sort, SortConfig, Track
 from towndrive.agent.perception.zebra import ZebraDetector, bar_checked
 from towndrive.agent.shipped import DETECTOR_SIGNS_ONNX, REFINER_ONNX, SIGN_READER_ONNX
 from towndrive.envs.driver_context import DriverContext
-from towndrive.sim.spec import BAR_PAINTED, CAMERA, CORNERS, MIRRORS, ROAD, VEHICLE, CameraConfig, RoadDesign
+from towndrive.sim.spec import CAMERA, CORNERS, MIRRORS, ROAD, VEHICLE, CameraConfig, RoadDesign
 
 DEFAULT_DETECTOR = DETECTOR_SIGNS_ONNX  # the six classes of cars, people and lights, and the road signs
 DEFAULT_REFINER = REFINER_ONNX
@@ -376,7 +376,7 @@ class AgentDriver:
         self._zebra_tilt: float | None = None  # ... and the slope of its edges (the cross street's direction)
         self._bar_tracked_m: float | None = None  # camera to the tracked bar this frame (the zebra's look, unread)
         self._zebra_look = ""  # the zebra ahead looked for this frame, before the bar is placed (_zebra_look_wanted)
-        self._arm_control: str | None = None  # what was seen governing the arm ahead since the last junction
+        self._arm_governed = False  # a light or a sign seen governing the arm ahead since the last junction
         self._exit_expected: float | None = None  # in a turn, the direction the road turned into should run
         self._exit_seen: ExitLine | None = None  # ... and its centre line as seen this frame
         self._exit_cornered: ExitLine | None = None  # ... and through the corner camera
@@ -731,24 +731,19 @@ class AgentDriver:
 
     def _zebra_look_wanted(self, command: int) -> str:
         """Whether this frame looks for the zebra ahead before the bar is placed (``zebra.bar_checked``): "" not, "check"
-        to check the bar read against it, "stand-in" to let it stand in for a bar where our arm has none painted:
-        nothing seen governing it (a priority road), or a give-way sign (its line is a row of teeth, which the
-        stop-line detector does not read; ``sim.spec.BAR_PAINTED``). Only approaching a turn (a straight hold needs
-        no bar), in a town whose design spreads (a zebra detector), with the car still along its lane."""
+        to check the bar read against it, "stand-in" to let it stand in for a bar where nothing governs our arm.
+        Only approaching a turn (a straight hold needs no bar), in a town whose design spreads (a zebra detector),
+        with the car still along its lane."""
         st, line, last = self.stages, self.controller.line, self._last_view
         if line.in_junction:
-            self._arm_control = None  # the next arm is judged afresh
-        elif self._arm_control != "signal":  # a light seen once governs the arm (a light's box comes and goes)
-            if last is not None and (last.light is not None or last.decision.light is not None):
-                self._arm_control = "signal"
-            elif self.controller.signs.control is not None:
-                self._arm_control = self.controller.signs.control
-            elif st.junction.control not in (None, "none"):
-                self._arm_control = st.junction.control
+            self._arm_governed = False  # the next arm is judged afresh
+        elif (self.controller.signs.control is not None or st.junction.control not in (None, "none")
+              or (last is not None and (last.light is not None or last.decision.light is not None))):
+            self._arm_governed = True  # a light or a sign seen once governs the arm (a light's box comes and goes)
         if (st.zebra is None or command not in (1, 2) or line.in_junction
                 or abs(st.odometry.turned) > math.radians(st.junction.rules.place_max_turned_deg)):
             return ""
-        return "check" if self._arm_control in BAR_PAINTED else "stand-in"
+        return "check" if self._arm_governed else "stand-in"
 
     def _street_lines_read(self) -> bool:
         """Whether the lane lines in view tell about the street the car drives along: not inside a junction (the

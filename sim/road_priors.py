@@ -28,11 +28,14 @@ PRIOR_TOWNS = 4  # training towns a style's priors are measured on (their juncti
 # with the style's share over every kind as a prior worth this many junctions (a count of 0 or 1 then leaves the
 # other possible, as hedged turns need; ``sim.spec.COUNT_DOUBT``)
 ODDS_PRIOR_JUNCTIONS = 2.0
+_KIND = {Control.SIGNAL: "signal", Control.STOP: "stop", Control.ALL_WAY_STOP: "stop", Control.YIELD: "yield",
+         Control.PRIORITY: "none"}
 
 
 def control_kind(control: Control) -> str:
-    """What governs a junction's arm as a driver sees it (``Control.kind``)."""
-    return control.kind
+    """What governs a junction's arm as a driver sees it (``sim.spec.CONTROL_KINDS``): an all-way stop's signs
+    are a stop sign's."""
+    return _KIND[control]
 
 
 def zebra_far_along(crosswalk: Crosswalk, origin: np.ndarray, heading: float) -> float:

@@ -134,9 +134,6 @@ class SignalMount:
 # What governs a junction's arm, as a driver sees it: its light, a stop sign, a give-way sign, or nothing (its road
 # has priority). The kinds the road design's cross-street odds are kept by.
 CONTROL_KINDS = ("signal", "stop", "yield", "none")
-# The kinds whose arm ends at a solid bar across its lanes: a give-way line is a row of teeth and a priority arm has
-# no line (``sim.town`` paints them so; a country's roads may differ).
-BAR_PAINTED = ("signal", "stop")
 
 
 @dataclass(frozen=True)

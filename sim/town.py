@@ -31,7 +31,7 @@ from towndrive.sim.fillet_lane import FilletLane
 from towndrive.sim.geometry import right_of, wrap_to_pi
 from towndrive.sim.objects import CAR_COLORS
 from towndrive.sim.path_filter import ROW_SIZE, lane_row, lanes_may_hold
-from towndrive.sim.spec import BAR_PAINTED, COMMAND_NAMES, ROAD, VEHICLE
+from towndrive.sim.spec import COMMAND_NAMES, ROAD, VEHICLE
 from towndrive.sim.town_style import CLASSIC, TownStyle, style_named
 from towndrive.sim.town_warp import TownWarp, warp_town
 
@@ -90,16 +90,6 @@ class Control(IntEnum):
     STOP = 2  # stop, then give way to the priority street
     YIELD = 3  # give way to the priority street without having to stop
     PRIORITY = 4  # the priority street at a stop or yield junction: nothing to obey
-
-    @property
-    def kind(self) -> str:
-        """What governs the arm as a driver sees it (``sim.spec.CONTROL_KINDS``): an all-way stop's signs are a
-        stop sign's."""
-        return _CONTROL_KIND[self]
-
-
-_CONTROL_KIND = {Control.SIGNAL: "signal", Control.STOP: "stop", Control.ALL_WAY_STOP: "stop", Control.YIELD: "yield",
-                 Control.PRIORITY: "none"}
 
 
 class SignKind(IntEnum):
@@ -785,7 +775,7 @@ def generate_town(config: TownConfig | None = None, seed: int = 0) -> Town:
             if control == Control.YIELD:
                 markings["yield_line"] += [np.array([far + tr * t, near + tr * (t + 0.3), near + tr * (t + 0.6)])
                                            for t in np.arange(0.15, lanes_w - 0.6, 0.9)]
-            elif control.kind in BAR_PAINTED:
+            elif control != Control.PRIORITY:
                 markings["stop_line"].append(np.array([far + inner, near + inner, near + outer, far + outer]))
             # Zebra across the whole arm, between the crossing street and the stop bar.
             cw0, cw1 = half_cross + zebra_gap, half_cross + zebra_gap + ROAD.crosswalk_depth_m

@@ -763,24 +763,3 @@ def test_the_street_s_lane_count_is_not_read_from_lines_a_stop_line_cuts_short()
     ctrl.line.reset()
     frames(40, "dashed")  # clear of any line: a dashed divider on our right is another lane of ours
     assert ctrl.signs.lanes_each_way == 2
-
-
-@needs_models
-def test_the_zebra_stands_in_for_a_bar_where_our_arm_has_none_painted() -> None:
-    """Approaching a turn in a town whose design spreads, the zebra ahead stands in for the bar on an arm that ends
-    at no bar (a priority road, or a give-way line, whose teeth the stop-line detector does not read); where a stop
-    sign or a light governs the arm, a bar is painted and the zebra only checks the bar read."""
-    from towndrive.agent.drivers import make_driver
-    from towndrive.envs.drive_env import DriveConfig
-    from towndrive.sim.road_priors import road_priors
-
-    driver = make_driver("agent", road=road_priors("suburb"))
-    driver.reset(SimpleNamespace(config=DriveConfig()))
-    assert driver.stages.zebra is not None
-    right = 2
-    assert driver._zebra_look_wanted(right) == "stand-in"  # nothing seen governing the arm: a priority road
-    driver.controller.signs.control = "yield"
-    assert driver._zebra_look_wanted(right) == "stand-in"
-    driver.controller.signs.control = "stop"
-    assert driver._zebra_look_wanted(right) == "check"
-    assert driver._zebra_look_wanted(0) == ""  # straight on: no bar needed
