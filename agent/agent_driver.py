@@ -520,7 +520,7 @@ class AgentDriver:
             return only(image, VEHICLES) if only is not None else self.detector(image)
 
     def _lanes_and_stop(self, image: np.ndarray, times: dict[str, float]) -> tuple[LaneResult, StopLine | None]:
-        lanes = self._timed("lanes", times, self.stages.lanes.detect, image, False, self._bar_tracked_m)
+        lanes = self._timed("lanes", times, self.stages.lanes.detect, image)
         stop = self._timed("stop_line", times, self.stages.stop.detect, image, lanes)
         zebra = self.stages.zebra
         self._zebra_far_m = None

@@ -288,7 +288,6 @@ class LaneConfig:
     lane_width_range_m: tuple[float, float] = (2.6, 4.4)
     smoothing: float = 0.5  # weight of the new fit in the running average
     quadratic_min_extent_m: float = 10.0  # shorter evidence gets a straight-line fit
-    bar_margin_m: float = 0.5  # paint this near a stop bar ahead (or beyond it) is not the lane's (``detect``)
     markings: MarkingSpec = field(default_factory=MarkingSpec)
 
 
@@ -310,17 +309,11 @@ class LaneDetector:
         self._coverage: list[tuple[float, float] | None] = [None, None]
 
     # ------------------------------------------------------------------ main entry
-    def detect(self, rgb: np.ndarray, keep_images: bool = False, road_ends_m: float | None = None) -> LaneResult:
-        """The lane the car is in. ``road_ends_m``: a stop bar tracked this far ahead of the camera; our lane ends
-        there, and the paint beyond it (the crossing, the cross street's lines, the road past the junction, offset
-        or bending away) is not evidence of the lane's course: fitted with it, a quadratic bends to reach it and the
-        lane's heading at the car is read degrees off."""
+    def detect(self, rgb: np.ndarray, keep_images: bool = False) -> LaneResult:
         cfg = self.config
         bev = self.birdseye.warp(rgb)
         masks = lane_masks(bev, cfg.thresholds, cfg.birdseye.px_per_m_x)
         binary = masks["combined"]
-        if road_ends_m is not None:
-            binary = binary & (self.birdseye.z_of_row < road_ends_m - cfg.bar_margin_m)[:, None]
         ys, xs = np.nonzero(binary)
         windows: list[tuple[int, int, int, int]] = []
         used_previous = False
