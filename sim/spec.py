@@ -159,23 +159,22 @@ class CrossStreetOdds:
 COUNT_DOUBT = 0.05  # a lane count at least this likely is one a turn is kept within reach of (hedged_reach)
 
 
-def hedged_reach(options: list[tuple[float, float, float, float]], within_m: float | None,
-                 doubts: list[float] | None = None) -> float:
+def hedged_reach(options: list[tuple[float, float, float, float]], within_m: float | None) -> float:
     """A turn's reach over the cross street's lane counts that may be, each given as (weight, the reach of the lane
     the turn goes into on that count, and the nearest and farthest reach of that count's lanes in our direction):
     the weighted mean (the least squared error), moved where it can be to within ``within_m`` of every count's lanes.
     A turn that ends among the lanes of its direction, whichever they are, stays on the road; one that misses them
     by more leaves it, however likely the count it was aimed at. So a right turn whose cross street may have one
     lane keeps near that lane's place, which on two lanes is the inner one, rather than aiming at a kerb lane that
-    is off the road if the count was guessed wrong. A count less likely than ``COUNT_DOUBT`` (or its entry of
-    ``doubts``) is not kept in reach: the turn would give up the likely count's lane for it."""
+    is off the road if the count was guessed wrong. A count less likely than ``COUNT_DOUBT`` is not kept in reach:
+    the turn would give up the likely count's lane for it."""
     total = sum(w for w, *_ in options)
     expected = sum(w * target for w, target, *_ in options) / total
     if within_m is None:
         return expected
-    kept = [o for o, d in zip(options, doubts or [COUNT_DOUBT] * len(options), strict=True) if o[0] >= d * total]
-    lo = max(near for _, _, near, _ in kept) - within_m
-    hi = min(far for _, _, _, far in kept) + within_m
+    doubt = COUNT_DOUBT * total
+    lo = max(near for w, _, near, _ in options if w >= doubt) - within_m
+    hi = min(far for w, _, _, far in options if w >= doubt) + within_m
     return expected if lo > hi else min(max(expected, lo), hi)
 
 

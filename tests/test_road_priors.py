@@ -861,31 +861,6 @@ def test_a_right_turn_read_in_the_turn_keeps_within_reach_of_every_count_the_cen
     assert g.turn_reach_m(1) == pytest.approx(6.0 + 15.5, abs=1e-6)
 
 
-def test_a_lane_count_the_road_turned_into_let_go_is_kept_in_reach_again_only_once_clearly_likely() -> None:
-    """``JunctionRules.count_doubt_again``: the odds of a count the reading has let go (under ``COUNT_DOUBT``)
-    scatter across that line as the reading moves a tenth of a metre, and each crossing moved the right turn's end by
-    most of a lane, late in the turn (a suburb night turn hedged and unhedged five times past 70 degrees, steered
-    hard left and was taken over). Let go, a count comes back only once twice as likely."""
-    depth = ROAD.stop_bar_depth_m
-    w = read_turn(2, 20.0, True, 0.5).lane_width_m
-    two_inner = 6.0 + 9.0 + w  # the bar's far edge to a two-lane street's inner lane
-
-    def read_again(g: Any, off_m: float) -> dict[int, float]:
-        for _ in range(2):  # six readings: the last five make the fix
-            see_cross_centre_line(g, 2, two_inner + off_m + depth + 0.5 * w, 40.0)
-        return g.exit_odds()
-
-    g = read_turn(2, two_inner + 0.3 + depth + 0.5 * w, True, 0.5)
-    assert g.exit_odds()[1] < COUNT_DOUBT
-    assert g._turn_reach(2)[1] == 0.0  # not hedged: the odds' mean, all but the kerb lane of two
-    odds = read_again(g, 0.1)
-    assert COUNT_DOUBT < odds[1] < 2 * COUNT_DOUBT
-    assert g._turn_reach(2)[1] == 0.0  # still let go
-    odds = read_again(g, -0.3)
-    assert odds[1] > 2 * COUNT_DOUBT
-    assert g._turn_reach(2)[1] > 1.0  # kept in reach again: moved towards the single lane's place
-
-
 def test_the_arc_is_driven_at_its_curve_speed_only_once_the_road_turned_into_leaves_no_count_in_doubt() -> None:
     """``JunctionGuidance.arc_radius_m``, which the controller drives the arc at the curve speed of: set once the
     road turned into is read and tells its lane count, not while a count in doubt keeps the turn within reach of

@@ -58,7 +58,7 @@ from towndrive.agent.decision.priors import fused, junction_widening_m
 from towndrive.agent.decision.stop_line_track import StopLineTrack, camera_to_bar_m
 from towndrive.agent.perception.exit_line import ExitLine
 from towndrive.agent.perception.stop_line import StopLine
-from towndrive.sim.spec import COUNT_DOUBT, ROAD, VEHICLE, RoadDesign, hedged_reach, right_turn_lanes_from_kerb
+from towndrive.sim.spec import ROAD, VEHICLE, RoadDesign, hedged_reach, right_turn_lanes_from_kerb
 
 
 @lru_cache(maxsize=64)
@@ -204,10 +204,6 @@ class JunctionRules:
     # re-placed again when the reach read moves this far
     replace_radius_m: float = 1.0
     replace_reach_m: float = 0.3
-    # A lane count the road turned into has let go (less likely than ``sim.spec.COUNT_DOUBT``) is kept in reach again
-    # only once this likely: its odds, from a line a few pixels wide, scatter across the doubt from frame to frame,
-    # and each crossing would move the turn's end by a lane late in the turn
-    count_doubt_again: float = 2 * COUNT_DOUBT
     exit_min_readings: int = 3
     exit_last_readings: int = 5
     exit_max_shift_m: float = 5.0
@@ -253,7 +249,6 @@ class JunctionGuidance:
         self.lanes_to_kerb = 0  # lanes between ours and the kerb, as the lane lines told before the bar
         self._exit: list[tuple[float, float]] = []  # (reach, turn angle in degrees) read from the road turned into
         self._exit_fix: tuple[float, float] | None = None  # ... their medians, once there are enough readings
-        self._let_go: set[int] = set()  # lane counts those readings have made unlikely (``count_doubt_again``)
         self._fills: list[float] = []  # the white line beside it: how much of it is painted (ExitLine.divider_fill)
         self._arc_start_m: float | None = None  # where the arc begins (approach frame), once the car is on it
         # the rest of the turn re-placed from the car's pose (``arc_from_pose``), and the reach and angle it was
@@ -414,11 +409,10 @@ class JunctionGuidance:
         inner = self._exit_fix[0]
         if command != 2:
             return inner, 0.0
-        w, odds = self.lane_width_m, self.exit_odds()
+        w = self.lane_width_m
         options = [(p, inner - (n - 1 - right_turn_lanes_from_kerb(self.lanes_to_kerb, n)) * w,
-                    inner - (n - 1) * w, inner) for n, p in odds.items()]
-        doubts = [self.rules.count_doubt_again if n in self._let_go else COUNT_DOUBT for n in odds]
-        hedged = hedged_reach(options, self.lane_room_m, doubts)
+                    inner - (n - 1) * w, inner) for n, p in self.exit_odds().items()]
+        hedged = hedged_reach(options, self.lane_room_m)
         return hedged, hedged - hedged_reach(options, None)
 
     def exit_odds(self) -> dict[int, float]:
@@ -605,7 +599,6 @@ class JunctionGuidance:
         fix = self._settled(self._exit)
         if fix is not None:
             self._exit_fix = (fix[0], fix[1])
-            self._let_go |= {n for n, p in self.exit_odds().items() if p < COUNT_DOUBT}
 
     def _seen_at(self, line: ExitLine) -> np.ndarray:
         """Where a line seen this frame lies (its paint's middle, in the camera's ground frame) in the odometry
