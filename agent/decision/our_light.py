@@ -35,6 +35,9 @@ class LightSeen:
     in_view_m: float = 0.0  # nearer than this (camera to head) the head leaves the picture (``OurLight.in_view``)
 
 
+BY_ELEVATION_RAD = math.radians(2.0)  # a head higher above the horizon than this is placed by its elevation
+
+
 @dataclass(frozen=True)
 class LightRules:
     light_score_threshold: float = 0.4
@@ -60,9 +63,8 @@ class OurLight:
         hangs at ``height_m``, the design's mast-arm height by default), or from its height in pixels when it is
         too near the horizon for that."""
         elevation = self._elevation(box)
-        if elevation > math.radians(2.0):
-            height = self.road.signal_head_height_m if height_m is None else height_m
-            return (height - self.geometry.camera.mount_height_m) / math.tan(elevation)
+        if elevation > BY_ELEVATION_RAD:
+            return self._above_camera_m(height_m) / math.tan(elevation)
         return self.by_size(box)
 
     def _elevation(self, box: tuple[float, float, float, float]) -> float:
@@ -70,16 +72,24 @@ class OurLight:
         k, f = self.geometry.k, self.geometry.f
         return math.atan((float(k[1, 2]) - 0.5 * (box[1] + box[3])) / f) + math.radians(self.geometry.camera.pitch_deg)
 
+    def _above_camera_m(self, height_m: float | None) -> float:
+        """How high a head hanging at ``height_m`` (the design's mast-arm height by default) is above the camera."""
+        height = self.road.signal_head_height_m if height_m is None else height_m
+        return height - self.geometry.camera.mount_height_m
+
+    def _housing_px(self, box: tuple[float, float, float, float]) -> float:
+        """The head's housing height in pixels: the box's, less its padding (at least a pixel)."""
+        return max(box[3] - box[1] - self.rules.light_box_pad_px, 1.0)
+
     def distance_sd(self, box: tuple[float, float, float, float], height_m: float | None = None) -> float:
         """The standard error of ``distance`` from one image row (``BoxGeometry.row_sigma``) of the box's place: by
         elevation, the head's height over the camera divided by sin^2 of the elevation, times a row's angle; by
         size, the distance over the box's height in pixels."""
         geometry = self.geometry
         elevation = self._elevation(box)
-        if elevation > math.radians(2.0):
-            height = self.road.signal_head_height_m if height_m is None else height_m
-            return (height - geometry.camera.mount_height_m) / math.sin(elevation) ** 2 * geometry.row_sigma / geometry.f
-        return self.by_size(box) * geometry.row_sigma / max(box[3] - box[1] - self.rules.light_box_pad_px, 1.0)
+        if elevation > BY_ELEVATION_RAD:
+            return self._above_camera_m(height_m) / math.sin(elevation) ** 2 * geometry.row_sigma / geometry.f
+        return self.by_size(box) * geometry.row_sigma / self._housing_px(box)
 
     def line_tolerance(self, box: tuple[float, float, float, float], height_m: float | None = None) -> float:
         """How far from where the design puts our head a box's head may stand and still be ours: the design's
@@ -89,8 +99,7 @@ class OurLight:
 
     def by_size(self, box: tuple[float, float, float, float]) -> float:
         """Ground distance (m) to a signal head from its housing's height in pixels."""
-        return self.geometry.f * self.road.signal_housing_height_m / max(box[3] - box[1] - self.rules.light_box_pad_px,
-                                                                         1.0)
+        return self.geometry.f * self.road.signal_housing_height_m / self._housing_px(box)
 
     def choose(self, lights: list[Detection], line: StopLineTrack, turned_rad: float) -> LightSeen | None:
         """Our light among ``lights``, given the tracked stop line and the heading change ``turned_rad`` since the
